@@ -1,0 +1,150 @@
+"""npp-learn: run Algorithm 1 in one process on an lqr task, to a certificate.
+
+No ROS involved: the plant, the LQR expert and the loop run here. The run is stored as it
+grows in RUN_DIR/run.sqlite and resumes from there when started again with the same settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+import warnings
+from dataclasses import asdict, fields
+from pathlib import Path
+
+import numpy as np
+
+from npp_ros.inprocess import LIPSCHITZ_CHOICES, build_config, build_loop, evaluate, lipschitz_checks, resolve_lipschitz
+from npp_ros.lipschitz import LipschitzWarning
+from npp_ros.lqr import PAPER_EPSILON, TASKS, LQRExpert
+from npp_ros.progress import Counter, StatusLine
+from npp_ros.storage import EpisodeRow, RunFileError
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="npp-learn",
+        description=__doc__,
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    ap.add_argument("--task", choices=sorted(TASKS), default="lqr_2_1", help="dm_control lqr task")
+    ap.add_argument("--seed", type=int, default=0, help="task seed (plant) and initial-state stream")
+    ap.add_argument("--epsilon", type=float, default=None, help="target suboptimality; default: the paper's (50 / 300)")
+    ap.add_argument(
+        "--lipschitz",
+        default="analytic",
+        help=f"L: one of {', '.join(LIPSCHITZ_CHOICES)} or a number. 'analytic' bounds the expert's value slope "
+        "(the guarantee holds); 'paper' is 50 / 200, which is NOT a bound on these tasks",
+    )
+    ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
+    ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
+    ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
+    ap.add_argument("--horizon", type=int, default=1000, help="episode length H")
+    ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
+    ap.add_argument("--max-episodes", type=int, default=1000, help="stop uncertified after this many episodes")
+    ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/learn-TASK-seedSEED")
+    ap.add_argument(
+        "--rollouts", action="store_true", help="let the policy drive every episode (Algorithm 1 does not need it)"
+    )
+    ap.add_argument("--evaluate", type=int, default=100, metavar="N", help="after the run, N fresh rollouts")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    epsilon = args.epsilon if args.epsilon is not None else PAPER_EPSILON[args.task]
+    run_dir = args.run_dir or Path("runs") / f"learn-{args.task}-seed{args.seed}"
+    try:
+        expert = LQRExpert(args.task, args.seed, horizon=args.horizon, gamma=args.gamma)
+        lipschitz = resolve_lipschitz(args.task, args.lipschitz, expert)
+        config = build_config(
+            args.task, args.seed, lipschitz, epsilon,
+            condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
+        )  # fmt: skip
+        config.spec()  # validates epsilon, p, delta, L before any work
+        status = StatusLine(epsilon, args.condition)
+        loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", rollouts=args.rollouts, observers=[status])
+    except (ValueError, RunFileError) as exc:
+        print(f"npp-learn: {exc}", file=sys.stderr)
+        return 2
+
+    print(f"npp-learn: {args.task} seed {args.seed}, epsilon {epsilon:g}, {lipschitz.describe()}", file=sys.stderr)
+    if loop.rows:
+        print(f"npp-learn: resuming {run_dir / 'run.sqlite'} at episode {loop.next_episode}", file=sys.stderr)
+    started = time.perf_counter()
+    try:
+        result = loop.run(args.max_episodes)
+    except KeyboardInterrupt:
+        status.close()
+        print(f"\nnpp-learn: interrupted; {loop.next_episode} episodes stored, resumed on restart", file=sys.stderr)
+        return 130
+    status.close()
+    elapsed = time.perf_counter() - started
+    write_episode_log(run_dir / "episodes.csv", result.rows)
+
+    evaluation = None
+    if args.evaluate > 0 and len(loop.dataset):
+        rng = np.random.default_rng([args.seed, 1 << 30])  # a stream the run never used for s0
+        evaluation = evaluate(loop.policy, expert, args.task, rng, args.evaluate, args.horizon, Counter("evaluating"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LipschitzWarning)  # reported below, in the summary
+        checks = lipschitz_checks(loop, expert, evaluation.visited_slope if evaluation else 0.0)
+
+    summary = {
+        "task": args.task,
+        "seed": args.seed,
+        "episodes": result.episodes,
+        "oracle_calls": result.oracle_calls,
+        "dataset_size": result.dataset_size,
+        "lipschitz": asdict(lipschitz),
+        "certificate": asdict(result.certificate) if result.certificate else None,
+        "lipschitz_checks": [{"slope": c.slope, "source": c.source, "ok": c.ok} for c in checks],
+        "wall_time_s": elapsed,
+    }
+    if result.certificate:
+        print(result.certificate.summary())
+    else:
+        print(
+            f"NOT CERTIFIED after {result.episodes} episodes "
+            f"({result.oracle_calls} oracle calls, |D| = {result.dataset_size})"
+        )
+    print(f"  L source detail  {lipschitz.detail}")
+    for check in checks:
+        print(f"  L check         {'ok  ' if check.ok else 'FAIL'} {check.message()}")
+    if evaluation is not None:
+        frac = evaluation.fraction_within(epsilon)
+        gaps = evaluation.true_gaps
+        print(
+            f"  evaluation      {args.evaluate} fresh s0: V*(s0) - V^pi(s0) median {np.median(gaps):.2f}, "
+            f"max {gaps.max():.2f}; {frac:.0%} within epsilon; "
+            f"{evaluation.lower_bound_violations} returns below V_lb(s0)"
+        )
+        summary["evaluation"] = {
+            "rollouts": args.evaluate,
+            "fraction_within_epsilon": frac,
+            "true_gap_median": float(np.median(gaps)),
+            "true_gap_max": float(gaps.max()),
+            "lower_bound_violations": evaluation.lower_bound_violations,
+        }
+    print(f"  run folder      {run_dir} ({elapsed:.1f} s)")
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return 0 if result.certificate else 1
+
+
+def write_episode_log(path: Path, rows: list[EpisodeRow]) -> None:
+    names = [f.name for f in fields(EpisodeRow)]
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(names)
+        for row in rows:
+            cells = (getattr(row, name) for name in names)
+            writer.writerow([" ".join(f"{x:.17g}" for x in v) if isinstance(v, tuple) else v for v in cells])
+    tmp.replace(path)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

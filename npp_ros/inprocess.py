@@ -1,0 +1,166 @@
+"""Algorithm 1 in one process: the lqr plant, its LQR expert and the loop, wired for a seed.
+
+This is what the supervisor node does over ROS, with the ROS parts replaced by direct calls;
+both build their loop with :func:`build_config` and sample s0 with :func:`initial_state_fn`,
+so the same seed gives the same numbers either way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.certification import Condition
+from npp_ros.dataset import FloatArray
+from npp_ros.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
+from npp_ros.loop import NPPLoop, Observer, RunConfig
+from npp_ros.lqr import (
+    PAPER_LIPSCHITZ,
+    LQRExpert,
+    LQRPlant,
+    episode_rng,
+    initial_state_diameter,
+    rollout,
+    sample_initial_state,
+)
+from npp_ros.storage import RunStore
+
+LIPSCHITZ_CHOICES = ("analytic", "paper")
+
+
+def resolve_lipschitz(task: str, choice: str | float, expert: LQRExpert) -> LipschitzConstant:
+    """'analytic' (default, a true bound), 'paper' (50 / 200, not a bound) or a number (user)."""
+    if choice == "analytic":
+        return expert.analytic_lipschitz()
+    if choice == "paper":
+        return LipschitzConstant(PAPER_LIPSCHITZ[task], "paper", "the paper's choice (Section 5); not a bound on V*")
+    try:
+        value = float(choice)
+    except ValueError:
+        known = ", ".join(LIPSCHITZ_CHOICES)
+        raise ValueError(f"the Lipschitz choice must be one of {known} or a number, got {choice!r}") from None
+    return LipschitzConstant(value, "user", "given on the command line")
+
+
+def build_config(
+    task: str,
+    seed: int,
+    lipschitz: LipschitzConstant,
+    epsilon: float,
+    *,
+    condition: Condition = "i",
+    p: float = 0.9,
+    delta: float = 0.1,
+    horizon: int = 1000,
+    gamma: float = 1.0,
+) -> RunConfig:
+    from npp_ros.lqr import check_task
+
+    bodies, actuators = check_task(task)
+    return RunConfig(
+        task=task, seed=seed, state_dim=2 * bodies, action_dim=actuators, lipschitz=lipschitz,
+        epsilon=epsilon, condition=condition, p=p, delta=delta, horizon=horizon, gamma=gamma,
+        diameter=initial_state_diameter(),
+    )  # fmt: skip
+
+
+def initial_state_fn(task: str, seed: int) -> Callable[[int], FloatArray]:
+    """s0 for episode e: its own seeded stream, so a resumed run replays the same states."""
+    return lambda episode: sample_initial_state(task, episode_rng(seed, episode))
+
+
+class PolicyRollouts:
+    """Episode driver: the greedy policy drives the plant for H steps; returns the return."""
+
+    def __init__(self, plant: LQRPlant, horizon: int) -> None:
+        self.plant = plant
+        self.horizon = horizon
+
+    def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None:
+        if len(policy.dataset) == 0:
+            return None
+        return rollout(self.plant, policy.act, initial_state, self.horizon).total_return
+
+
+@dataclass
+class Evaluation:
+    """Fresh s0 ~ rho: the policy's return against V*(s0) and V_lb(s0)."""
+
+    initial_states: FloatArray
+    policy_returns: FloatArray
+    expert_values: FloatArray
+    lower_bounds: FloatArray
+    visited_slope: float
+
+    @property
+    def true_gaps(self) -> FloatArray:
+        return self.expert_values - self.policy_returns
+
+    def fraction_within(self, epsilon: float) -> float:
+        return float(np.mean(self.true_gaps <= epsilon))
+
+    @property
+    def lower_bound_violations(self) -> int:
+        """Rollouts whose return fell below V_lb(s0): Theorem 3.4 broken (L too small)."""
+        return int(np.sum(self.policy_returns < self.lower_bounds - 1e-9))
+
+
+def evaluate(
+    policy: NonparametricPolicy,
+    expert: LQRExpert,
+    task: str,
+    rng: np.random.Generator,
+    count: int,
+    horizon: int,
+    progress: Callable[[int, int], None] | None = None,
+) -> Evaluation:
+    plant = LQRPlant(task, expert.seed)
+    states = np.array([sample_initial_state(task, rng) for _ in range(count)])
+    returns = np.empty(count)
+    slope = 0.0
+    for k, s0 in enumerate(states):
+        run = rollout(plant, policy.act, s0, horizon)
+        returns[k] = run.total_return
+        slope = max(slope, float(np.max(expert.slope(run.states))))
+        if progress is not None:
+            progress(k + 1, count)
+    values = np.asarray(expert.value(states))
+    lower = np.asarray(policy.v_lb(states))
+    return Evaluation(states, returns, values, lower, slope)
+
+
+def build_loop(
+    config: RunConfig,
+    expert: LQRExpert,
+    *,
+    store_path: Path | None = None,
+    rollouts: bool = False,
+    observers: Sequence[Observer] = (),
+) -> NPPLoop:
+    store = RunStore.open_or_create(store_path, config.metadata()) if store_path is not None else None
+    driver = PolicyRollouts(LQRPlant(config.task, config.seed), config.horizon) if rollouts else None
+    return NPPLoop(
+        config,
+        expert,
+        initial_state_fn(config.task, config.seed),
+        store=store,
+        driver=driver,
+        observers=observers,
+        expert_value=expert.value,
+    )
+
+
+def lipschitz_checks(loop: NPPLoop, expert: LQRExpert, rollout_slope: float = 0.0) -> list[LipschitzCheck]:
+    """Compare the L in use with every slope this run can compute or estimate (warns on shortfalls)."""
+    slopes = [(expert.analytic_lipschitz().value, "analytic (expert trajectories from S0)")]
+    if len(loop.dataset):
+        slopes.append((float(np.max(expert.slope(loop.dataset.states))), "exact |P x| over the dataset"))
+    if len(loop.dataset) >= 2:
+        slopes.append((estimate_global(loop.dataset), "data-estimated (global)"))
+    if rollout_slope:
+        slopes.append((rollout_slope, "exact |P x| over the evaluation rollouts"))
+    return [check_lipschitz(loop.config.lipschitz.value, slope, source) for slope, source in slopes]

@@ -1,0 +1,261 @@
+"""The dm_control lqr plants and their closed-form optimal controller (the expert oracle).
+
+Value convention (../shared/notes/lqr-values.md): with the default gamma = 1 the value is the
+undiscounted H-step return scale, V*(x) = H - J*(x), J* the infinite-horizon optimal cost; with
+gamma < 1 it is V*(x) = 1 / (1 - gamma) - J*_gamma(x).
+
+dm_control scores each step on the state *after* it: r = 1 - 0.5|q'|^2 - 0.05|u|^2, with
+x' = A x + B u. In terms of the pre-step state the stage cost is therefore
+c(x, u) = 0.5 (Ax + Bu)' Qc (Ax + Bu) + 0.5 u' R u, a DARE with a cross term, which this module
+solves exactly, so the expert's values equal its measured returns up to the horizon's tail.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.linalg import solve_discrete_are
+
+from npp_ros.dataset import DatasetError, FloatArray, Trajectory
+from npp_ros.lipschitz import LipschitzConstant
+
+TASKS: dict[str, tuple[int, int]] = {"lqr_2_1": (2, 1), "lqr_6_2": (6, 2)}
+"""Task name -> (bodies, actuators)."""
+
+PAPER_LIPSCHITZ: dict[str, float] = {"lqr_2_1": 50.0, "lqr_6_2": 200.0}
+PAPER_EPSILON: dict[str, float] = {"lqr_2_1": 50.0, "lqr_6_2": 300.0}
+DEFAULT_HORIZON = 1000
+INITIAL_RADIUS = math.sqrt(2.0)
+MAX_HORIZON = 100_000
+
+
+class UnknownTaskError(ValueError):
+    pass
+
+
+def check_task(task: str) -> tuple[int, int]:
+    if task not in TASKS:
+        raise UnknownTaskError(f"unknown task {task!r}; known tasks: {', '.join(sorted(TASKS))}")
+    return TASKS[task]
+
+
+def check_horizon(horizon: int) -> int:
+    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):
+        raise ValueError(f"horizon must be an integer, got {horizon!r}")
+    if not 1 <= horizon <= MAX_HORIZON:
+        raise ValueError(f"horizon must lie in [1, {MAX_HORIZON}], got {horizon}")
+    return int(horizon)
+
+
+def sample_initial_state(task: str, rng: np.random.Generator) -> FloatArray:
+    """s0 ~ rho: positions uniform on the sphere of radius sqrt(2), zero velocity (as dm_control)."""
+    bodies, _ = check_task(task)
+    unit = rng.standard_normal(bodies)
+    return np.concatenate([INITIAL_RADIUS * unit / np.linalg.norm(unit), np.zeros(bodies)])
+
+
+def initial_state_diameter() -> float:
+    """diam(S0) for the lqr tasks: the position sphere of radius sqrt(2)."""
+    return 2 * INITIAL_RADIUS
+
+
+def episode_rng(seed: int, episode: int) -> np.random.Generator:
+    """One independent stream per (seed, episode): runs resume and replay exactly."""
+    return np.random.default_rng([int(seed), int(episode)])
+
+
+class LQRPlant:
+    """A dm_control lqr task driven step by step, with an explicit horizon and no termination."""
+
+    def __init__(self, task: str, seed: int) -> None:
+        self.bodies, self.actuators = check_task(task)
+        os.environ.setdefault("MUJOCO_GL", "disable")  # nothing renders; silence the GLFW probe
+        from dm_control import suite
+
+        env = suite.load("lqr", task, task_kwargs={"random": int(seed)})
+        self.task = task
+        self.seed = int(seed)
+        self.physics = env.physics
+        self._task = env.task
+        model = self.physics.model
+        self.dt = float(model.opt.timestep)
+        self.state_dim = 2 * self.bodies
+        self.action_dim = self.actuators
+        self.joint_names = [model.id2name(i, "joint") for i in range(model.njnt)]
+        self.actuated_joint_names = [model.id2name(int(model.actuator_trnid[i, 0]), "joint") for i in range(model.nu)]
+        self.control_cost_coef = float(self._task.control_cost_coef)
+        self.steps = 0
+
+    # -------------------------------------------------------------- description
+    @property
+    def state_cost(self) -> FloatArray:
+        """Qc: the reward penalises positions only."""
+        return np.diag(np.concatenate([np.ones(self.bodies), np.zeros(self.bodies)]))
+
+    @property
+    def control_cost(self) -> FloatArray:
+        return self.control_cost_coef * np.eye(self.action_dim)
+
+    def model_sha256(self) -> str:
+        """Fingerprint of the compiled model, so an expert can prove it models this plant."""
+        m = self.physics.model
+        parts = [m.jnt_stiffness, m.dof_damping, m.opt.timestep, m.actuator_gear, m.body_mass]
+        blob = b"".join(np.ascontiguousarray(np.asarray(x, dtype=np.float64)).tobytes() for x in parts)
+        return hashlib.sha256(blob).hexdigest()
+
+    def linearization(self) -> tuple[FloatArray, FloatArray]:
+        """x' = A x + B u, exact: the plant is linear, so centred differences are exact to rounding."""
+        import mujoco
+
+        saved = self.state()
+        self.reset(np.zeros(self.state_dim))
+        m, d = self.physics.model.ptr, self.physics.data.ptr
+        nx = 2 * m.nv + m.na
+        a = np.zeros((nx, nx))
+        b = np.zeros((nx, m.nu))
+        mujoco.mjd_transitionFD(m, d, 1e-6, True, a, b, None, None)
+        self.reset(saved)
+        return a, b
+
+    # -------------------------------------------------------------- stepping
+    def check_state(self, state: ArrayLike, what: str = "state") -> FloatArray:
+        arr = np.asarray(state, dtype=np.float64)
+        if arr.shape != (self.state_dim,):
+            raise DatasetError(
+                f"{what} must have {self.state_dim} entries for {self.task} "
+                f"(qpos then qvel of {self.bodies} joints), got shape {arr.shape}"
+            )
+        if not np.isfinite(arr).all():
+            bad = int(np.argwhere(~np.isfinite(arr))[0, 0])
+            raise DatasetError(f"{what}[{bad}] is {float(arr[bad])}; states must be finite")
+        return arr
+
+    def check_action(self, action: ArrayLike) -> FloatArray:
+        arr = np.asarray(action, dtype=np.float64).reshape(-1)
+        if arr.shape != (self.action_dim,):
+            raise DatasetError(f"action must have {self.action_dim} entries for {self.task}, got {arr.shape[0]}")
+        if not np.isfinite(arr).all():
+            raise DatasetError("action entries must be finite")
+        return arr
+
+    def reset(self, state: ArrayLike) -> FloatArray:
+        x = self.check_state(state)
+        with self.physics.reset_context():
+            self.physics.data.qpos[:] = x[: self.bodies]
+            self.physics.data.qvel[:] = x[self.bodies :]
+        self.steps = 0
+        return x
+
+    def state(self) -> FloatArray:
+        return np.concatenate([self.physics.data.qpos, self.physics.data.qvel]).astype(np.float64)
+
+    def step(self, action: ArrayLike) -> float:
+        """Apply u for one control step; return the task's reward for that step."""
+        u = self.check_action(action)
+        self.physics.set_control(u)
+        self.physics.step()
+        self.steps += 1
+        return float(self._task.get_reward(self.physics))
+
+
+@dataclass(frozen=True)
+class Rollout:
+    states: FloatArray  # (T, n): s_0 .. s_{T-1}
+    actions: FloatArray  # (T, m)
+    rewards: FloatArray  # (T,)
+
+    @property
+    def total_return(self) -> float:
+        return float(self.rewards.sum())
+
+
+def rollout(plant: LQRPlant, controller, initial_state: ArrayLike, horizon: int) -> Rollout:
+    """Roll ``controller(state) -> action`` out on the plant for ``horizon`` steps."""
+    horizon = check_horizon(horizon)
+    states = np.empty((horizon, plant.state_dim))
+    actions = np.empty((horizon, plant.action_dim))
+    rewards = np.empty(horizon)
+    x = plant.reset(initial_state)
+    for t in range(horizon):
+        u = controller(x)
+        states[t], actions[t] = x, u
+        rewards[t] = plant.step(u)
+        x = plant.state()
+    return Rollout(states, actions, rewards)
+
+
+class LQRExpert:
+    """The TrajectoryOptimizer of Algorithm 1: closed-form optimal control of the same plant."""
+
+    def __init__(self, task: str, seed: int, horizon: int = DEFAULT_HORIZON, gamma: float = 1.0) -> None:
+        if not 0 < gamma <= 1:
+            raise ValueError(f"gamma must lie in (0, 1], got {gamma!r}")
+        self.horizon = check_horizon(horizon)
+        self.gamma = float(gamma)
+        self.plant = LQRPlant(task, seed)  # its own instance: rollouts never disturb the caller's plant
+        self.task, self.seed = task, int(seed)
+        a, b = self.plant.linearization()
+        self.A, self.B = a, b
+        qc, r = self.plant.state_cost, self.plant.control_cost
+        qx = a.T @ qc @ a
+        ru = r + b.T @ qc @ b
+        cross = a.T @ qc @ b
+        scale = math.sqrt(self.gamma)
+        p = solve_discrete_are(scale * a, scale * b, qx, ru, s=cross)
+        self.P = 0.5 * (p + p.T)
+        self.K = np.linalg.solve(ru + self.gamma * b.T @ self.P @ b, self.gamma * b.T @ self.P @ a + cross.T)
+        self.offset = float(self.horizon) if self.gamma == 1.0 else 1.0 / (1.0 - self.gamma)
+
+    @property
+    def closed_loop(self) -> FloatArray:
+        return self.A - self.B @ self.K
+
+    def action(self, state: ArrayLike) -> FloatArray:
+        return -self.K @ np.asarray(state, dtype=np.float64)
+
+    def value(self, states: ArrayLike) -> float | FloatArray:
+        """V*(x) = offset - 0.5 x'Px, single state or batch."""
+        x = np.asarray(states, dtype=np.float64)
+        quad = np.einsum("...i,ij,...j->...", x, self.P, x)
+        out = self.offset - 0.5 * quad
+        return float(out) if np.ndim(out) == 0 else out
+
+    def slope(self, states: ArrayLike) -> float | FloatArray:
+        """|grad V*(x)| = |P x|."""
+        x = np.asarray(states, dtype=np.float64)
+        out = np.linalg.norm(x @ self.P, axis=-1)
+        return float(out) if np.ndim(out) == 0 else out
+
+    def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:
+        """Optimal trajectory from ``initial_state``, rolled out in MuJoCo, with Q_t = V*(s_t)."""
+        x0 = self.plant.check_state(initial_state, "requested state")
+        steps = self.horizon if horizon is None or horizon == 0 else check_horizon(horizon)
+        run = rollout(self.plant, self.action, x0, steps)
+        return Trajectory(run.states, run.actions, np.asarray(self.value(run.states), dtype=np.float64))
+
+    def analytic_lipschitz(self) -> LipschitzConstant:
+        """sup |P x| over every state the expert visits from S0 within the horizon.
+
+        For quadratic V*, |V*(s) - V*(s')| <= |s - s'| max(|Ps|, |Ps'|), so this bounds the slope
+        between any two states of that region. x_t = Phi^t E_q q0 with |q0| = sqrt(2), so the sup at
+        step t is sqrt(2) times the largest singular value of P Phi^t E_q.
+        """
+        phi = self.closed_loop
+        x = np.eye(self.plant.state_dim)[:, : self.plant.bodies]  # Phi^t E_q, t = 0
+        best, best_t = 0.0, 0
+        for t in range(self.horizon):
+            sigma = float(np.linalg.norm(self.P @ x, 2))
+            if sigma > best:
+                best, best_t = sigma, t
+            x = phi @ x
+        value = INITIAL_RADIUS * best
+        detail = (
+            f"sup |P x| over the expert's trajectories from S0 within H = {self.horizon} "
+            f"(largest at step {best_t}), {self.task} seed {self.seed}"
+        )
+        return LipschitzConstant(value, "lqr-analytic", detail)
