@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import random_dataset
+
 from npp_ros.bounds import EmptyDatasetError, NonparametricPolicy
 from npp_ros.dataset import Dataset, DatasetError
 
@@ -116,7 +116,11 @@ def test_empty_dataset_gives_infinite_gap_and_no_action() -> None:
 
 @pytest.mark.parametrize(
     ("state", "message"),
-    [([0.0], r"shape \(2,\) or \(batch, 2\)"), ([0.0, np.nan], r"state\[1\] is nan"), ([[0.0, 1.0], [np.inf, 0]], r"state\[1, 0\]")],
+    [
+        ([0.0], r"shape \(2,\) or \(batch, 2\)"),
+        ([0.0, np.nan], r"state\[1\] is nan"),
+        ([[0.0, 1.0], [np.inf, 0]], r"state\[1, 0\]"),
+    ],
 )
 def test_bad_query_states_are_refused(state, message) -> None:
     data = Dataset(2, 1)

@@ -1,0 +1,25 @@
+# Two entry points, each doing its own set-up on a fresh machine:
+#   make run    the main job (Algorithm 1 on lqr_2_1 to a certificate)
+#   make test   the test suite
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.npp-setup-done
+INTERFACES := $(shell find msgs_py -type f 2>/dev/null)
+
+.PHONY: setup run test lint clean-venv
+setup: $(STAMP)
+
+$(STAMP): requirements.lock pyproject.toml scripts/setup.sh $(INTERFACES)
+	bash scripts/setup.sh $(VENV)
+
+run: $(STAMP)
+	$(VENV)/bin/npp-learn --task lqr_2_1 --seed 0
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check npp_ros nodes tests && $(VENV)/bin/ruff format --check npp_ros nodes tests
+
+clean-venv:
+	rm -rf $(VENV)
