@@ -90,7 +90,7 @@ def test_resume_with_other_settings_is_refused_and_the_file_is_untouched(certifi
     config, path, _, _, _ = certified_run
     before = path.read_bytes()
     other = build_config("lqr_2_1", 0, config.lipschitz, 40.0)
-    with pytest.raises(RunFileError, match="epsilon: file has 50.0, this run asks for 40.0"):
+    with pytest.raises(RunFileError, match=r"epsilon: file has 50.0, this run asks for 40.0"):
         build_loop(other, expert_2_1, store_path=path)
     assert path.read_bytes() == before
 

@@ -47,7 +47,7 @@ def test_initial_states_lie_on_the_position_sphere_and_are_reproducible() -> Non
 
 
 def test_unknown_task_is_refused_by_name() -> None:
-    with pytest.raises(UnknownTaskError, match="lqr_9_9.*known tasks: lqr_2_1, lqr_6_2"):
+    with pytest.raises(UnknownTaskError, match=r"lqr_9_9.*known tasks: lqr_2_1, lqr_6_2"):
         LQRPlant("lqr_9_9", seed=0)
 
 

@@ -149,7 +149,8 @@ WRITER = textwrap.dedent(
     while True:
         rng = np.random.default_rng(k)
         t = Trajectory(rng.normal(size=(2000, 4)), rng.normal(size=(2000, 1)), rng.normal(size=2000))
-        store.record_episode(EpisodeRow(k, (0.0,) * 4, 0.0, 1.0, 1.0, True, k, 2000 * (k + 1), k + 1, 0, 0, 24, False), t)
+        r = EpisodeRow(k, (0.0,) * 4, 0.0, 1.0, 1.0, True, k, 2000 * (k + 1), k + 1, 0, 0, 24, False)
+        store.record_episode(r, t)
         print(k, flush=True)
         k += 1
     """
