@@ -45,6 +45,9 @@ class Observer:
     def on_certificate(self, certificate: Certificate) -> None:
         """Called once, when the run certifies."""
 
+    def on_trajectory(self, index: int, trajectory: Trajectory) -> None:
+        """Called when an expert trajectory is stored, before the policy drives the episode."""
+
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -186,8 +189,10 @@ class NPPLoop:
         # Persist before anything else can fail: expert data is the expensive part.
         if self.store is not None:
             self.store.record_episode(row, trajectory)
-        if trajectory is not None:
+        if trajectory is not None and index is not None:
             self.dataset.append(trajectory)
+            for observer in self.observers:
+                observer.on_trajectory(index, trajectory)
         self.certifier.observe(gap, called)
         self.rows.append(row)
         if self.driver is not None:

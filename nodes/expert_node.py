@@ -1,0 +1,185 @@
+"""npp-expert: serves the LQR expert's optimal trajectories for exactly the plant the sim describes.
+
+The expert is built from the sim's latched plant description, never from its own parameters, and
+proves it models the same plant by comparing model fingerprints. Every request is validated; a bad
+one gets success = false and a message naming the problem, and the node keeps serving.
+"""
+
+from __future__ import annotations
+
+import sys
+from array import array
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from npp_interfaces.msg import PlantDescription
+from npp_interfaces.srv import ExpertTrajectory
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from nodes.common import EXPERT_SERVICE, LATCHED_QOS, PLANT, StartupError, declare, parameter_help, run_node
+from npp_ros.lqr import MAX_HORIZON, LQRExpert
+
+PARAMETERS: list[tuple[str, Any, str]] = [
+    ("gamma", 1.0, "discount in (0, 1]; 1 = undiscounted H-step values V* = H - J*"),
+    ("max_horizon", 10000, f"largest horizon a request may ask for, in [1, {MAX_HORIZON}]"),
+]
+
+# Requests queue while one is computed; rclpy's default service queue (KEEP_LAST 10) silently drops
+# the oldest when more than 10 clients' requests are pending, so the expert keeps a deep one.
+SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+
+USAGE = f"""npp-expert: the LQR expert oracle as a ROS 2 service (node "npp_expert").
+
+Builds the closed-form optimal controller of the plant the sim publishes and answers trajectory
+requests from any state. Bad requests get success = false and a precise message.
+
+subscribes  /{PLANT} (npp_interfaces/msg/PlantDescription, latched): the plant to model
+serves      /{EXPERT_SERVICE} (npp_interfaces/srv/ExpertTrajectory)
+              request:  float64[] state (qpos then qvel), uint32 horizon (0 = the plant's horizon)
+              response: success, message, state_dim, action_dim, row-major states, actions, values
+
+{parameter_help(PARAMETERS)}
+"""
+
+
+def _f64(values: Any) -> array:
+    """A float64 array.array: the fast path of rosidl's sequence setters."""
+    out = array("d")
+    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+    return out
+
+
+def _declare_all(node: Node) -> dict[str, Any]:
+    """Declare PARAMETERS; a value of the wrong type (gamma:=1 for a float) is a StartupError, not a traceback."""
+    try:
+        return {name: declare(node, name, default, description) for name, default, description in PARAMETERS}
+    except ParameterException as exc:
+        raise StartupError(
+            f"{exc} (types follow the defaults: {', '.join(f'{n}={d!r}' for n, d, _ in PARAMETERS)})"
+        ) from None
+
+
+class ExpertNode(Node):
+    def __init__(self) -> None:
+        super().__init__("npp_expert")
+        params = _declare_all(self)
+        self.gamma, self.max_horizon = self._validated(params)
+        self.expert: LQRExpert | None = None
+        self.description: PlantDescription | None = None
+        self.refusal: str | None = None  # set when the described plant cannot be modelled
+        self._plant_sub = self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
+        self._service = self.create_service(ExpertTrajectory, EXPERT_SERVICE, self.on_request, qos_profile=SERVICE_QOS)
+        self.get_logger().info(
+            f"waiting for the plant description on {self._plant_sub.topic_name}; "
+            f"serving {self._service.srv_name} (gamma {self.gamma}, max_horizon {self.max_horizon})"
+        )
+
+    @staticmethod
+    def _validated(params: dict[str, Any]) -> tuple[float, int]:
+        """All parameter checks in one place, so a bad launch fails at once with the reason."""
+        gamma, max_horizon = params["gamma"], params["max_horizon"]
+        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 < float(gamma) <= 1.0:
+            raise StartupError(f"parameter gamma must be a number in (0, 1], got {gamma!r}")
+        if isinstance(max_horizon, bool) or not isinstance(max_horizon, int) or not 1 <= max_horizon <= MAX_HORIZON:
+            raise StartupError(f"parameter max_horizon must be an integer in [1, {MAX_HORIZON}], got {max_horizon!r}")
+        return float(gamma), int(max_horizon)
+
+    # ------------------------------------------------------------------ plant
+    def on_plant(self, desc: PlantDescription) -> None:
+        try:
+            self._adopt(desc)
+        except Exception as exc:  # a callback must never take the node down
+            self.expert, self.description = None, desc
+            self.refusal = f"cannot model the plant described on {self._plant_sub.topic_name}: {exc}"
+            self.get_logger().error(self.refusal)
+
+    def _adopt(self, desc: PlantDescription) -> None:
+        key = (desc.task, desc.seed, desc.horizon, desc.model_sha256)
+        if self.description is not None and key == (
+            self.description.task,
+            self.description.seed,
+            self.description.horizon,
+            self.description.model_sha256,
+        ):
+            return  # the same plant again (e.g. a second latched delivery)
+        self.expert, self.description, self.refusal = None, desc, None
+        expert = LQRExpert(desc.task, int(desc.seed), horizon=int(desc.horizon), gamma=self.gamma)
+        mine = expert.plant.model_sha256()
+        if mine != desc.model_sha256:
+            self.refusal = (
+                f"model mismatch: the sim's {desc.task} seed {desc.seed} has fingerprint {desc.model_sha256!r}, "
+                f"this expert's model has {mine!r}; refusing to serve trajectories for a different plant"
+            )
+            self.get_logger().error(self.refusal)
+            return
+        self.expert = expert
+        self.get_logger().info(
+            f"modelling {desc.task} seed {desc.seed} (state_dim {expert.plant.state_dim}, "
+            f"action_dim {expert.plant.action_dim}, default horizon {expert.horizon}, fingerprint {mine[:12]})"
+        )
+
+    # ---------------------------------------------------------------- service
+    def on_request(
+        self, request: ExpertTrajectory.Request, response: ExpertTrajectory.Response
+    ) -> ExpertTrajectory.Response:
+        try:
+            problem = self._problem(request.state, int(request.horizon))
+            if problem is not None:
+                return self._refuse(response, problem)
+            assert self.expert is not None
+            horizon = int(request.horizon) or self.expert.horizon
+            traj = self.expert.trajectory(np.asarray(request.state, dtype=np.float64), horizon)
+        except Exception as exc:  # never let an exception escape into the executor
+            self.get_logger().error(f"expert request failed: {type(exc).__name__}: {exc}")
+            return self._refuse(response, f"internal error while computing the trajectory: {exc}")
+        response.success = True
+        response.message = f"{len(traj)} steps of {self.expert.task} seed {self.expert.seed}"
+        response.state_dim = self.expert.plant.state_dim
+        response.action_dim = self.expert.plant.action_dim
+        response.states = _f64(traj.states.ravel())
+        response.actions = _f64(traj.actions.ravel())
+        response.values = _f64(traj.values)
+        return response
+
+    def _problem(self, state: Sequence[float], horizon: int) -> str | None:
+        """What is wrong with a request, in words, or None if it can be served."""
+        if self.refusal is not None:
+            return self.refusal
+        if self.expert is None:
+            return f"no plant description received yet from the sim on {self._plant_sub.topic_name}"
+        plant = self.expert.plant
+        n = plant.state_dim
+        layout = f"qpos then qvel of {plant.bodies} joints of {plant.task}"
+        if len(state) == 0:
+            return f"state is empty; expected {n} entries ({layout})"
+        if len(state) != n:
+            return f"state has {len(state)} entries, expected {n} ({layout})"
+        x = np.asarray(state, dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(x))
+        if bad.size:
+            which = ", ".join(f"state[{i}] = {x[i]}" for i in bad[:5])
+            return f"state must be finite: {which}"
+        effective = horizon or self.expert.horizon
+        if effective > self.max_horizon:
+            what = f"horizon {horizon}" if horizon else f"the default horizon {effective} (the plant's)"
+            return (
+                f"{what} exceeds max_horizon {self.max_horizon} (parameter max_horizon); ask for 1..{self.max_horizon}"
+            )
+        return None
+
+    def _refuse(self, response: ExpertTrajectory.Response, message: str) -> ExpertTrajectory.Response:
+        self.get_logger().warning(f"refused a request: {message}", throttle_duration_sec=1.0)
+        response.success = False
+        response.message = message
+        return response
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_node(ExpertNode, argv, USAGE)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,375 @@
+"""npp-supervisor: Algorithm 1 over the ROS graph, with the same core loop as npp-learn.
+
+Per episode: sample s0 (the core's seeded stream, so the in-process run gives the same
+numbers), compute the gap, call the expert service when it exceeds epsilon (deadline and
+retries), persist and hand the trajectory to the policy, reset the sim to s0, let the policy
+drive, and publish the gap report and the episode result. Certifies and publishes the
+certificate latched. Restarted on the same run folder, it resumes where the file ends.
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+import threading
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import rclpy
+from npp_interfaces.msg import Certificate as CertificateMsg
+from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
+from npp_interfaces.msg import Trajectory as TrajectoryMsg
+from npp_interfaces.srv import ExpertTrajectory, GetTrajectories, ResetEpisode
+from rclpy.node import Node
+from std_msgs.msg import UInt32
+
+from nodes.common import (
+    CERTIFICATE,
+    DATASET_SERVICE,
+    DATASET_TOPIC,
+    EPISODE,
+    EXPERT_SERVICE,
+    GAP,
+    LATCHED_QOS,
+    PLANT,
+    POLICY_STATUS,
+    REPORT_QOS,
+    RESET_SERVICE,
+    ROLLOUT_DONE,
+    StartupError,
+    declare,
+    parameter_help,
+    run_node,
+    trajectory_arrays,
+)
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.certification import Certificate, CertificationStatus
+from npp_ros.dataset import FloatArray, Trajectory
+from npp_ros.inprocess import build_config, initial_state_fn, resolve_lipschitz
+from npp_ros.loop import NPPLoop, Observer
+from npp_ros.lqr import PAPER_EPSILON, LQRExpert
+from npp_ros.storage import EpisodeRow, RunStore
+
+PARAMS: list[tuple[str, object, str]] = [
+    ("epsilon", -1.0, "target suboptimality; <= 0 means the paper's value for the task (50 / 300)"),
+    ("lipschitz", "analytic", "L: 'analytic' (a true bound), 'paper' (50 / 200, not a bound) or a number"),
+    ("condition", "i", "Theorem 4.1 condition: i or ii"),
+    ("p", 0.9, "probability level of condition (i)"),
+    ("delta", 0.1, "confidence"),
+    ("max_episodes", 1000, "stop uncertified after this many episodes"),
+    ("run_dir", "runs/graph", "run folder: run.sqlite, gaps.csv, episodes.csv"),
+    ("expert_timeout", 30.0, "seconds to wait for one expert answer"),
+    ("expert_retries", 3, "expert attempts per episode before the run stops with an error"),
+    ("rollouts", True, "let the policy drive each episode through the sim"),
+    ("rollout_timeout", 120.0, "seconds to wait for the policy's episode before skipping its return"),
+]
+
+USAGE = f"""npp-supervisor: Algorithm 1 over the ROS graph (ROS 2 node "npp_supervisor").
+
+subscribes  /{PLANT} (latched), /{ROLLOUT_DONE}, /{POLICY_STATUS}
+publishes   /{GAP} (GapReport), /{EPISODE} (EpisodeResult), /{CERTIFICATE} (latched), /{DATASET_TOPIC}
+calls       /{EXPERT_SERVICE}, /{RESET_SERVICE}
+serves      /{DATASET_SERVICE}
+{parameter_help(PARAMS)}
+"""
+
+
+class ExpertUnavailable(RuntimeError):
+    pass
+
+
+class SupervisorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("npp_supervisor")
+        values = {name: declare(self, name, default, text) for name, default, text in PARAMS}
+        self.settings = self._validated(values)
+        self.loop: NPPLoop | None = None
+        self.plant: PlantDescription | None = None
+        self.stop = threading.Event()
+        self._rollouts: dict[int, EpisodeResult] = {}
+        self._rollout_arrived = threading.Condition()
+        self.policy_trajectories = -1
+        self.gap_pub = self.create_publisher(GapReport, GAP, REPORT_QOS)
+        self.episode_pub = self.create_publisher(EpisodeResult, EPISODE, REPORT_QOS)
+        self.certificate_pub = self.create_publisher(CertificateMsg, CERTIFICATE, LATCHED_QOS)
+        self.trajectory_pub = self.create_publisher(TrajectoryMsg, DATASET_TOPIC, REPORT_QOS)
+        self.expert = self.create_client(ExpertTrajectory, EXPERT_SERVICE)
+        self.reset = self.create_client(ResetEpisode, RESET_SERVICE)
+        self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
+        self.create_subscription(EpisodeResult, ROLLOUT_DONE, self.on_rollout, REPORT_QOS)
+        self.create_subscription(UInt32, POLICY_STATUS, self.on_policy_status, LATCHED_QOS)
+        self.create_service(GetTrajectories, DATASET_SERVICE, self.serve_dataset)
+        self.worker: threading.Thread | None = None
+        self.exit_code = 0
+        self.get_logger().info("waiting for the sim's plant description")
+
+    @staticmethod
+    def _validated(values: dict) -> dict:
+        """All parameter checks in one place; a bad value refuses to start with the reason."""
+        if values["condition"] not in ("i", "ii"):
+            raise StartupError(f"condition must be 'i' or 'ii', got {values['condition']!r}")
+        for name in ("p", "delta"):
+            if not 0 < float(values[name]) < 1:
+                raise StartupError(f"{name} must lie in (0, 1), got {values[name]!r}")
+        if int(values["max_episodes"]) < 1 or int(values["expert_retries"]) < 1:
+            raise StartupError("max_episodes and expert_retries must be >= 1")
+        if float(values["expert_timeout"]) <= 0 or float(values["rollout_timeout"]) <= 0:
+            raise StartupError("expert_timeout and rollout_timeout must be > 0")
+        lipschitz = str(values["lipschitz"])
+        if lipschitz not in ("analytic", "paper"):
+            try:
+                if not float(lipschitz) > 0:
+                    raise ValueError
+            except ValueError:
+                raise StartupError(
+                    f"lipschitz must be 'analytic', 'paper' or a number > 0, got {lipschitz!r}"
+                ) from None
+        return values
+
+    # ---------------------------------------------------------------- graph inputs
+    def on_plant(self, msg: PlantDescription) -> None:
+        if self.plant is not None:
+            if msg.model_sha256 != self.plant.model_sha256:
+                self.get_logger().error("the sim now describes another plant; this run keeps its own")
+            return
+        self.plant = msg
+        self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
+        self.worker.start()
+
+    def on_rollout(self, msg: EpisodeResult) -> None:
+        with self._rollout_arrived:
+            self._rollouts[msg.episode] = msg
+            self._rollout_arrived.notify_all()
+
+    def on_policy_status(self, msg: UInt32) -> None:
+        self.policy_trajectories = msg.data
+
+    def serve_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
+        loop = self.loop
+        if loop is None:
+            response.success = False
+            response.message = "the run has not started yet (no plant description from the sim)"
+            return response
+        data = loop.dataset
+        total = data.num_trajectories
+        count = min(request.max_count or 50, 200, max(total - request.start, 0))
+        response.success = True
+        response.total = total
+        response.lipschitz = loop.config.lipschitz.value
+        response.lipschitz_source = loop.config.lipschitz.source
+        response.trajectories = [
+            trajectory_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
+        ]
+        return response
+
+    # ---------------------------------------------------------------- Algorithm 1
+    def run_algorithm(self) -> None:
+        try:
+            self._run_algorithm()
+        except Exception as exc:  # the run must never die silently: say why and exit non-zero
+            self.get_logger().fatal(f"Algorithm 1 stopped: {exc}")
+            self.exit_code = 1
+            rclpy.try_shutdown()
+
+    def _run_algorithm(self) -> None:
+        assert self.plant is not None
+        s, plant = self.settings, self.plant
+        task = plant.task
+        expert = LQRExpert(task, plant.seed, horizon=plant.horizon)  # for L's analytic bound and V*(s0)
+        if expert.plant.model_sha256() != plant.model_sha256:
+            raise RuntimeError("the sim's plant differs from the task's model: refusing to certify")
+        epsilon = float(s["epsilon"]) if float(s["epsilon"]) > 0 else PAPER_EPSILON[task]
+        lipschitz = resolve_lipschitz(task, str(s["lipschitz"]), expert)
+        config = build_config(
+            task, plant.seed, lipschitz, epsilon,
+            condition=s["condition"], p=float(s["p"]), delta=float(s["delta"]), horizon=plant.horizon,
+        )  # fmt: skip
+        run_dir = Path(str(s["run_dir"]))
+        run_dir.mkdir(parents=True, exist_ok=True)
+        store = RunStore.open_or_create(run_dir / "run.sqlite", config.metadata())  # RunFileError: refuse
+        reporter = GraphReporter(self, run_dir, config.spec().quiet_episodes_required())
+        self.loop = NPPLoop(
+            config,
+            RosExpert(self, plant, float(s["expert_timeout"]), int(s["expert_retries"])),
+            initial_state_fn(task, plant.seed),
+            store=store,
+            driver=RosRollouts(self, float(s["rollout_timeout"])) if s["rollouts"] else None,
+            observers=[reporter],
+            expert_value=expert.value,
+        )
+        loop = self.loop
+        self.get_logger().info(
+            f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
+            f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
+        )
+        for k in range(loop.dataset.num_trajectories):  # a restarted policy may also listen here
+            self.trajectory_pub.publish(trajectory_msg(k, loop.dataset.trajectory(k)))
+        if loop.certificate is not None:
+            reporter.on_certificate(loop.certificate)
+        while not self.stop.is_set() and loop.certificate is None and loop.next_episode < int(s["max_episodes"]):
+            loop.run_episode()
+        if loop.certificate is None:
+            self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
+        store.close()
+
+    def wait_future(self, future, timeout: float):
+        done = threading.Event()
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout):
+            future.cancel()
+            return None
+        return future.result()
+
+
+def trajectory_msg(index: int, traj: Trajectory) -> TrajectoryMsg:
+    msg = TrajectoryMsg()
+    msg.index = index
+    msg.state_dim, msg.action_dim = traj.states.shape[1], traj.actions.shape[1]
+    msg.states = traj.states.ravel().tolist()
+    msg.actions = traj.actions.ravel().tolist()
+    msg.values = traj.values.tolist()
+    return msg
+
+
+class RosExpert:
+    """The oracle over /npp/expert/trajectory: a deadline per call, retries, clear failure."""
+
+    def __init__(self, node: SupervisorNode, plant: PlantDescription, timeout: float, retries: int) -> None:
+        self.node, self.plant, self.timeout, self.retries = node, plant, timeout, retries
+
+    def trajectory(self, initial_state: FloatArray) -> Trajectory:
+        log = self.node.get_logger()
+        last = "no answer"
+        for attempt in range(1, self.retries + 1):
+            if not self.node.expert.wait_for_service(timeout_sec=self.timeout):
+                last = f"service /{EXPERT_SERVICE} not available after {self.timeout:g} s"
+            else:
+                request = ExpertTrajectory.Request(state=initial_state.tolist(), horizon=0)
+                response = self.node.wait_future(self.node.expert.call_async(request), self.timeout)
+                if response is None:
+                    last = f"no answer within {self.timeout:g} s"
+                elif not response.success:
+                    last = f"expert refused: {response.message}"
+                else:
+                    return trajectory_arrays(
+                        response.states, response.actions, response.values, response.state_dim, response.action_dim
+                    )
+            log.warning(f"expert call {attempt}/{self.retries} failed: {last}")
+        raise ExpertUnavailable(f"the expert did not deliver after {self.retries} attempts: {last}")
+
+
+class RosRollouts:
+    """Episode driver: reset the sim to s0 and let the policy node drive; returns the sim's return."""
+
+    def __init__(self, node: SupervisorNode, timeout: float) -> None:
+        self.node, self.timeout = node, timeout
+
+    def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None:
+        node, log = self.node, self.node.get_logger()
+        held = policy.dataset.num_trajectories
+        deadline = time.monotonic() + self.timeout
+        while node.policy_trajectories < held and time.monotonic() < deadline and not node.stop.is_set():
+            log.info(f"waiting for the policy to hold {held} trajectories", throttle_duration_sec=10.0)
+            time.sleep(0.01)
+        if node.policy_trajectories < held:
+            log.warning(f"episode {episode}: the policy is not up to date; no rollout this episode")
+            return None
+        if not node.reset.wait_for_service(timeout_sec=self.timeout):
+            log.warning(f"episode {episode}: sim reset service unavailable; no rollout this episode")
+            return None
+        request = ResetEpisode.Request(state=initial_state.tolist(), episode=episode)
+        response = node.wait_future(node.reset.call_async(request), self.timeout)
+        if response is None or not response.success:
+            log.warning(f"episode {episode}: sim reset failed: {getattr(response, 'message', 'no answer')}")
+            return None
+        with node._rollout_arrived:
+            node._rollout_arrived.wait_for(
+                lambda: episode in node._rollouts, timeout=max(deadline - time.monotonic(), 1.0)
+            )
+            result = node._rollouts.pop(episode, None)
+        if result is None:
+            log.warning(f"episode {episode}: the policy's episode did not finish in time; no return recorded")
+            return None
+        return float(result.policy_return)
+
+
+class GraphReporter(Observer):
+    """Publishes gap reports, episode results and the certificate; appends the CSV logs."""
+
+    def __init__(self, node: SupervisorNode, run_dir: Path, quiet_required: int) -> None:
+        self.node = node
+        self.quiet_required = quiet_required
+        self.gap_log = run_dir / "gaps.csv"
+        self.episode_log = run_dir / "episodes.csv"
+
+    @staticmethod
+    def _append(path: Path, header: list[str], row: list[object]) -> None:
+        new = not path.exists()
+        with path.open("a", newline="") as fh:
+            writer = csv.writer(fh)
+            if new:
+                writer.writerow(header)
+            writer.writerow(row)
+
+    def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
+        node = self.node
+        stamp = node.get_clock().now().to_msg()
+        gap = GapReport()
+        gap.header.stamp = stamp
+        gap.episode = row.episode
+        gap.initial_state = list(row.initial_state)
+        gap.v_lb, gap.v_ub, gap.gap = row.v_lb, row.v_ub, row.gap
+        gap.epsilon = node.loop.config.epsilon if node.loop else float("nan")
+        gap.oracle_called = row.oracle_called
+        gap.dataset_size = row.dataset_size
+        gap.oracle_calls = row.oracle_calls
+        gap.quiet_episodes = row.quiet_episodes
+        gap.quiet_required = status.required
+        gap.condition = node.loop.config.condition if node.loop else ""
+        node.gap_pub.publish(gap)
+        result = EpisodeResult()
+        result.header.stamp = stamp
+        result.episode = row.episode
+        result.policy_return = row.policy_return if row.policy_return is not None else float("nan")
+        result.steps = node.plant.horizon if row.policy_return is not None and node.plant else 0
+        result.initial_state = list(row.initial_state)
+        result.expert_value_known = row.expert_value is not None
+        result.expert_value = row.expert_value if row.expert_value is not None else 0.0
+        result.v_lb = row.v_lb
+        node.episode_pub.publish(result)
+        self._append(
+            self.gap_log,
+            ["episode", "gap", "v_lb", "v_ub", "epsilon", "oracle_called", "dataset_size", "oracle_calls", "quiet"],
+            [row.episode, row.gap, row.v_lb, row.v_ub, gap.epsilon, int(row.oracle_called), row.dataset_size,
+             row.oracle_calls, row.quiet_episodes],
+        )  # fmt: skip
+        self._append(
+            self.episode_log,
+            ["episode", "initial_state", "policy_return", "expert_value", "v_lb", "oracle_called"],
+            [row.episode, " ".join(f"{x:.17g}" for x in row.initial_state), row.policy_return, row.expert_value,
+             row.v_lb, int(row.oracle_called)],
+        )  # fmt: skip
+
+    def on_trajectory(self, index: int, trajectory: Trajectory) -> None:
+        self.node.trajectory_pub.publish(trajectory_msg(index, trajectory))
+
+    def on_certificate(self, certificate: Certificate) -> None:
+        msg = CertificateMsg()
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        for name, value in asdict(certificate).items():
+            if name in ("task", "window", "required"):
+                continue
+            setattr(msg, name, value)
+        msg.quiet_episodes = certificate.window
+        msg.episodes_required = certificate.required
+        self.node.certificate_pub.publish(msg)
+        self.node.get_logger().info("\n" + certificate.summary())
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(SupervisorNode, argv, USAGE)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
