@@ -1,5 +1,5 @@
 # Two entry points, each doing its own set-up on a fresh machine:
-#   make run    the main job (Algorithm 1 on lqr_2_1 to a certificate)
+#   make run    the main job (the ROS graph runs Algorithm 1 on lqr_2_1 to a certificate)
 #   make test   the test suite
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -13,7 +13,7 @@ $(STAMP): requirements.lock pyproject.toml scripts/setup.sh $(INTERFACES)
 	bash scripts/setup.sh $(VENV)
 
 run: $(STAMP)
-	$(VENV)/bin/npp-learn --task lqr_2_1 --seed 0
+	$(VENV)/bin/npp-run --task lqr_2_1 --seed 0
 
 test: $(STAMP)
 	$(PY) -m pytest

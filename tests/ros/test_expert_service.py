@@ -1,0 +1,201 @@
+"""The expert service over real DDS: closed-form values, plant-consistent states, precise refusals."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pytest
+from npp_interfaces.msg import PlantDescription
+from npp_interfaces.srv import ExpertTrajectory
+from rclpy.client import Client
+
+from nodes.common import EXPERT_SERVICE, LATCHED_QOS, PLANT
+from npp_ros.lqr import LQRExpert, LQRPlant
+
+if TYPE_CHECKING:
+    from tests.ros.conftest import Launcher, RosClient
+
+TIMEOUT = 60.0
+
+
+def request(state: list[float] | np.ndarray, horizon: int = 0) -> ExpertTrajectory.Request:
+    return ExpertTrajectory.Request(state=[float(x) for x in state], horizon=horizon)
+
+
+def wait_until_modelling(client: RosClient, expert: Client, timeout: float = TIMEOUT) -> None:
+    """The service exists before the plant description arrives: poll until the expert has it."""
+    deadline = time.monotonic() + timeout
+    while True:
+        answer = client.call(expert, request([]), timeout)
+        if "no plant description" not in answer.message:
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"expert never received the plant description: {answer.message}")
+        time.sleep(0.1)
+
+
+def unpack(answer: ExpertTrajectory.Response) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    n, m = answer.state_dim, answer.action_dim
+    states = np.asarray(answer.states).reshape(-1, n)
+    actions = np.asarray(answer.actions).reshape(-1, m)
+    return states, actions, np.asarray(answer.values)
+
+
+def check_good(answer: ExpertTrajectory.Response, expert: LQRExpert, s0: np.ndarray, steps: int) -> None:
+    assert answer.success, answer.message
+    assert (answer.state_dim, answer.action_dim) == (expert.plant.state_dim, expert.plant.action_dim)
+    states, actions, values = unpack(answer)
+    assert states.shape == (steps, expert.plant.state_dim) and values.shape == (steps,)
+    np.testing.assert_array_equal(states[0], s0)
+    np.testing.assert_allclose(values, expert.value(states), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(actions, states @ -expert.K.T, rtol=1e-9, atol=1e-12)
+    predicted = states[:-1] @ expert.A.T + actions[:-1] @ expert.B.T
+    np.testing.assert_allclose(states[1:], predicted, rtol=0, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def graph_2_1(launch_module: Launcher) -> Launcher:
+    """One sim and one expert for the module: lqr_2_1, seed 0, default horizon 1000."""
+    launch_module("npp-sim", {"task": "lqr_2_1", "seed": 0})
+    launch_module("npp-expert", {})
+    return launch_module
+
+
+@pytest.fixture(scope="module")
+def expert_client(graph_2_1: Launcher, ros_client_module: Callable[..., RosClient]) -> tuple[RosClient, Client]:
+    client = ros_client_module("expert_test_client")
+    service = client.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT)
+    wait_until_modelling(client, service)
+    return client, service
+
+
+def test_good_requests_match_closed_form_and_plant(
+    expert_client: tuple[RosClient, Client], expert_2_1: LQRExpert
+) -> None:
+    client, service = expert_client
+    rng = np.random.default_rng(3)
+    for s0 in rng.normal(scale=1.0, size=(3, 4)):
+        check_good(client.call(service, request(s0, 0)), expert_2_1, s0, 1000)
+        check_good(client.call(service, request(s0, 50)), expert_2_1, s0, 50)
+
+
+@pytest.mark.parametrize(
+    ("state", "horizon", "fragments"),
+    [
+        ([0.1, 0.2, 0.3], 0, ["3 entries", "expected 4"]),
+        ([0.1, 0.2, 0.3, 0.4, 0.5], 10, ["5 entries", "expected 4"]),
+        ([0.1, 0.2, math.nan, 0.4], 0, ["finite", "state[2] = nan"]),
+        ([math.inf, 0.2, 0.3, -math.inf], 0, ["finite", "state[0] = inf", "state[3] = -inf"]),
+        ([], 0, ["empty", "expected 4"]),
+        ([0.1, 0.2, 0.3, 0.4], 4_000_000_000, ["horizon 4000000000", "max_horizon 10000"]),
+        ([0.1, 0.2, 0.3, 0.4], 10_001, ["horizon 10001", "max_horizon 10000"]),
+    ],
+)
+def test_bad_requests_get_precise_errors_and_the_node_keeps_serving(
+    expert_client: tuple[RosClient, Client],
+    expert_2_1: LQRExpert,
+    state: list[float],
+    horizon: int,
+    fragments: list[str],
+) -> None:
+    client, service = expert_client
+    answer = client.call(service, request(state, horizon))
+    assert not answer.success
+    for fragment in fragments:
+        assert fragment in answer.message, answer.message
+    assert len(answer.states) == len(answer.actions) == len(answer.values) == 0
+    s0 = np.array([0.5, -0.5, 0.1, 0.0])
+    check_good(client.call(service, request(s0, 30)), expert_2_1, s0, 30)
+
+
+def test_several_clients_concurrently(
+    graph_2_1: Launcher, ros_client: Callable[..., RosClient], expert_2_1: LQRExpert
+) -> None:
+    clients = [ros_client(f"expert_client_{i}") for i in range(4)]
+    services = [c.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT) for c in clients]
+    wait_until_modelling(clients[0], services[0])
+    errors: list[BaseException] = []
+    answered = [0] * len(clients)
+
+    def work(i: int) -> None:
+        try:
+            rng = np.random.default_rng(100 + i)
+            pending = []
+            for _ in range(5):  # several requests in flight per client
+                s0 = rng.normal(size=4)
+                pending.append((s0, services[i].call_async(request(s0, 200))))
+            for s0, future in pending:
+                check_good(clients[i].wait_for(future, TIMEOUT, "expert answer"), expert_2_1, s0, 200)
+                answered[i] += 1
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(len(clients))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(TIMEOUT * 2)
+    assert not errors, errors
+    assert answered == [5, 5, 5, 5]
+    for proc, _, _ in graph_2_1.procs:
+        graph_2_1.assert_alive(proc)
+
+
+def test_expert_follows_the_sims_plant_description(launch: Launcher, ros_client: Callable[..., RosClient]) -> None:
+    """Task, seed and horizon come from the sim, not from the expert's own parameters."""
+    launch("npp-sim", {"task": "lqr_6_2", "seed": 1, "horizon": 300}, namespace="/iso62")
+    launch("npp-expert", {"max_horizon": 500}, namespace="/iso62")
+    client = ros_client("expert_6_2_client", namespace="/iso62")
+    service = client.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT)
+    wait_until_modelling(client, service)
+    expert = LQRExpert("lqr_6_2", 1, horizon=300)
+    s0 = np.random.default_rng(7).normal(size=12)
+    check_good(client.call(service, request(s0, 0)), expert, s0, 300)
+    answer = client.call(service, request(s0, 501))
+    assert not answer.success and "max_horizon 500" in answer.message, answer.message
+
+
+def test_expert_waits_for_the_plant_and_refuses_a_foreign_model(
+    launch: Launcher, ros_client: Callable[..., RosClient], expert_2_1: LQRExpert
+) -> None:
+    """No sim: the test plays it, first with a wrong fingerprint, then with the true one."""
+    proc = launch("npp-expert", {}, namespace="/fake")
+    client = ros_client("fake_sim", namespace="/fake")
+    service = client.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT)
+    s0 = [0.3, 0.1, 0.0, 0.0]
+    answer = client.call(service, request(s0))
+    assert not answer.success
+    assert answer.message == "no plant description received yet from the sim on /fake/npp/sim/plant"
+
+    plant = LQRPlant("lqr_2_1", 0)
+    desc = PlantDescription(
+        task="lqr_2_1",
+        seed=0,
+        horizon=1000,
+        timestep=plant.dt,
+        state_dim=4,
+        action_dim=1,
+        joint_names=plant.joint_names,
+        actuated_joint_names=plant.actuated_joint_names,
+        model_sha256="0" * 64,
+    )
+    publisher = client.node.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
+    publisher.publish(desc)
+    deadline = time.monotonic() + TIMEOUT
+    while "model mismatch" not in (answer := client.call(service, request(s0))).message:
+        assert time.monotonic() < deadline, answer.message
+        time.sleep(0.05)
+    assert not answer.success and "refusing" in answer.message
+
+    desc.model_sha256 = plant.model_sha256()
+    publisher.publish(desc)
+    while not (answer := client.call(service, request(s0, 10))).success:
+        assert time.monotonic() < deadline, answer.message
+        time.sleep(0.05)
+    check_good(answer, expert_2_1, np.array(s0), 10)
+    launch.assert_alive(proc)

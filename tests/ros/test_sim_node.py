@@ -1,0 +1,193 @@
+"""The sim node over real DDS: resets, lockstep stepping, episode results, ignored bad actions."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pytest
+from builtin_interfaces.msg import Time
+from npp_interfaces.msg import EpisodeResult, PlantDescription
+from npp_interfaces.srv import ResetEpisode
+from rclpy.client import Client
+from rclpy.publisher import Publisher
+from sensor_msgs.msg import JointState
+
+from nodes.common import ACTION, CONTROL_QOS, LATCHED_QOS, PLANT, REPORT_QOS, RESET_SERVICE, ROLLOUT_DONE, STATE
+from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
+
+if TYPE_CHECKING:
+    from tests.ros.conftest import Launcher, RosClient
+
+TIMEOUT = 60.0
+HORIZON = 20
+DT_NS = 30_000_000  # lqr timestep 0.03 s
+QUIET_S = 0.5  # how long "nothing happens" is watched for
+
+
+@dataclass
+class SimHandle:
+    """The test's side of the sim: a client node with its reset client, inboxes and action publisher."""
+
+    launcher: Launcher
+    proc: subprocess.Popen[bytes]
+    client: RosClient
+    reset: Client
+    action_pub: Publisher
+    states: list[JointState]
+    results: list[EpisodeResult]
+    plant: PlantDescription
+
+    def reset_to(self, state: list[float], episode: int = 0) -> ResetEpisode.Response:
+        """Reset and wait for the episode's first state (re-sent if our subscription matched late)."""
+        deadline = time.monotonic() + TIMEOUT
+        while True:
+            seen = len(self.states)
+            answer = self.client.call(self.reset, ResetEpisode.Request(state=state, episode=episode), TIMEOUT)
+            if not answer.success:
+                return answer
+            try:
+                self.client.wait_for(lambda n=seen: len(self.states) > n, 3.0)
+                return answer
+            except TimeoutError:
+                if time.monotonic() > deadline:
+                    raise
+
+    def act(self, effort: list[float], stamp: Time, names: list[str] | None = None) -> None:
+        msg = JointState(effort=effort, name=self.plant.actuated_joint_names if names is None else names)
+        msg.header.stamp = stamp
+        self.action_pub.publish(msg)
+
+    def next_state(self, seen: int) -> JointState:
+        self.client.wait_for(lambda: len(self.states) > seen, TIMEOUT, "the next state")
+        return self.states[seen]
+
+    def nothing_arrives(self, seen_states: int, seen_results: int = -1) -> bool:
+        deadline = time.monotonic() + QUIET_S
+        self.client.wait_for(lambda: time.monotonic() > deadline, QUIET_S + 5)
+        return len(self.states) == seen_states and (seen_results < 0 or len(self.results) == seen_results)
+
+
+def as_state(msg: JointState) -> np.ndarray:
+    return np.concatenate([np.asarray(msg.position), np.asarray(msg.velocity)])
+
+
+def ns(stamp: Time) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+@pytest.fixture(scope="module")
+def sim(launch_module: Launcher, ros_client_module: Callable[..., RosClient]) -> SimHandle:
+    """One sim (lqr_2_1, seed 0, horizon 20) for the module: every test starts with its own reset."""
+    launch = launch_module
+    proc = launch("npp-sim", {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON})
+    client = ros_client_module("sim_test_client")
+    plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
+    states = client.collect(JointState, STATE, CONTROL_QOS)
+    results = client.collect(EpisodeResult, ROLLOUT_DONE, REPORT_QOS)
+    action_pub = client.node.create_publisher(JointState, ACTION, CONTROL_QOS)
+    reset = client.client(ResetEpisode, RESET_SERVICE, TIMEOUT)
+    client.wait_for(lambda: bool(plants), TIMEOUT, "the latched plant description")
+    client.wait_for(lambda: action_pub.get_subscription_count() > 0, TIMEOUT, "the sim to subscribe to actions")
+    launch.assert_alive(proc)
+    return SimHandle(launch, proc, client, reset, action_pub, states, results, plants[-1])
+
+
+def test_plant_description(sim: SimHandle) -> None:
+    plant = LQRPlant("lqr_2_1", 0)
+    d = sim.plant
+    assert (d.task, d.seed, d.horizon, d.state_dim, d.action_dim) == ("lqr_2_1", 0, HORIZON, 4, 1)
+    assert d.timestep == pytest.approx(0.03)
+    assert list(d.joint_names) == plant.joint_names and list(d.actuated_joint_names) == plant.actuated_joint_names
+    assert d.model_sha256 == plant.model_sha256()
+
+
+def test_lockstep_episode_follows_the_plant_and_reports_its_return(sim: SimHandle, expert_2_1: LQRExpert) -> None:
+    s0 = [0.4, -0.3, 0.2, 0.1]
+    answer = sim.reset_to(s0, episode=5)
+    assert answer.success, answer.message
+    np.testing.assert_array_equal(answer.state, s0)
+    first = sim.states[-1]
+    assert list(first.name) == list(sim.plant.joint_names)
+    np.testing.assert_array_equal(first.position, s0[:2])
+    np.testing.assert_array_equal(first.velocity, s0[2:])
+    assert (first.header.stamp.sec, first.header.stamp.nanosec) == (0, 0)
+
+    actions = np.random.default_rng(11).normal(scale=0.5, size=(HORIZON, 1))
+    visited = [as_state(first)]
+    msg = first
+    for t in range(HORIZON):
+        seen = len(sim.states)
+        sim.act(actions[t].tolist(), msg.header.stamp, names=[] if t % 2 else None)  # names are optional
+        if t == HORIZON - 1:
+            break
+        msg = sim.next_state(seen)
+        assert ns(msg.header.stamp) == (t + 1) * DT_NS
+        visited.append(as_state(msg))
+        np.testing.assert_allclose(
+            visited[-1], expert_2_1.A @ visited[-2] + expert_2_1.B @ actions[t], rtol=0, atol=1e-9
+        )
+
+    sim.client.wait_for(lambda: bool(sim.results), TIMEOUT, "the episode result")
+    result = sim.results[-1]
+    assert (result.episode, result.steps) == (5, HORIZON)
+    np.testing.assert_array_equal(result.initial_state, s0)
+    assert not result.expert_value_known
+    replay = rollout(LQRPlant("lqr_2_1", 0), _replayer(actions), s0, HORIZON)
+    np.testing.assert_allclose(replay.states, np.array(visited), rtol=0, atol=1e-12)
+    assert result.policy_return == pytest.approx(replay.total_return, rel=1e-12, abs=1e-12)
+
+    # The episode is over: even an action answering the last state moves nothing.
+    sim.act([0.0], msg.header.stamp)
+    assert sim.nothing_arrives(len(sim.states), len(sim.results))
+
+
+def _replayer(actions: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """A controller that plays back recorded actions in order."""
+    it = iter(actions)
+    return lambda _state: next(it)
+
+
+def test_stale_and_malformed_actions_are_ignored(sim: SimHandle) -> None:
+    answer = sim.reset_to([0.5, 0.0, 0.0, 0.0])
+    assert answer.success, answer.message
+    first = sim.states[-1]
+    seen = len(sim.states)
+    stale = Time(sec=99, nanosec=0)
+    bad: list[tuple[list[float], Time, list[str] | None]] = [
+        ([0.1], stale, None),  # answers a state that was never published
+        ([0.1], first.header.stamp, ["joint_1"]),  # not the actuated joint
+        ([0.1, 0.2], first.header.stamp, None),  # too many entries
+        ([], first.header.stamp, None),  # none
+        ([math.nan], first.header.stamp, None),
+        ([math.inf], first.header.stamp, None),
+    ]
+    for effort, stamp, names in bad:
+        sim.act(effort, stamp, names)
+    assert sim.nothing_arrives(seen)
+    sim.launcher.assert_alive(sim.proc)
+    for fragment in ("stale", "wrong joint names", "wrong effort length", "non-finite effort"):
+        sim.client.wait_for(lambda f=fragment: f in sim.launcher.log(sim.proc), 10.0, f"a warning about {fragment!r}")
+
+    sim.act([0.1], first.header.stamp)  # the proper answer still works
+    assert ns(sim.next_state(seen).header.stamp) == DT_NS
+
+
+def test_resets(sim: SimHandle) -> None:
+    answer = sim.reset_to([0.1, 0.2, 0.3])
+    assert not answer.success
+    assert "3 entries" in answer.message and "expected 4" in answer.message, answer.message
+    answer = sim.reset_to([0.1, math.nan, 0.3, 0.4])
+    assert not answer.success and "state[1] = nan" in answer.message, answer.message
+
+    answer = sim.reset_to([], episode=7)  # s0 ~ rho, reproducible per (seed, episode)
+    assert answer.success, answer.message
+    expected = sample_initial_state("lqr_2_1", episode_rng(0, 7))
+    np.testing.assert_array_equal(answer.state, expected)
+    np.testing.assert_array_equal(as_state(sim.states[-1]), expected)
+    assert ns(sim.states[-1].header.stamp) == 0
