@@ -4,10 +4,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import random_dataset
 
 from npp_ros.bounds import EmptyDatasetError, NonparametricPolicy
 from npp_ros.dataset import Dataset, DatasetError
+
+
+def random_dataset(rng: np.random.Generator, size: int, state_dim: int = 3, action_dim: int = 2) -> Dataset:
+    """Synthetic data on a coarse grid, so exact ties are frequent."""
+    data = Dataset(state_dim, action_dim)
+    states = rng.integers(-3, 4, size=(size, state_dim)).astype(float)
+    actions = rng.integers(-2, 3, size=(size, action_dim)).astype(float)
+    values = rng.integers(0, 5, size=size).astype(float)
+    data.append_arrays(states, actions, values)
+    return data
 
 
 def brute_force(data: Dataset, L: float, s: np.ndarray) -> tuple[float, int, float, int]:

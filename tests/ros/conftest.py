@@ -244,8 +244,22 @@ class RosClient:
         self.wait_for(client.service_is_ready, timeout, f"service {client.srv_name}")
         return client
 
-    def call(self, client: Client, request: Any, timeout: float = 30.0) -> Any:
-        return self.wait_for(client.call_async(request), timeout, f"a response from {client.srv_name}")
+    def call(self, client: Client, request: Any, timeout: float = 30.0, attempt_timeout: float = 5.0) -> Any:
+        """Call and wait; re-send if no answer comes within attempt_timeout (for idempotent requests).
+
+        Fast DDS drops a response whose reader the server has not matched yet ("failed to send
+        response (timeout)"), which happens to a fresh client's first requests under load.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            future = client.call_async(request)
+            attempt = min(attempt_timeout, max(deadline - time.monotonic(), 0.0))
+            try:
+                return self.wait_for(future, attempt, f"a response from {client.srv_name}")
+            except TimeoutError:
+                client.remove_pending_request(future)
+                if time.monotonic() >= deadline:
+                    raise TimeoutError(f"no response from {client.srv_name} within {timeout:.0f} s") from None
 
     def collect(self, msg_type: Any, topic: str, qos: QoSProfile) -> list[Any]:
         """Subscribe and return the list every arriving message is appended to."""

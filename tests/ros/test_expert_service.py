@@ -118,7 +118,8 @@ def test_several_clients_concurrently(
 ) -> None:
     clients = [ros_client(f"expert_client_{i}") for i in range(4)]
     services = [c.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT) for c in clients]
-    wait_until_modelling(clients[0], services[0])
+    for client, service in zip(clients, services, strict=True):
+        wait_until_modelling(client, service)  # also proves each client's response path is matched
     errors: list[BaseException] = []
     answered = [0] * len(clients)
 
