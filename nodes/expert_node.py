@@ -45,7 +45,7 @@ serves      /{EXPERT_SERVICE} (npp_interfaces/srv/ExpertTrajectory)
 """
 
 
-def _f64(values: Any) -> array:
+def _f64(values: Any) -> array[float]:
     """A float64 array.array: the fast path of rosidl's sequence setters."""
     out = array("d")
     out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
@@ -74,7 +74,7 @@ class ExpertNode(Node):
         self._service = self.create_service(ExpertTrajectory, EXPERT_SERVICE, self.on_request, qos_profile=SERVICE_QOS)
         self.get_logger().info(
             f"waiting for the plant description on {self._plant_sub.topic_name}; "
-            f"serving {self._service.srv_name} (gamma {self.gamma}, max_horizon {self.max_horizon})"
+            f"serving {self.resolve_service_name(EXPERT_SERVICE)} (gamma {self.gamma}, max_horizon {self.max_horizon})"
         )
 
     @staticmethod

@@ -63,7 +63,7 @@ serves      /{RESET_SERVICE} (npp_interfaces/srv/ResetEpisode: empty state = sam
 WARN_EVERY_S = 1.0
 
 
-def _f64(values: Any) -> array:
+def _f64(values: Any) -> array[float]:
     out = array("d")
     out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
     return out
