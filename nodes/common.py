@@ -6,12 +6,14 @@ Nodes convert messages to core types, call the core, and publish; nothing here d
 from __future__ import annotations
 
 import sys
+from array import array
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -49,6 +51,23 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
     """Declare a parameter with its descriptor and return its value."""
     descriptor = ParameterDescriptor(description=description, read_only=read_only)
     return node.declare_parameter(name, default, descriptor).value
+
+
+def declare_all(node: Node, params: Sequence[tuple[str, Any, str]]) -> dict[str, Any]:
+    """Declare every parameter; a value of the wrong type (gamma:=1 for a float) is a StartupError."""
+    try:
+        return {name: declare(node, name, default, description) for name, default, description in params}
+    except ParameterException as exc:
+        raise StartupError(
+            f"{exc} (types follow the defaults: {', '.join(f'{n}={d!r}' for n, d, _ in params)})"
+        ) from None
+
+
+def float64_array(values: Any) -> array[float]:
+    """A float64 array.array: the fast path of rosidl's sequence setters."""
+    out = array("d")
+    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+    return out
 
 
 def parameter_help(params: Sequence[tuple[str, Any, str]]) -> str:

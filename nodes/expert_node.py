@@ -8,18 +8,25 @@ one gets success = false and a message naming the problem, and the node keeps se
 from __future__ import annotations
 
 import sys
-from array import array
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
-from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from nodes.common import EXPERT_SERVICE, LATCHED_QOS, PLANT, StartupError, declare, parameter_help, run_node
+from nodes.common import (
+    EXPERT_SERVICE,
+    LATCHED_QOS,
+    PLANT,
+    StartupError,
+    declare_all,
+    float64_array,
+    parameter_help,
+    run_node,
+)
 from npp_ros.lqr import MAX_HORIZON, LQRExpert
 
 PARAMETERS: list[tuple[str, Any, str]] = [
@@ -45,27 +52,10 @@ serves      /{EXPERT_SERVICE} (npp_interfaces/srv/ExpertTrajectory)
 """
 
 
-def _f64(values: Any) -> array[float]:
-    """A float64 array.array: the fast path of rosidl's sequence setters."""
-    out = array("d")
-    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
-    return out
-
-
-def _declare_all(node: Node) -> dict[str, Any]:
-    """Declare PARAMETERS; a value of the wrong type (gamma:=1 for a float) is a StartupError, not a traceback."""
-    try:
-        return {name: declare(node, name, default, description) for name, default, description in PARAMETERS}
-    except ParameterException as exc:
-        raise StartupError(
-            f"{exc} (types follow the defaults: {', '.join(f'{n}={d!r}' for n, d, _ in PARAMETERS)})"
-        ) from None
-
-
 class ExpertNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_expert")
-        params = _declare_all(self)
+        params = declare_all(self, PARAMETERS)
         self.gamma, self.max_horizon = self._validated(params)
         self.expert: LQRExpert | None = None
         self.description: PlantDescription | None = None
@@ -139,9 +129,9 @@ class ExpertNode(Node):
         response.message = f"{len(traj)} steps of {self.expert.task} seed {self.expert.seed}"
         response.state_dim = self.expert.plant.state_dim
         response.action_dim = self.expert.plant.action_dim
-        response.states = _f64(traj.states.ravel())
-        response.actions = _f64(traj.actions.ravel())
-        response.values = _f64(traj.values)
+        response.states = float64_array(traj.states.ravel())
+        response.actions = float64_array(traj.actions.ravel())
+        response.values = float64_array(traj.values)
         return response
 
     def _problem(self, state: Sequence[float], horizon: int) -> str | None:

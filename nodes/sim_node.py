@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import sys
 import time
-from array import array
 from collections.abc import Sequence
 from typing import Any
 
@@ -18,7 +17,6 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from npp_interfaces.msg import EpisodeResult, PlantDescription
 from npp_interfaces.srv import ResetEpisode
-from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
@@ -32,7 +30,8 @@ from nodes.common import (
     ROLLOUT_DONE,
     STATE,
     StartupError,
-    declare,
+    declare_all,
+    float64_array,
     parameter_help,
     run_node,
 )
@@ -63,30 +62,14 @@ serves      /{RESET_SERVICE} (npp_interfaces/srv/ResetEpisode: empty state = sam
 WARN_EVERY_S = 1.0
 
 
-def _f64(values: Any) -> array[float]:
-    out = array("d")
-    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
-    return out
-
-
 def _stamp(nanoseconds: int) -> Time:
     return Time(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
-
-
-def _declare_all(node: Node) -> dict[str, Any]:
-    """Declare PARAMETERS; a value of the wrong type (gamma:=1 for a float) is a StartupError, not a traceback."""
-    try:
-        return {name: declare(node, name, default, description) for name, default, description in PARAMETERS}
-    except ParameterException as exc:
-        raise StartupError(
-            f"{exc} (types follow the defaults: {', '.join(f'{n}={d!r}' for n, d, _ in PARAMETERS)})"
-        ) from None
 
 
 class SimNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_sim")
-        params = _declare_all(self)
+        params = declare_all(self, PARAMETERS)
         self.task, self.seed, self.horizon = self._validated(params)
         self.plant: LQRPlant | None = None
         self.dt_ns = 0
@@ -158,7 +141,7 @@ class SimNode(Node):
             return response
         response.success = True
         response.message = f"episode {self.episode} started"
-        response.state = _f64(self.initial_state)
+        response.state = float64_array(self.initial_state)
         return response
 
     def _reset(self, request: ResetEpisode.Request) -> str | None:
@@ -233,8 +216,8 @@ class SimNode(Node):
         msg = JointState()
         msg.header.stamp = self.stamp
         msg.name = list(self.plant.joint_names)
-        msg.position = _f64(x[:b])
-        msg.velocity = _f64(x[b:])
+        msg.position = float64_array(x[:b])
+        msg.velocity = float64_array(x[b:])
         self.state_pub.publish(msg)
 
     def _finish(self) -> None:
@@ -242,7 +225,7 @@ class SimNode(Node):
             episode=self.episode,
             policy_return=self.episode_return,
             steps=self.steps,
-            initial_state=_f64(self.initial_state),
+            initial_state=float64_array(self.initial_state),
             expert_value_known=False,
             expert_value=0.0,
             v_lb=0.0,

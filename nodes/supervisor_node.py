@@ -38,7 +38,7 @@ from nodes.common import (
     RESET_SERVICE,
     ROLLOUT_DONE,
     StartupError,
-    declare,
+    declare_all,
     parameter_help,
     run_node,
     trajectory_arrays,
@@ -82,7 +82,7 @@ class ExpertUnavailable(RuntimeError):
 class SupervisorNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_supervisor")
-        values = {name: declare(self, name, default, text) for name, default, text in PARAMS}
+        values = declare_all(self, PARAMS)
         self.settings = self._validated(values)
         self.loop: NPPLoop | None = None
         self.plant: PlantDescription | None = None
