@@ -18,7 +18,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from npp_ros.dataset import Trajectory
+from npp_ros.dataset import DatasetError, Trajectory
 
 # Topic and service names, relative so that the usual namespacing and remapping apply.
 STATE = "npp/state"
@@ -83,8 +83,6 @@ def trajectory_arrays(states: Sequence[float], actions: Sequence[float], values:
     s = np.asarray(states, dtype=np.float64)
     a = np.asarray(actions, dtype=np.float64)
     if state_dim <= 0 or action_dim <= 0 or s.size != steps * state_dim or a.size != steps * action_dim:
-        from npp_ros.dataset import DatasetError
-
         raise DatasetError(
             f"trajectory arrays do not fit: {steps} values, {s.size} state entries (state_dim {state_dim}), "
             f"{a.size} action entries (action_dim {action_dim})"

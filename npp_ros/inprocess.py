@@ -22,6 +22,7 @@ from npp_ros.lqr import (
     PAPER_LIPSCHITZ,
     LQRExpert,
     LQRPlant,
+    check_task,
     episode_rng,
     initial_state_diameter,
     rollout,
@@ -58,8 +59,6 @@ def build_config(
     horizon: int = 1000,
     gamma: float = 1.0,
 ) -> RunConfig:
-    from npp_ros.lqr import check_task
-
     bodies, actuators = check_task(task)
     return RunConfig(
         task=task, seed=seed, state_dim=2 * bodies, action_dim=actuators, lipschitz=lipschitz,

@@ -163,7 +163,8 @@ class NPPLoop:
         trajectory: Trajectory | None = None
         index: int | None = None
         if called:
-            trajectory = self.dataset.validate(*_unpack(self.oracle.trajectory(s0)))
+            answer = self.oracle.trajectory(s0)
+            trajectory = self.dataset.validate(answer.states, answer.actions, answer.values)
             index = self.dataset.num_trajectories
         status = self._preview_status(gap, called)
         expert_value = self.expert_value(s0) if self.expert_value is not None else None
@@ -240,7 +241,3 @@ class NPPLoop:
         while self.certificate is None and self.next_episode < max_episodes:
             self.run_episode()
         return RunResult(len(self.rows), self.oracle_calls, len(self.dataset), self.certificate, self.rows)
-
-
-def _unpack(trajectory: Trajectory) -> tuple[FloatArray, FloatArray, FloatArray]:
-    return trajectory.states, trajectory.actions, trajectory.values
