@@ -38,6 +38,9 @@ POLICY_STATUS = "npp/policy/trajectories"
 CONTROL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 # Reports a monitor may read late: reliable, deeper queue.
 REPORT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+# Requests queue while one is served; rclpy's default service queue (KEEP_LAST 10) silently drops
+# the oldest when more than 10 clients' requests are pending, so services keep a deep one.
+SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 # Latched: late joiners get the last value (both ends must use it).
 LATCHED_QOS = QoSProfile(
     depth=1,

@@ -15,12 +15,12 @@ import numpy as np
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from nodes.common import (
     EXPERT_SERVICE,
     LATCHED_QOS,
     PLANT,
+    SERVICE_QOS,
     StartupError,
     declare_all,
     float64_array,
@@ -33,10 +33,6 @@ PARAMETERS: list[tuple[str, Any, str]] = [
     ("gamma", 1.0, "discount in (0, 1]; 1 = undiscounted H-step values V* = H - J*"),
     ("max_horizon", 10000, f"largest horizon a request may ask for, in [1, {MAX_HORIZON}]"),
 ]
-
-# Requests queue while one is computed; rclpy's default service queue (KEEP_LAST 10) silently drops
-# the oldest when more than 10 clients' requests are pending, so the expert keeps a deep one.
-SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 
 USAGE = f"""npp-expert: the LQR expert oracle as a ROS 2 service (node "npp_expert").
 

@@ -67,6 +67,11 @@ class Follower(Node):
         self.certificate = msg
 
 
+def restore_default_sigint() -> None:
+    """In each child: started from a background job, it would inherit an ignored SIGINT and never stop."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def stop_all(procs: dict[str, subprocess.Popen]) -> None:
     for proc in procs.values():
         if proc.poll() is None:
@@ -108,7 +113,9 @@ def main(argv: list[str] | None = None) -> int:
             )
             cmd += ["-p", f"{key}:={text}"]
         log = (run_dir / "logs" / f"{name}.log").open("a")
-        procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        procs[name] = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=restore_default_sigint
+        )
     print(f"npp-run: started sim, expert, policy, supervisor (logs in {run_dir / 'logs'})", file=sys.stderr)
 
     rclpy.init(args=["npp-run"])

@@ -28,6 +28,7 @@ from nodes.common import (
     REPORT_QOS,
     RESET_SERVICE,
     ROLLOUT_DONE,
+    SERVICE_QOS,
     STATE,
     StartupError,
     declare_all,
@@ -41,12 +42,15 @@ PARAMETERS: list[tuple[str, Any, str]] = [
     ("task", "lqr_2_1", f"dm_control lqr task, one of {', '.join(sorted(TASKS))}"),
     ("seed", 0, "task seed: the plant's stiffnesses depend on it; also seeds s0 ~ rho per episode"),
     ("horizon", 1000, f"control steps per episode, in [1, {MAX_HORIZON}]"),
+    ("resend_after", 1.0, "seconds without an answer before the current state is sent again (0 = never)"),
 ]
 
 USAGE = f"""npp-sim: the lqr plant in lockstep (node "npp_sim").
 
 After a reset it publishes the episode's first state, then steps once per action answering the
-latest state, and publishes the next state; after `horizon` steps it reports the episode.
+latest state, and publishes the next state; after `horizon` steps it reports the episode. A state
+left unanswered for `resend_after` seconds is sent again with the same stamp, so a policy node
+started or restarted mid-episode picks the episode up where it stopped.
 
 publishes   /{PLANT} (npp_interfaces/msg/PlantDescription, latched)
             /{STATE} (sensor_msgs/JointState: position = qpos, velocity = qvel, stamp = simulated time)
@@ -70,7 +74,7 @@ class SimNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_sim")
         params = declare_all(self, PARAMETERS)
-        self.task, self.seed, self.horizon = self._validated(params)
+        self.task, self.seed, self.horizon, self.resend_after = self._validated(params)
         self.plant: LQRPlant | None = None
         self.dt_ns = 0
         # The running episode; `stamp` is the last published state's time, None when no episode runs.
@@ -79,17 +83,21 @@ class SimNode(Node):
         self.episode_return = 0.0
         self.initial_state = np.zeros(0)
         self.stamp: Time | None = None
+        self._last_state: JointState | None = None
+        self._last_sent = 0.0
         self.ignored_actions = 0
         self._warned: dict[str, tuple[float, int]] = {}
         self.plant_pub = self.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
         self.done_pub = self.create_publisher(EpisodeResult, ROLLOUT_DONE, REPORT_QOS)
         self.create_subscription(JointState, ACTION, self.on_action, CONTROL_QOS)
-        self.create_service(ResetEpisode, RESET_SERVICE, self.on_reset)
+        self.create_service(ResetEpisode, RESET_SERVICE, self.on_reset, qos_profile=SERVICE_QOS)
         self._build_timer = self.create_timer(0.0, self._build)  # MuJoCo loads after init, not inside it
+        if self.resend_after > 0:
+            self.create_timer(min(self.resend_after, 0.25), self._resend_if_unanswered)
 
     @staticmethod
-    def _validated(params: dict[str, Any]) -> tuple[str, int, int]:
+    def _validated(params: dict[str, Any]) -> tuple[str, int, int, float]:
         """All parameter checks in one place, so a bad launch fails at once with the reason."""
         task, seed, horizon = params["task"], params["seed"], params["horizon"]
         try:
@@ -100,7 +108,10 @@ class SimNode(Node):
             raise StartupError(f"parameter seed must be an integer in [0, 2^32), got {seed!r}")
         if isinstance(horizon, bool) or not isinstance(horizon, int) or not 1 <= horizon <= MAX_HORIZON:
             raise StartupError(f"parameter horizon must be an integer in [1, {MAX_HORIZON}], got {horizon!r}")
-        return str(task), int(seed), int(horizon)
+        resend_after = params["resend_after"]
+        if not 0 <= resend_after < float("inf"):
+            raise StartupError(f"parameter resend_after must be >= 0 seconds, got {resend_after!r}")
+        return str(task), int(seed), int(horizon), float(resend_after)
 
     def _build(self) -> None:
         self._build_timer.cancel()
@@ -218,7 +229,22 @@ class SimNode(Node):
         msg.name = list(self.plant.joint_names)
         msg.position = float64_array(x[:b])
         msg.velocity = float64_array(x[b:])
+        self._send(msg)
+
+    def _send(self, msg: JointState) -> None:
+        self._last_state, self._last_sent = msg, time.monotonic()
         self.state_pub.publish(msg)
+
+    def _resend_if_unanswered(self) -> None:
+        """Lockstep watchdog: a policy that (re)joins mid-episode never saw the pending state."""
+        if self.stamp is None or self._last_state is None:
+            return
+        if time.monotonic() - self._last_sent >= self.resend_after:
+            self.get_logger().info(
+                f"no answer to the state at step {self.steps} of episode {self.episode}; sending it again",
+                throttle_duration_sec=10.0,
+            )
+            self._send(self._last_state)
 
     def _finish(self) -> None:
         result = EpisodeResult(

@@ -37,6 +37,7 @@ from nodes.common import (
     REPORT_QOS,
     RESET_SERVICE,
     ROLLOUT_DONE,
+    SERVICE_QOS,
     StartupError,
     declare_all,
     parameter_help,
@@ -99,7 +100,7 @@ class SupervisorNode(Node):
         self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
         self.create_subscription(EpisodeResult, ROLLOUT_DONE, self.on_rollout, REPORT_QOS)
         self.create_subscription(UInt32, POLICY_STATUS, self.on_policy_status, LATCHED_QOS)
-        self.create_service(GetTrajectories, DATASET_SERVICE, self.serve_dataset)
+        self.create_service(GetTrajectories, DATASET_SERVICE, self.serve_dataset, qos_profile=SERVICE_QOS)
         self.worker: threading.Thread | None = None
         self.exit_code = 0
         self.get_logger().info("waiting for the sim's plant description")

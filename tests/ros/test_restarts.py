@@ -1,0 +1,79 @@
+"""Nodes die mid-run: nothing stored is lost, the run completes, and nothing hangs silently."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+from npp_interfaces.msg import Certificate, GapReport
+
+from nodes.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
+from npp_ros.lqr import LQRExpert
+from npp_ros.storage import RunStore
+
+SUPERVISOR = "nodes.supervisor_node"
+
+
+def test_unreachable_expert_is_reported_and_the_supervisor_exits(launch, tmp_path: Path) -> None:
+    launch("nodes.sim_node", {"horizon": 50})
+    launch("nodes.policy_node")
+    supervisor = launch(SUPERVISOR, {"run_dir": str(tmp_path / "run"), "expert_timeout": 2.0, "expert_retries": 2})
+    supervisor.wait(timeout=120)
+    log = launch.log(supervisor)
+    assert supervisor.returncode == 1, log
+    assert "expert call 1/2 failed: service /npp/expert/trajectory not available after 2 s" in log
+    assert "Algorithm 1 stopped: the expert did not deliver after 2 attempts" in log
+    with RunStore.open(tmp_path / "run" / "run.sqlite") as store:
+        assert store.num_trajectories() == 0 and store.episodes() == []
+
+
+def test_killing_policy_then_supervisor_loses_no_expert_data(launch, ros_client, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    supervisor_params = {"run_dir": str(run_dir), "max_episodes": 400, "rollout_timeout": 30.0}
+    launch("nodes.sim_node")
+    launch("nodes.expert_node")
+    policy = launch("nodes.policy_node")
+    supervisor = launch(SUPERVISOR, supervisor_params)
+    watcher = ros_client("restart_watcher")
+    gaps: list[GapReport] = watcher.collect(GapReport, GAP, REPORT_QOS)
+    certificates: list[Certificate] = watcher.collect(Certificate, CERTIFICATE, LATCHED_QOS)
+
+    def oracle_calls() -> int:
+        return gaps[-1].oracle_calls if gaps else 0
+
+    watcher.wait_for(lambda: oracle_calls() >= 8, 300, "8 oracle calls")
+    policy.send_signal(signal.SIGKILL)
+    policy.wait()
+    time.sleep(2.0)  # the sim stalls mid-episode with no policy
+    launch("nodes.policy_node")  # restarted: catches up from the supervisor, picks the episode up
+
+    watcher.wait_for(lambda: oracle_calls() >= 20, 300, "20 oracle calls after the policy restart")
+    supervisor.send_signal(signal.SIGKILL)
+    supervisor.wait()
+    with RunStore.open(run_dir / "run.sqlite") as store:  # what was acknowledged as stored
+        before = store.load_dataset()
+    launch(SUPERVISOR, supervisor_params)  # restarted on the same run folder: resumes
+
+    watcher.wait_for(lambda: bool(certificates), 900, "the certificate")
+    with RunStore.open(run_dir / "run.sqlite") as store:
+        after = store.load_dataset()
+        rows = store.episodes()
+    # Every trajectory stored before the kill is still there, unchanged, exactly once.
+    assert after.num_trajectories >= before.num_trajectories >= 20
+    np.testing.assert_array_equal(after.states[: len(before)], before.states)
+    assert [r.trajectory for r in rows if r.oracle_called] == list(range(after.num_trajectories))
+    # The resumed run is the same run: same dataset and gap sequence as uninterrupted, in process.
+    expert = LQRExpert("lqr_2_1", 0)
+    config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "analytic", expert), 50.0)
+    local = build_loop(config, expert)
+    result = local.run(max_episodes=400)
+    assert [(r.initial_state, r.gap, r.oracle_called) for r in rows] == [
+        (r.initial_state, r.gap, r.oracle_called) for r in result.rows
+    ]
+    np.testing.assert_array_equal(after.states, local.dataset.states)
+    assert certificates[-1].episodes == len(rows) == result.episodes
+    # The restarted policy drove the episodes after its restart.
+    assert all(r.policy_return is not None for r in rows[-10:])
