@@ -15,6 +15,9 @@ from npp_ros.storage import RunStore
 
 def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
+    monitor = subprocess.Popen(
+        [sys.executable, "-m", "nodes.monitor", "--exit-on-certificate"], stdout=subprocess.PIPE, text=True
+    )
     run = subprocess.run(
         [sys.executable, "-m", "nodes.run_graph", "--run-dir", str(run_dir), "--max-episodes", "400"],
         capture_output=True,
@@ -26,6 +29,10 @@ def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: P
     assert "[certificate] condition (i), epsilon 50" in run.stdout
     assert "(lqr-analytic)" in run.stdout
     assert "oracle calls" in run.stderr  # live progress
+    watched, _ = monitor.communicate(timeout=60)  # the certificate is latched: the monitor sees it and exits
+    assert monitor.returncode == 0
+    assert "[gap]     episode" in watched and "ORACLE" in watched and "[episode] episode" in watched
+    assert "[certificate] condition (i), epsilon 50" in watched
     for name in ("run.sqlite", "gaps.csv", "episodes.csv"):
         assert (run_dir / name).is_file()
 
