@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.linalg import solve_discrete_are
+from scipy.linalg import solve_discrete_are, solve_discrete_lyapunov
 
 from npp_ros.dataset import DatasetError, FloatArray, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
@@ -259,3 +259,43 @@ class LQRExpert:
             f"(largest at step {best_t}), {self.task} seed {self.seed}"
         )
         return LipschitzConstant(value, "lqr-analytic", detail)
+
+
+class DetunedLQRExpert(LQRExpert):
+    """A deliberately suboptimal expert (Appendix B): LQR designed with the control cost scaled.
+
+    The gain K~ solves the DARE with R replaced by ``control_weight * R``; its values are exact
+    for the plant's true cost: P~ solves the Lyapunov equation of the closed loop A - B K~ with
+    stage cost (A - B K~)' Qc (A - B K~) + K~' R K~. So the data are (s, pi~(s), V^pi~(s)), as
+    Theorem B.1 assumes. ``control_weight`` < 1 makes the controller over-aggressive, which keeps
+    its closed loop fast enough that its infinite-horizon values match H-step returns.
+    """
+
+    def __init__(
+        self,
+        task: str,
+        seed: int,
+        control_weight: float = 0.1,
+        horizon: int = DEFAULT_HORIZON,
+        gamma: float = 1.0,
+    ) -> None:
+        if not (math.isfinite(control_weight) and control_weight > 0):
+            raise ValueError(f"control_weight must be finite and > 0, got {control_weight!r}")
+        super().__init__(task, seed, horizon=horizon, gamma=gamma)
+        self.control_weight = float(control_weight)
+        a, b = self.A, self.B
+        qc, r = self.plant.state_cost, self.plant.control_cost
+        ru = self.control_weight * r + b.T @ qc @ b
+        cross = a.T @ qc @ b
+        scale = math.sqrt(self.gamma)
+        p_design = solve_discrete_are(scale * a, scale * b, a.T @ qc @ a, ru, s=cross)
+        self.K = np.linalg.solve(ru + self.gamma * b.T @ p_design @ b, self.gamma * b.T @ p_design @ a + cross.T)
+        phi = a - b @ self.K
+        stage = phi.T @ qc @ phi + self.K.T @ r @ self.K
+        p = solve_discrete_lyapunov(scale * phi.T, stage)
+        self.P = 0.5 * (p + p.T)
+
+    def analytic_lipschitz(self) -> LipschitzConstant:
+        base = super().analytic_lipschitz()
+        detail = f"{base.detail}; detuned expert (control cost x {self.control_weight:g}), its own P"
+        return LipschitzConstant(base.value, base.source, detail)

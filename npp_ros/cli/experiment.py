@@ -1,0 +1,219 @@
+"""npp-experiment: the paper's lqr experiments (Section 5, Figures 4-5) and Appendix B, in process.
+
+Runs Algorithm 1 with the same core loop as the supervisor node for every arm (task x expert x
+L setting) and seed, evaluates the policy at checkpoints with N rollouts from s0 ~ rho against
+the expert from the same s0, and writes Figure-4 and Figure-5 style PNGs and a results table
+(results.md, results.csv, results.json). Runs are stored under OUT/runs/ and resume: a repeated
+command recomputes nothing and gives the same numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import platform
+import queue
+import sys
+import time
+from collections import defaultdict
+from concurrent.futures import Future, ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from npp_ros.experiment import (
+    DEFAULT_CHECKPOINTS,
+    DETUNED_CONTROL_WEIGHT,
+    EXPERTS,
+    LIPSCHITZ_SETTINGS,
+    Arm,
+    ExperimentSettings,
+    ResultRow,
+    RunRecord,
+    default_arms,
+    result_row,
+    run_arm_seed,
+    write_results,
+)
+from npp_ros.lqr import TASKS
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="npp-experiment", description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    ap.add_argument("--tasks", nargs="+", choices=sorted(TASKS), default=sorted(TASKS), help="lqr tasks")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3], help="seeds (plant and s0 streams)")
+    ap.add_argument(
+        "--lipschitz",
+        nargs="+",
+        choices=LIPSCHITZ_SETTINGS,
+        default=list(LIPSCHITZ_SETTINGS),
+        help="L settings side by side: 'paper' (50 / 200, not a bound here) and 'analytic' (bounds the slope)",
+    )
+    ap.add_argument(
+        "--experts",
+        nargs="+",
+        choices=EXPERTS,
+        default=list(EXPERTS),
+        help="data source: the optimal LQR, or a detuned LQR (Appendix B; run with the analytic L only)",
+    )
+    ap.add_argument(
+        "--max-episodes", type=int, default=1000, help="episode budget per run (stops earlier if certified)"
+    )
+    ap.add_argument("--evaluate", type=int, default=100, metavar="N", help="rollouts from s0 ~ rho per checkpoint")
+    ap.add_argument(
+        "--checkpoints",
+        type=lambda text: tuple(int(x) for x in text.split(",")),
+        default=DEFAULT_CHECKPOINTS,
+        help="episodes at which to evaluate (comma separated); the last episode is always evaluated",
+    )
+    ap.add_argument("--horizon", type=int, default=1000, help="episode length H")
+    ap.add_argument("--p", type=float, default=0.9, help="condition (i): probability level p")
+    ap.add_argument("--delta", type=float, default=0.1, help="condition (i): confidence delta")
+    ap.add_argument(
+        "--control-weight", type=float, default=DETUNED_CONTROL_WEIGHT, help="detuned expert: control cost x this"
+    )
+    ap.add_argument("--out", type=Path, default=Path("results/experiment"), help="output folder")
+    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="runs in parallel (processes)")
+    return ap
+
+
+def _worker(arm: Arm, seed: int, settings: ExperimentSettings, out: Path, messages: Any) -> RunRecord:
+    return run_arm_seed(arm, seed, settings, out, lambda text: messages.put(text))
+
+
+class Status:
+    """One live line on a terminal; a line every few seconds in a log."""
+
+    def __init__(self, total: int) -> None:
+        self.total = total
+        self.done = 0
+        self.latest: dict[str, str] = {}
+        self.tty = sys.stderr.isatty()
+        self._last = 0.0
+        self.started = time.monotonic()
+
+    def update(self, text: str) -> None:
+        key = text.split(":", 1)[0]
+        self.latest[key] = text
+        self.show()
+
+    def finished(self, key: str, line: str) -> None:
+        self.done += 1
+        self.latest.pop(key, None)
+        self._write(f"[{self.done}/{self.total}] {line}", permanent=True)
+
+    def show(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._last < (0.2 if self.tty else 10.0):
+            return
+        self._last = now
+        running = " | ".join(self.latest.values()) or "starting"
+        self._write(f"{self.done}/{self.total} runs done, {now - self.started:.0f} s | {running}", permanent=False)
+
+    def _write(self, text: str, permanent: bool) -> None:
+        if self.tty:
+            width = os.get_terminal_size(sys.stderr.fileno()).columns - 1
+            sys.stderr.write("\r" + text[:width].ljust(width) + ("\n" if permanent else ""))
+        else:
+            sys.stderr.write(text + "\n")
+        sys.stderr.flush()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    if args.max_episodes < 1 or args.evaluate < 1 or args.jobs < 1:
+        print("npp-experiment: --max-episodes, --evaluate and --jobs must be >= 1", file=sys.stderr)
+        return 2
+    if not 0 < args.p < 1 or not 0 < args.delta < 1:
+        print("npp-experiment: p and delta must lie in (0, 1)", file=sys.stderr)
+        return 2
+    settings = ExperimentSettings(
+        max_episodes={task: args.max_episodes for task in args.tasks},
+        evaluations=args.evaluate,
+        checkpoints=args.checkpoints,
+        horizon=args.horizon,
+        p=args.p,
+        delta=args.delta,
+        control_weight=args.control_weight,
+    )
+    arms = default_arms(args.tasks, args.lipschitz, args.experts)
+    jobs = [(arm, seed) for arm in arms for seed in args.seeds]
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(
+        f"npp-experiment: {len(arms)} arms x {len(args.seeds)} seeds = {len(jobs)} runs -> {args.out}", file=sys.stderr
+    )
+
+    started = time.perf_counter()
+    status = Status(len(jobs))
+    records: list[RunRecord] = []
+    context = multiprocessing.get_context("spawn")
+    with context.Manager() as manager, ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
+        messages = manager.Queue()
+        futures: dict[Future[RunRecord], tuple[Arm, int]] = {
+            pool.submit(_worker, arm, seed, settings, args.out, messages): (arm, seed) for arm, seed in jobs
+        }
+        pending = set(futures)
+        failures = []
+        while pending:
+            try:
+                status.update(messages.get(timeout=0.5))
+            except queue.Empty:
+                status.show()
+            for future in [f for f in pending if f.done()]:
+                pending.discard(future)
+                arm, seed = futures[future]
+                key = f"{arm.name} seed {seed}"
+                try:
+                    record = future.result()
+                except Exception as exc:  # one run failing must not lose the others' results
+                    failures.append(f"{key}: {type(exc).__name__}: {exc}")
+                    status.finished(key, f"{key}: FAILED: {exc}")
+                    continue
+                records.append(record)
+                cert = f"certified at {record.certified_episode}" if record.certified_episode else "not certified"
+                status.finished(key, f"{key}: {cert}, {len(record.episodes)} episodes, {record.wall_time:.0f} s")
+    wall = time.perf_counter() - started
+
+    rows = report(records, settings, args.out)
+    meta = {
+        "command": "npp-experiment " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "wall_time_s": wall,
+        "runs": len(jobs),
+        "failed": failures,
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
+    }
+    (args.out / "experiment.json").write_text(json.dumps(meta, indent=2) + "\n")
+    for row in rows:
+        print(
+            f"{row.task:8s} {row.expert:8s} L {row.lipschitz_setting:8s} seed {row.seed}: "
+            f"certified at {row.certified_episode}, {row.fraction_within_epsilon:.0%} within eps, "
+            f"{row.lower_bound_violations}/{row.rollouts} below V_lb -> {row.verdict}"
+        )
+    print(f"npp-experiment: wrote {args.out}/results.md, figures in {args.out}; {wall:.0f} s")
+    for failure in failures:
+        print(f"npp-experiment: run failed: {failure}", file=sys.stderr)
+    return 1 if failures else 0
+
+
+def report(records: list[RunRecord], settings: ExperimentSettings, out: Path) -> list[ResultRow]:
+    """Figures per arm, then the table; the table's order is the arms' then the seeds'."""
+    from npp_ros.plots import gap_distributions, training_curves
+
+    by_arm: dict[Arm, list[RunRecord]] = defaultdict(list)
+    for record in sorted(records, key=lambda r: (r.arm.task, r.arm.expert, r.arm.lipschitz, r.seed)):
+        by_arm[record.arm].append(record)
+    rows: list[ResultRow] = []
+    for arm, group in by_arm.items():
+        if any(r.evaluations for r in group):
+            training_curves(group, out / f"fig4-{arm.name}.png")
+            gap_distributions(group, out / f"fig5-{arm.name}.png")
+        rows.extend(result_row(record, settings.p, settings.delta) for record in group)
+    write_results(rows, out)
+    return rows
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,470 @@
+"""The paper's Section 5 experiments (and Appendix B with a detuned expert), run in process.
+
+One *arm* is a task, the expert that supplies data (optimal LQR or a detuned one) and a choice
+of L (the paper's, or one that bounds the expert's value slope). Each (arm, seed) runs the same
+:class:`~npp_ros.loop.NPPLoop` as the supervisor node, stored in its own ``run.sqlite``, and is
+evaluated at checkpoints on a fixed set of N initial states s0 ~ rho: the policy's return, the
+data expert's and the optimal controller's returns from the same s0, and V_lb(s0). Everything is
+rebuilt from the files, so a resumed or repeated run gives the same numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import binom
+
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.dataset import Dataset, FloatArray
+from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
+from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.loop import NPPLoop, Observer
+from npp_ros.lqr import (
+    PAPER_EPSILON,
+    TASKS,
+    DetunedLQRExpert,
+    LQRExpert,
+    LQRPlant,
+    rollout,
+    sample_initial_state,
+)
+from npp_ros.storage import EpisodeRow
+
+EXPERTS = ("optimal", "detuned")
+LIPSCHITZ_SETTINGS = ("paper", "analytic")
+DEFAULT_CHECKPOINTS = (10, 25, 50, 100, 200, 400, 700, 1000)
+DETUNED_CONTROL_WEIGHT = 0.1
+EVALUATION_STREAM = 1 << 30  # rng stream for evaluation s0; the run's own s0 use [seed, episode]
+VIOLATION_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One line of the results table, over seeds."""
+
+    task: str
+    expert: str  # "optimal" or "detuned"
+    lipschitz: str  # "paper" or "analytic"
+
+    def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"unknown task {self.task!r}; known: {', '.join(sorted(TASKS))}")
+        if self.expert not in EXPERTS:
+            raise ValueError(f"unknown expert {self.expert!r}; known: {', '.join(EXPERTS)}")
+        if self.lipschitz not in LIPSCHITZ_SETTINGS:
+            raise ValueError(f"unknown L setting {self.lipschitz!r}; known: {', '.join(LIPSCHITZ_SETTINGS)}")
+
+    @property
+    def name(self) -> str:
+        return f"{self.task}-{self.expert}-L{self.lipschitz}"
+
+    @property
+    def label(self) -> str:
+        expert = "optimal expert" if self.expert == "optimal" else "detuned expert"
+        return f"{self.task}, {expert}, {self.lipschitz} L"
+
+
+@dataclass(frozen=True)
+class ExperimentSettings:
+    """What every (arm, seed) shares; defaults follow the paper."""
+
+    max_episodes: dict[str, int]
+    evaluations: int = 100  # N
+    checkpoints: tuple[int, ...] = DEFAULT_CHECKPOINTS
+    horizon: int = 1000
+    p: float = 0.9
+    delta: float = 0.1
+    epsilon: dict[str, float] | None = None
+    control_weight: float = DETUNED_CONTROL_WEIGHT
+
+    def epsilon_for(self, task: str) -> float:
+        return (self.epsilon or {}).get(task, PAPER_EPSILON[task])
+
+    def checkpoints_for(self, task: str) -> list[int]:
+        budget = self.max_episodes[task]
+        return sorted({c for c in self.checkpoints if 0 < c <= budget} | {budget})
+
+
+def default_arms(tasks: Sequence[str], lipschitz: Sequence[str], experts: Sequence[str]) -> list[Arm]:
+    """The detuned expert is run with the analytic L only: the paper gives no L for it."""
+    arms = []
+    for task in tasks:
+        for expert in experts:
+            for setting in lipschitz:
+                if expert == "detuned" and setting == "paper":
+                    continue
+                arms.append(Arm(task, expert, setting))
+    return arms
+
+
+def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> LQRExpert:
+    if arm.expert == "detuned":
+        return DetunedLQRExpert(arm.task, seed, settings.control_weight, horizon=settings.horizon)
+    return LQRExpert(arm.task, seed, horizon=settings.horizon)
+
+
+def evaluation_states(task: str, seed: int, count: int) -> FloatArray:
+    """The fixed N initial states every checkpoint of a seed is evaluated on (common random numbers)."""
+    rng = np.random.default_rng([seed, EVALUATION_STREAM])
+    return np.array([sample_initial_state(task, rng) for _ in range(count)])
+
+
+def dataset_prefix(dataset: Dataset, trajectories: int) -> Dataset:
+    """The dataset as it was after its first ``trajectories`` oracle calls."""
+    prefix = Dataset(dataset.state_dim, dataset.action_dim)
+    for index in range(trajectories):
+        prefix.append(dataset.trajectory(index))
+    return prefix
+
+
+# ---------------------------------------------------------------------------------- evaluation
+@dataclass(frozen=True)
+class EvaluationRow:
+    """One rollout from one evaluation s0 at one checkpoint."""
+
+    checkpoint: int  # episodes done when evaluated
+    rollout: int
+    oracle_calls: int
+    dataset_size: int
+    policy_return: float
+    expert_return: float  # the data expert from the same s0
+    optimal_return: float  # the optimal LQR controller from the same s0
+    v_lb: float
+    v_ub: float
+    visited_slope: float  # max |grad V^expert| over the states the policy visited
+    wall_time: float  # seconds for this checkpoint's whole evaluation (same on every row)
+
+    @property
+    def gap_to_expert(self) -> float:
+        return self.expert_return - self.policy_return
+
+    @property
+    def gap_to_optimal(self) -> float:
+        return self.optimal_return - self.policy_return
+
+    @property
+    def violates_lower_bound(self) -> bool:
+        """Theorem 3.4 (B.1 i): the return can never fall below V_lb(s0) when L is a true bound."""
+        return self.policy_return < self.v_lb - VIOLATION_TOLERANCE * max(1.0, abs(self.v_lb))
+
+
+EVALUATION_FIELDS = [f.name for f in fields(EvaluationRow)]
+
+
+def read_evaluations(path: Path) -> list[EvaluationRow]:
+    if not path.exists():
+        return []
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        if reader.fieldnames != EVALUATION_FIELDS:
+            raise ValueError(f"{path}: unexpected columns {reader.fieldnames}; expected {EVALUATION_FIELDS}")
+        rows = []
+        for line in reader:
+            rows.append(
+                EvaluationRow(
+                    **{
+                        name: int(line[name])
+                        if name in ("checkpoint", "rollout", "oracle_calls", "dataset_size")
+                        else float(line[name])
+                        for name in EVALUATION_FIELDS
+                    }
+                )
+            )
+    return rows
+
+
+def append_evaluations(path: Path, rows: Sequence[EvaluationRow]) -> None:
+    """Appends one checkpoint's rows in one write, so a crash leaves whole checkpoints only."""
+    new = not path.exists()
+    lines = []
+    if new:
+        lines.append(",".join(EVALUATION_FIELDS))
+    for row in rows:
+        lines.append(
+            ",".join(repr(v) if isinstance(v, float) else str(v) for v in (getattr(row, n) for n in EVALUATION_FIELDS))
+        )
+    with path.open("a") as fh:
+        fh.write("\n".join(lines) + "\n")
+        fh.flush()
+
+
+class Evaluator:
+    """Rolls the policy and both reference controllers out in MuJoCo from the evaluation s0."""
+
+    def __init__(self, arm: Arm, seed: int, settings: ExperimentSettings, expert: LQRExpert) -> None:
+        self.settings = settings
+        self.expert = expert
+        self.plant = LQRPlant(arm.task, seed)
+        self.states = evaluation_states(arm.task, seed, settings.evaluations)
+        optimal = expert if arm.expert == "optimal" else LQRExpert(arm.task, seed, horizon=settings.horizon)
+        self.optimal_returns = self._returns(optimal.action)
+        self.expert_returns = self.optimal_returns if optimal is expert else self._returns(expert.action)
+
+    def _returns(self, controller: Callable[[FloatArray], FloatArray]) -> FloatArray:
+        return np.array([rollout(self.plant, controller, s0, self.settings.horizon).total_return for s0 in self.states])
+
+    def evaluate(
+        self, checkpoint: int, policy: NonparametricPolicy, progress: Callable[[int, int], None] | None = None
+    ) -> list[EvaluationRow]:
+        started = time.perf_counter()
+        lower = np.asarray(policy.v_lb(self.states))
+        upper = np.asarray(policy.v_ub(self.states))
+        returns = np.empty(len(self.states))
+        slopes = np.empty(len(self.states))
+        for k, s0 in enumerate(self.states):
+            run = rollout(self.plant, policy.act, s0, self.settings.horizon)
+            returns[k] = run.total_return
+            slopes[k] = float(np.max(self.expert.slope(run.states)))
+            if progress is not None:
+                progress(k + 1, len(self.states))
+        wall = time.perf_counter() - started
+        data = policy.dataset
+        return [
+            EvaluationRow(
+                checkpoint,
+                k,
+                data.num_trajectories,
+                len(data),
+                float(returns[k]),
+                float(self.expert_returns[k]),
+                float(self.optimal_returns[k]),
+                float(lower[k]),
+                float(upper[k]),
+                float(slopes[k]),
+                wall,
+            )
+            for k in range(len(self.states))
+        ]
+
+
+# ---------------------------------------------------------------------------------- one run
+@dataclass(frozen=True)
+class RunRecord:
+    """Everything the plots and the table need from one (arm, seed), read back from its folder."""
+
+    arm: Arm
+    seed: int
+    lipschitz: LipschitzConstant
+    slope_needed: float  # sup of the data expert's value slope over its trajectories from S0
+    epsilon: float
+    episodes: list[EpisodeRow]
+    evaluations: list[EvaluationRow]
+    certified_episode: int | None
+    wall_time: float
+
+
+Progress = Callable[[str], None]
+
+
+class _EpisodeProgress(Observer):
+    def __init__(self, report: Progress, key: str, budget: int) -> None:
+        self.report, self.key, self.budget = report, key, budget
+        self._last = 0.0
+
+    def on_episode(self, row: EpisodeRow, status) -> None:
+        now = time.monotonic()
+        if now - self._last >= 1.0 or row.certified:
+            self._last = now
+            gap = "inf" if math.isinf(row.gap) else f"{row.gap:.1f}"
+            self.report(f"{self.key}: episode {row.episode + 1}/{self.budget}, gap {gap}, oracle {row.oracle_calls}")
+
+
+def run_arm_seed(
+    arm: Arm, seed: int, settings: ExperimentSettings, out_dir: Path, report: Progress | None = None
+) -> RunRecord:
+    """Runs (or resumes) one (arm, seed) to certification or budget, evaluating at checkpoints."""
+    report = report or (lambda _text: None)
+    key = f"{arm.name} seed {seed}"
+    run_dir = out_dir / "runs" / f"{arm.name}-seed{seed}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    expert = make_expert(arm, seed, settings)
+    lipschitz = resolve_lipschitz(arm.task, arm.lipschitz, expert)
+    epsilon = settings.epsilon_for(arm.task)
+    config = build_config(
+        arm.task, seed, lipschitz, epsilon, p=settings.p, delta=settings.delta, horizon=settings.horizon
+    )
+    budget = settings.max_episodes[arm.task]
+    loop = build_loop(
+        config, expert, store_path=run_dir / "run.sqlite", observers=[_EpisodeProgress(report, key, budget)]
+    )
+    try:
+        evaluations_path = run_dir / "evaluations.csv"
+        done = {row.checkpoint for row in read_evaluations(evaluations_path)}
+        evaluator: Evaluator | None = None
+        for checkpoint in settings.checkpoints_for(arm.task):
+            if loop.certificate is not None and loop.certificate.episodes < checkpoint:
+                checkpoint = loop.certificate.episodes  # the run ended here: evaluate what it certified
+            if checkpoint in done:
+                continue
+            loop.run(checkpoint)
+            reached = min(checkpoint, loop.next_episode)
+            if reached in done:
+                continue
+            calls = sum(row.oracle_called for row in loop.rows[:reached])
+            data = loop.dataset if calls == loop.dataset.num_trajectories else dataset_prefix(loop.dataset, calls)
+            policy = NonparametricPolicy(data, lipschitz.value)
+            if evaluator is None:
+                report(f"{key}: reference rollouts")
+                evaluator = Evaluator(arm, seed, settings, expert)
+            label = f"{key}: evaluating at episode {reached}"
+            rows = evaluator.evaluate(reached, policy, lambda k, n, label=label: report(f"{label}: {k}/{n}"))
+            append_evaluations(evaluations_path, rows)
+            done.add(reached)
+            if loop.certificate is not None and reached >= loop.certificate.episodes:
+                break
+        return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)
+    finally:
+        if loop.store is not None:
+            loop.store.close()
+
+
+def read_record(
+    arm: Arm,
+    seed: int,
+    settings: ExperimentSettings,
+    run_dir: Path,
+    loop: NPPLoop,
+    expert: LQRExpert,
+    lipschitz: LipschitzConstant,
+) -> RunRecord:
+    evaluations = read_evaluations(run_dir / "evaluations.csv")
+    wall = sum(row.wall_time for row in loop.rows) + sum({r.checkpoint: r.wall_time for r in evaluations}.values())
+    return RunRecord(
+        arm=arm,
+        seed=seed,
+        lipschitz=lipschitz,
+        slope_needed=expert.analytic_lipschitz().value,
+        epsilon=settings.epsilon_for(arm.task),
+        episodes=list(loop.rows),
+        evaluations=evaluations,
+        certified_episode=loop.certificate.episodes if loop.certificate else None,
+        wall_time=wall,
+    )
+
+
+# ---------------------------------------------------------------------------------- the table
+@dataclass(frozen=True)
+class ResultRow:
+    """One (arm, seed): the measured columns and the verdict they back."""
+
+    task: str
+    expert: str
+    lipschitz_setting: str
+    seed: int
+    lipschitz: float
+    slope_needed: float
+    l_is_bound: bool
+    epsilon: float
+    certified_episode: int | None
+    episodes: int
+    oracle_calls: int
+    dataset_size: int
+    evaluated_at: int
+    rollouts: int
+    gap_q50: float  # gap to the data expert, V^expert(s0) - V^pi(s0), measured returns
+    gap_q90: float
+    gap_max: float
+    fraction_within_epsilon: float
+    gap_to_optimal_q50: float
+    lower_bound_violations: int
+    crossed_bounds: int  # episodes with V_ub(s0) < V_lb(s0): the data alone prove L is too small
+    max_visited_slope: float
+    verdict: str
+    wall_time_s: float
+
+
+def verdict(certified: bool, fraction: float, rollouts: int, violations: int, p: float, delta: float) -> str:
+    """What the measurement says about the certificate's claim P(gap <= eps) >= p.
+
+    "contradicted": a one-sided binomial test rejects P(gap <= eps) >= p at level delta.
+    """
+    if not certified:
+        return "no certificate"
+    within = round(fraction * rollouts)
+    if fraction >= p:
+        if violations:
+            return f"held here, but L is not a bound ({violations} returns < V_lb)"
+        return "held"
+    if binom.cdf(within, rollouts, p) < delta:
+        return f"FAILED: {fraction:.0%} within eps, claimed >= {p:.0%}"
+    return f"below p, not significant ({fraction:.0%} within eps)"
+
+
+def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
+    final = max((row.checkpoint for row in record.evaluations), default=0)
+    rows = [row for row in record.evaluations if row.checkpoint == final]
+    gaps = np.array([row.gap_to_expert for row in rows]) if rows else np.array([np.nan])
+    to_optimal = np.array([row.gap_to_optimal for row in rows]) if rows else np.array([np.nan])
+    fraction = float(np.mean(gaps <= record.epsilon)) if rows else float("nan")
+    violations = sum(row.violates_lower_bound for row in rows)
+    last = record.episodes[-1] if record.episodes else None
+    return ResultRow(
+        task=record.arm.task,
+        expert=record.arm.expert,
+        lipschitz_setting=record.arm.lipschitz,
+        seed=record.seed,
+        lipschitz=record.lipschitz.value,
+        slope_needed=record.slope_needed,
+        l_is_bound=record.lipschitz.value >= record.slope_needed,
+        epsilon=record.epsilon,
+        certified_episode=record.certified_episode,
+        episodes=len(record.episodes),
+        oracle_calls=last.oracle_calls if last else 0,
+        dataset_size=last.dataset_size if last else 0,
+        evaluated_at=final,
+        rollouts=len(rows),
+        gap_q50=float(np.quantile(gaps, 0.5)),
+        gap_q90=float(np.quantile(gaps, 0.9)),
+        gap_max=float(np.max(gaps)),
+        fraction_within_epsilon=fraction,
+        gap_to_optimal_q50=float(np.quantile(to_optimal, 0.5)),
+        lower_bound_violations=violations,
+        crossed_bounds=sum(row.gap < 0 for row in record.episodes),
+        max_visited_slope=max((row.visited_slope for row in rows), default=float("nan")),
+        verdict=verdict(record.certified_episode is not None, fraction, len(rows), violations, p, delta),
+        wall_time_s=record.wall_time,
+    )
+
+
+RESULT_FIELDS = [f.name for f in fields(ResultRow)]
+
+
+def write_results(rows: Iterable[ResultRow], out_dir: Path) -> list[Path]:
+    """results.csv and results.json for tools, results.md for people."""
+    import json
+
+    rows = list(rows)
+    paths = [out_dir / "results.csv", out_dir / "results.json", out_dir / "results.md"]
+    with paths[0].open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(RESULT_FIELDS)
+        for row in rows:
+            writer.writerow(["" if v is None else v for v in (getattr(row, n) for n in RESULT_FIELDS)])
+    paths[1].write_text(json.dumps([asdict(row) for row in rows], indent=2) + "\n")
+    paths[2].write_text(markdown_table(rows))
+    return paths
+
+
+def markdown_table(rows: Sequence[ResultRow]) -> str:
+    head = (
+        "| task | expert | L (needed) | seed | certified at | oracle calls | \\|D\\| | gap q50 / q90 / max "
+        "| within eps | gap to optimum q50 | returns < V_lb | V_ub < V_lb at s0 | verdict | wall s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for r in rows:
+        bound = "" if r.l_is_bound else " **not a bound**"
+        cert = str(r.certified_episode) if r.certified_episode is not None else f"none ({r.episodes})"
+        lines.append(
+            f"| {r.task} | {r.expert} | {r.lipschitz:.0f} ({r.slope_needed:.0f}){bound} | {r.seed} | {cert} "
+            f"| {r.oracle_calls} | {r.dataset_size} | {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
+            f"| {r.fraction_within_epsilon:.0%} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
+            f"| {r.crossed_bounds} | {r.verdict} | {r.wall_time_s:.0f} |"
+        )
+    return head + "\n".join(lines) + "\n"

@@ -1,0 +1,150 @@
+"""npp-experiment in a reduced configuration of the same code: files, claims, resume, same loop."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from npp_ros.experiment import Arm, ExperimentSettings, read_evaluations, verdict
+from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
+from npp_ros.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
+from npp_ros.storage import RunStore
+
+EXPERIMENT = [sys.executable, "-m", "npp_ros.cli.experiment"]
+REDUCED = ["--tasks", "lqr_2_1", "--seeds", "0", "--evaluate", "4", "--horizon", "200", "--jobs", "1"]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def run_experiment(out: Path, max_episodes: int, *extra: str) -> subprocess.CompletedProcess[str]:
+    args = [*EXPERIMENT, *REDUCED, "--max-episodes", str(max_episodes), "--checkpoints", "10,20,30", "--out", str(out)]
+    return subprocess.run([*args, *extra], capture_output=True, text=True, timeout=600)
+
+
+def results(out: Path) -> list[dict]:
+    return json.loads((out / "results.json").read_text())
+
+
+def without_wall_time(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in row.items() if k != "wall_time_s"} for row in rows]
+
+
+@pytest.fixture(scope="module")
+def reduced_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("experiment")
+    run = run_experiment(out, 30)
+    assert run.returncode == 0, run.stderr
+    assert "runs done" in run.stderr  # live status
+    return out
+
+
+def test_help_explains_the_options() -> None:
+    out = subprocess.run([*EXPERIMENT, "--help"], capture_output=True, text=True, check=True).stdout
+    for option in ("--tasks", "--seeds", "--lipschitz", "--experts", "--max-episodes", "--evaluate", "--out"):
+        assert option in out
+
+
+def test_writes_figures_and_tables(reduced_run: Path) -> None:
+    for arm in ("lqr_2_1-optimal-Lpaper", "lqr_2_1-optimal-Lanalytic", "lqr_2_1-detuned-Lanalytic"):
+        for fig in ("fig4", "fig5"):
+            assert (reduced_run / f"{fig}-{arm}.png").read_bytes()[:8] == PNG_MAGIC
+    rows = results(reduced_run)
+    assert [(r["expert"], r["lipschitz_setting"]) for r in rows] == [
+        ("detuned", "analytic"),
+        ("optimal", "analytic"),
+        ("optimal", "paper"),
+    ]
+    with (reduced_run / "results.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == 3
+    table = (reduced_run / "results.md").read_text()
+    assert table.count("\n| lqr_2_1 |") == 3 and "**not a bound**" in table
+
+
+def test_table_claims_follow_from_the_measured_columns(reduced_run: Path) -> None:
+    for row in results(reduced_run):
+        run_dir = reduced_run / "runs" / f"{row['task']}-{row['expert']}-L{row['lipschitz_setting']}-seed{row['seed']}"
+        evaluations = read_evaluations(run_dir / "evaluations.csv")
+        final = [e for e in evaluations if e.checkpoint == row["evaluated_at"]]
+        gaps = np.array([e.expert_return - e.policy_return for e in final])
+        assert row["rollouts"] == len(final) == 4
+        assert row["fraction_within_epsilon"] == pytest.approx(np.mean(gaps <= row["epsilon"]))
+        assert row["lower_bound_violations"] == sum(e.policy_return < e.v_lb - 1e-9 * abs(e.v_lb) for e in final)
+        assert row["l_is_bound"] == (row["lipschitz"] >= row["slope_needed"])
+        assert row["dataset_size"] == 200 * row["oracle_calls"]
+        expected = verdict(
+            row["certified_episode"] is not None,
+            row["fraction_within_epsilon"],
+            row["rollouts"],
+            row["lower_bound_violations"],
+            0.9,
+            0.1,
+        )
+        assert row["verdict"] == expected
+        if row["lipschitz_setting"] == "analytic":  # Theorem 3.4 / B.1 (i) hold when L bounds the slope
+            assert row["l_is_bound"] and row["lower_bound_violations"] == 0 and row["crossed_bounds"] == 0
+        else:
+            assert not row["l_is_bound"]
+
+
+def test_repeated_command_recomputes_nothing_and_gives_the_same_numbers(reduced_run: Path) -> None:
+    before = results(reduced_run)
+    again = run_experiment(reduced_run, 30)
+    assert again.returncode == 0, again.stderr
+    assert results(reduced_run) == before
+
+
+def test_resumed_run_matches_an_uninterrupted_one(reduced_run: Path, tmp_path: Path) -> None:
+    assert run_experiment(tmp_path, 20, "--lipschitz", "analytic", "--experts", "optimal").returncode == 0
+    resumed = run_experiment(tmp_path, 30, "--lipschitz", "analytic", "--experts", "optimal")
+    assert resumed.returncode == 0, resumed.stderr
+    direct = [r for r in results(reduced_run) if (r["expert"], r["lipschitz_setting"]) == ("optimal", "analytic")]
+    assert without_wall_time(results(tmp_path)) == without_wall_time(direct)
+
+
+def test_experiment_runs_the_same_loop_as_everyone_else(reduced_run: Path) -> None:
+    """The same seed through build_loop (what npp-learn and the supervisor node use) gives the same gaps."""
+    expert = LQRExpert("lqr_2_1", 0, horizon=200)
+    config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "analytic", expert), 50.0, horizon=200)
+    direct = build_loop(config, expert).run(30)
+    with RunStore.open(reduced_run / "runs" / "lqr_2_1-optimal-Lanalytic-seed0" / "run.sqlite") as store:
+        stored = store.episodes()
+        dataset = store.load_dataset()
+    assert [row.gap for row in stored] == [row.gap for row in direct.rows]
+    assert [row.oracle_called for row in stored] == [row.oracle_called for row in direct.rows]
+    assert dataset.num_trajectories == direct.oracle_calls and len(dataset) == direct.dataset_size
+
+
+def test_detuned_expert_values_are_its_measured_returns() -> None:
+    """Appendix B needs Q_i = Q^pi~(s_i, a_i): the detuned controller's own closed-form values."""
+    detuned, optimal = DetunedLQRExpert("lqr_2_1", 0), LQRExpert("lqr_2_1", 0)
+    plant = LQRPlant("lqr_2_1", 0)
+    for episode in range(5):
+        s0 = sample_initial_state("lqr_2_1", episode_rng(7, episode))
+        measured = rollout(plant, detuned.action, s0, 1000).total_return
+        assert measured == pytest.approx(detuned.value(s0), abs=1e-3)
+        assert detuned.value(s0) < optimal.value(s0) - 30  # really suboptimal: more than half of epsilon = 50
+    assert detuned.analytic_lipschitz().value > optimal.analytic_lipschitz().value
+    with pytest.raises(ValueError, match="control_weight must be finite and > 0"):
+        DetunedLQRExpert("lqr_2_1", 0, control_weight=-1.0)
+
+
+def test_verdicts() -> None:
+    assert verdict(False, 1.0, 100, 0, 0.9, 0.1) == "no certificate"
+    assert verdict(True, 0.95, 100, 0, 0.9, 0.1) == "held"
+    assert verdict(True, 0.95, 100, 7, 0.9, 0.1).startswith("held here, but L is not a bound (7")
+    assert verdict(True, 0.5, 100, 0, 0.9, 0.1).startswith("FAILED: 50% within eps")
+    assert verdict(True, 0.88, 100, 0, 0.9, 0.1).startswith("below p, not significant")
+
+
+def test_arms_and_settings_reject_unknown_names() -> None:
+    with pytest.raises(ValueError, match="unknown task 'lqr_9_9'"):
+        Arm("lqr_9_9", "optimal", "paper")
+    with pytest.raises(ValueError, match="unknown expert 'ppo'"):
+        Arm("lqr_2_1", "ppo", "paper")
+    settings = ExperimentSettings(max_episodes={"lqr_2_1": 150}, checkpoints=(10, 100, 200))
+    assert settings.checkpoints_for("lqr_2_1") == [10, 100, 150]
