@@ -31,7 +31,7 @@ from npp_ros.lqr import (
     DetunedLQRExpert,
     LQRExpert,
     LQRPlant,
-    rollout,
+    rollout_batch,
     sample_initial_state,
 )
 from npp_ros.storage import EpisodeRow
@@ -42,6 +42,7 @@ DEFAULT_CHECKPOINTS = (10, 25, 50, 100, 200, 400, 700, 1000)
 DETUNED_CONTROL_WEIGHT = 0.1
 EVALUATION_STREAM = 1 << 30  # rng stream for evaluation s0; the run's own s0 use [seed, episode]
 VIOLATION_TOLERANCE = 1e-9
+EVALUATION_CHUNK = 25  # rollouts stepped in lockstep (batched policy queries)
 
 
 @dataclass(frozen=True)
@@ -207,7 +208,11 @@ class Evaluator:
         self.expert_returns = self.optimal_returns if optimal is expert else self._returns(expert.action)
 
     def _returns(self, controller: Callable[[FloatArray], FloatArray]) -> FloatArray:
-        return np.array([rollout(self.plant, controller, s0, self.settings.horizon).total_return for s0 in self.states])
+        def batch(states: FloatArray) -> FloatArray:
+            return np.array([controller(x) for x in states])
+
+        runs = rollout_batch(self.plant, batch, self.states, self.settings.horizon)
+        return np.array([run.total_return for run in runs])
 
     def evaluate(
         self, checkpoint: int, policy: NonparametricPolicy, progress: Callable[[int, int], None] | None = None
@@ -217,12 +222,13 @@ class Evaluator:
         upper = np.asarray(policy.v_ub(self.states))
         returns = np.empty(len(self.states))
         slopes = np.empty(len(self.states))
-        for k, s0 in enumerate(self.states):
-            run = rollout(self.plant, policy.act, s0, self.settings.horizon)
-            returns[k] = run.total_return
-            slopes[k] = float(np.max(self.expert.slope(run.states)))
+        for lo in range(0, len(self.states), EVALUATION_CHUNK):
+            hi = min(lo + EVALUATION_CHUNK, len(self.states))
+            for k, run in enumerate(rollout_batch(self.plant, policy.act, self.states[lo:hi], self.settings.horizon)):
+                returns[lo + k] = run.total_return
+                slopes[lo + k] = float(np.max(self.expert.slope(run.states)))
             if progress is not None:
-                progress(k + 1, len(self.states))
+                progress(hi, len(self.states))
         wall = time.perf_counter() - started
         data = policy.dataset
         return [

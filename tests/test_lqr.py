@@ -12,6 +12,7 @@ from npp_ros.lqr import (
     UnknownTaskError,
     episode_rng,
     rollout,
+    rollout_batch,
     sample_initial_state,
 )
 
@@ -133,3 +134,13 @@ def test_analytic_lipschitz_bounds_the_slope_along_expert_trajectories(expert_2_
         diff = np.abs(traj.values[i] - traj.values[j])
         assert np.all(diff <= bound.value * np.linalg.norm(traj.states[i] - traj.states[j], axis=1) + 1e-9)
     assert bound.value > 50.0  # the paper's L is below the true slope on lqr_2_1
+
+
+def test_batched_rollouts_equal_one_at_a_time(expert_2_1: LQRExpert) -> None:
+    """rollout_batch steps plant clones in lockstep; the numbers must not change."""
+    plant = LQRPlant("lqr_2_1", 0)
+    starts = np.array([sample_initial_state("lqr_2_1", episode_rng(5, k)) for k in range(4)])
+    batch = rollout_batch(plant, lambda xs: np.array([expert_2_1.action(x) for x in xs]), starts, 300)
+    for s0, run in zip(starts, batch, strict=True):
+        alone = rollout(plant, expert_2_1.action, s0, 300)
+        assert np.array_equal(run.rewards, alone.rewards) and np.array_equal(run.states, alone.states)
