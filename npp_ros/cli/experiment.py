@@ -48,9 +48,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--lipschitz",
         nargs="+",
-        choices=LIPSCHITZ_SETTINGS,
         default=list(LIPSCHITZ_SETTINGS),
-        help="L settings side by side: 'paper' (50 / 200, not a bound here) and 'analytic' (bounds the slope)",
+        help="L settings side by side: 'paper' (50 / 200, not a bound here), 'analytic' (sup of the expert's "
+        "value slope |Px|, a true bound) or a number",
     )
     ap.add_argument(
         "--experts",
@@ -139,7 +139,11 @@ def main(argv: list[str] | None = None) -> int:
         delta=args.delta,
         control_weight=args.control_weight,
     )
-    arms = default_arms(args.tasks, args.lipschitz, args.experts)
+    try:
+        arms = default_arms(args.tasks, args.lipschitz, args.experts)
+    except ValueError as exc:
+        print(f"npp-experiment: {exc}", file=sys.stderr)
+        return 2
     jobs = [(arm, seed) for arm in arms for seed in args.seeds]
     args.out.mkdir(parents=True, exist_ok=True)
     print(
