@@ -319,8 +319,10 @@ def run_arm_seed(
             if reached in done:
                 continue
             calls = sum(row.oracle_called for row in loop.rows[:reached])
-            data = loop.dataset if calls == loop.dataset.num_trajectories else dataset_prefix(loop.dataset, calls)
-            policy = NonparametricPolicy(data, lipschitz.value)
+            if calls == loop.dataset.num_trajectories:
+                policy = loop.policy  # its search index is already built
+            else:  # resumed past an unevaluated checkpoint: rebuild the data as it was there
+                policy = NonparametricPolicy(dataset_prefix(loop.dataset, calls), lipschitz.value)
             if evaluator is None:
                 report(f"{key}: reference rollouts")
                 evaluator = Evaluator(arm, seed, settings, expert)
