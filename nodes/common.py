@@ -6,6 +6,7 @@ Nodes convert messages to core types, call the core, and publish; nothing here d
 from __future__ import annotations
 
 import sys
+import time
 from array import array
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -33,6 +34,7 @@ ROLLOUT_DONE = "npp/sim/rollout"
 DATASET_TOPIC = "npp/dataset/trajectory"
 DATASET_SERVICE = "npp/dataset/get"
 POLICY_STATUS = "npp/policy/trajectories"
+POLICY_DROPPED = "npp/policy/dropped_states"
 
 # Lockstep control: every state and action matters, so reliable with a short queue.
 CONTROL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -119,6 +121,27 @@ def run_node(factory: Callable[[], Node], argv: Sequence[str] | None = None, usa
         except KeyboardInterrupt:  # a second Ctrl-C while shutting down
             pass
     return int(getattr(node, "exit_code", 0))
+
+
+class ThrottledWarnings:
+    """At most one warning per kind and second, with a count of what was suppressed: a flood of bad
+    input must show up in the log without drowning it."""
+
+    def __init__(self, node: Node, every_s: float = 1.0) -> None:
+        self.node, self.every_s = node, every_s
+        self._last: dict[str, tuple[float, int]] = {}
+        self.counts: dict[str, int] = {}
+
+    def __call__(self, kind: str, message: str) -> None:
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        now = time.monotonic()
+        last, suppressed = self._last.get(kind, (-float("inf"), 0))
+        if now - last < self.every_s:
+            self._last[kind] = (last, suppressed + 1)
+            return
+        extra = f" ({suppressed} more like it suppressed)" if suppressed else ""
+        self.node.get_logger().warning(message + extra)
+        self._last[kind] = (now, 0)
 
 
 class StartupError(RuntimeError):

@@ -4,11 +4,18 @@ The dataset arrives trajectory by trajectory on /npp/dataset/trajectory; on star
 restart, or when it sees a gap in the trajectory indices, the node catches up through the
 supervisor's /npp/dataset/get service, so nothing else needs restarting. With no data it says
 so and publishes nothing: it never invents an action.
+
+States are answered by a worker thread from a one-state mailbox: the executor keeps taking
+states off the wire while an action is computed, and a state overtaken by a newer one before it
+was answered is dropped (counted on /npp/policy/dropped_states and in the log). Under a state
+stream faster than the policy, it answers the newest state and never builds a queue.
 """
 
 from __future__ import annotations
 
 import sys
+import threading
+import time
 
 import numpy as np
 from npp_interfaces.msg import PlantDescription
@@ -16,7 +23,7 @@ from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from npp_interfaces.srv import GetTrajectories
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import UInt32
+from std_msgs.msg import UInt32, UInt64
 
 from nodes.common import (
     ACTION,
@@ -25,22 +32,31 @@ from nodes.common import (
     DATASET_TOPIC,
     LATCHED_QOS,
     PLANT,
+    POLICY_DROPPED,
     POLICY_STATUS,
     REPORT_QOS,
     STATE,
+    ThrottledWarnings,
     run_node,
     trajectory_arrays,
 )
 from npp_ros.bounds import NonparametricPolicy
 from npp_ros.dataset import Dataset, DatasetError
 
+CATCH_UP_TIMEOUT_S = 5.0  # a catch-up request unanswered this long is withdrawn and sent again
+REPORT_EVERY_S = 1.0
+
 USAGE = f"""npp-policy: greedy NPP actions for every state (ROS 2 node "npp_policy").
 
 subscribes  /{STATE} (sensor_msgs/JointState), /{PLANT} (latched), /{DATASET_TOPIC}
 publishes   /{ACTION} (sensor_msgs/JointState: effort = action, stamp = the answered state's)
             /{POLICY_STATUS} (std_msgs/UInt32, latched: trajectories held)
+            /{POLICY_DROPPED} (std_msgs/UInt64: states dropped so far because a newer one arrived
+            before they were answered; published when it changes, at most every {REPORT_EVERY_S:g} s)
 calls       /{DATASET_SERVICE} to catch up with the supervisor's dataset
 parameters  none: L and the data come from the supervisor, the plant from the sim
+
+A state with wrong joint names or counts, or non-finite values, is refused with a log line.
 """
 
 
@@ -51,16 +67,29 @@ class PolicyNode(Node):
         self.dataset: Dataset | None = None
         self.policy: NonparametricPolicy | None = None
         self.lipschitz: float | None = None
-        self.pending: TrajectoryMsg | None = None
         self._catch_up_future = None
+        self._catch_up_sent = 0.0
         self._catch_up_needed = True
+        # The answer thread reads the dataset while the executor appends to it: one lock for both.
+        self._data_lock = threading.Lock()
+        self._mailbox: JointState | None = None
+        self._mail = threading.Condition()
+        self._closing = False
+        self.dropped = 0  # states overtaken by a newer one before they were answered
+        self.answered = 0
+        self._dropped_reported = 0
+        self._warn = ThrottledWarnings(self)
         self.action_pub = self.create_publisher(JointState, ACTION, CONTROL_QOS)
         self.status_pub = self.create_publisher(UInt32, POLICY_STATUS, LATCHED_QOS)
+        self.dropped_pub = self.create_publisher(UInt64, POLICY_DROPPED, REPORT_QOS)
         self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
         self.create_subscription(TrajectoryMsg, DATASET_TOPIC, self.on_trajectory, REPORT_QOS)
         self.create_subscription(JointState, STATE, self.on_state, CONTROL_QOS)
         self.dataset_client = self.create_client(GetTrajectories, DATASET_SERVICE)
         self.create_timer(0.5, self.maybe_catch_up)
+        self.create_timer(REPORT_EVERY_S, self.report_dropped)
+        self._answerer = threading.Thread(target=self._answer_loop, name="npp-policy-answers", daemon=True)
+        self._answerer.start()
 
     # ---------------------------------------------------------------- dataset
     def on_plant(self, msg: PlantDescription) -> None:
@@ -88,7 +117,8 @@ class PolicyNode(Node):
         assert self.dataset is not None
         try:
             traj = trajectory_arrays(msg.states, msg.actions, msg.values, msg.state_dim, msg.action_dim)
-            self.dataset.append(traj)
+            with self._data_lock:
+                self.dataset.append(traj)
         except DatasetError as exc:
             self.get_logger().error(f"trajectory {msg.index} refused: {exc}")
             return False
@@ -96,16 +126,28 @@ class PolicyNode(Node):
         return True
 
     def maybe_catch_up(self) -> None:
-        if self.dataset is None or not self._catch_up_needed or self._catch_up_future is not None:
+        pending = self._catch_up_future
+        if pending is not None:
+            # A supervisor killed mid-request, or a response Fast DDS dropped before it matched this
+            # (new) client, never answers: withdraw the request and ask again, or catch-up stalls forever.
+            if time.monotonic() - self._catch_up_sent < CATCH_UP_TIMEOUT_S:
+                return
+            self.dataset_client.remove_pending_request(pending)
+            self._catch_up_future = None
+            self.get_logger().warning(f"no catch-up answer within {CATCH_UP_TIMEOUT_S:g} s; asking again")
+        if self.dataset is None or not self._catch_up_needed:
             return
         if not self.dataset_client.service_is_ready():
             self.get_logger().info("waiting for the supervisor's dataset service", throttle_duration_sec=10.0)
             return
         request = GetTrajectories.Request(start=self.dataset.num_trajectories, max_count=50)
-        self._catch_up_future = self.dataset_client.call_async(request)
-        self._catch_up_future.add_done_callback(self.on_catch_up)
+        self._catch_up_sent = time.monotonic()
+        self._catch_up_future = future = self.dataset_client.call_async(request)
+        future.add_done_callback(self.on_catch_up)
 
     def on_catch_up(self, future) -> None:
+        if future is not self._catch_up_future:
+            return  # a withdrawn request answered late
         self._catch_up_future = None
         response = future.result()
         if response is None or not response.success:
@@ -114,7 +156,8 @@ class PolicyNode(Node):
         if self.policy is None:
             self.lipschitz = response.lipschitz
             assert self.dataset is not None
-            self.policy = NonparametricPolicy(self.dataset, response.lipschitz)
+            with self._data_lock:
+                self.policy = NonparametricPolicy(self.dataset, response.lipschitz)
             self.get_logger().info(f"acting greedily with L = {response.lipschitz:g} ({response.lipschitz_source})")
         for msg in response.trajectories:
             if msg.index == self.dataset.num_trajectories and not self._append(msg):
@@ -126,21 +169,81 @@ class PolicyNode(Node):
 
     # ---------------------------------------------------------------- acting
     def on_state(self, msg: JointState) -> None:
+        """Executor side: validate and leave the state in the mailbox; an unanswered older one is dropped."""
+        problem = self._problem(msg)
+        if problem is not None:
+            self._warn(problem.split(":")[0], f"state refused: {problem}")
+            return
+        with self._mail:
+            if self._mailbox is not None:
+                self.dropped += 1
+            self._mailbox = msg
+            self._mail.notify()
+
+    def _problem(self, msg: JointState) -> str | None:
+        """What is wrong with a state message, in words, or None if it can be answered."""
+        plant = self.plant
+        if plant is None:
+            return "no plant description yet: cannot read states"
         if self.policy is None or self.dataset is None or len(self.dataset) == 0:
-            self.get_logger().warning("no data yet: the policy has no action to give", throttle_duration_sec=5.0)
-            return
+            return "no data yet: the policy has no action to give"
+        joints = list(plant.joint_names)
+        if len(msg.name) and list(msg.name) != joints:
+            return f"wrong joint names: {list(msg.name)}, expected {joints} (or none)"
+        if len(msg.position) != len(joints) or len(msg.velocity) != len(joints):
+            return (
+                f"wrong joint count: {len(msg.position)} positions and {len(msg.velocity)} velocities, "
+                f"expected {len(joints)} each for {plant.task}"
+            )
+        values = np.concatenate([np.asarray(msg.position, dtype=np.float64), np.asarray(msg.velocity)])
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            return "non-finite state: " + ", ".join(f"state[{i}] = {values[i]}" for i in bad[:5])
+        return None
+
+    def _answer_loop(self) -> None:
+        """Answer thread: always the newest state; whatever arrived meanwhile replaced it."""
+        while True:
+            with self._mail:
+                self._mail.wait_for(lambda: self._mailbox is not None or self._closing)
+                if self._closing:
+                    return
+                msg, self._mailbox = self._mailbox, None
+            try:
+                self._answer(msg)
+            except Exception as exc:  # the answer thread must outlive any single bad state
+                self.get_logger().error(f"could not answer a state: {type(exc).__name__}: {exc}")
+
+    def _answer(self, msg: JointState) -> None:
+        assert self.policy is not None and self.plant is not None
         state = np.concatenate([np.asarray(msg.position, dtype=np.float64), np.asarray(msg.velocity)])
-        try:
+        with self._data_lock:
             action = self.policy.act(state)
-        except DatasetError as exc:
-            self.get_logger().warning(f"state refused: {exc}", throttle_duration_sec=5.0)
-            return
-        assert self.plant is not None
         out = JointState()
         out.header.stamp = msg.header.stamp
         out.name = list(self.plant.actuated_joint_names)
         out.effort = action.tolist()
         self.action_pub.publish(out)
+        self.answered += 1
+
+    def report_dropped(self) -> None:
+        dropped = self.dropped
+        if dropped == self._dropped_reported:
+            return
+        self.dropped_pub.publish(UInt64(data=dropped))
+        self.get_logger().warning(
+            f"dropped {dropped - self._dropped_reported} stale states in the last {REPORT_EVERY_S:g} s "
+            f"({dropped} in all, {self.answered} answered): states arrive faster than the policy answers; "
+            "each was overtaken by a newer one"
+        )
+        self._dropped_reported = dropped
+
+    def destroy_node(self) -> None:
+        with self._mail:
+            self._closing = True
+            self._mail.notify()
+        self._answerer.join(timeout=5.0)
+        super().destroy_node()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,6 +31,7 @@ from nodes.common import (
     SERVICE_QOS,
     STATE,
     StartupError,
+    ThrottledWarnings,
     declare_all,
     float64_array,
     parameter_help,
@@ -63,8 +64,6 @@ serves      /{RESET_SERVICE} (npp_interfaces/srv/ResetEpisode: empty state = sam
 {parameter_help(PARAMETERS)}
 """
 
-WARN_EVERY_S = 1.0
-
 
 def _stamp(nanoseconds: int) -> Time:
     return Time(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
@@ -86,7 +85,7 @@ class SimNode(Node):
         self._last_state: JointState | None = None
         self._last_sent = 0.0
         self.ignored_actions = 0
-        self._warned: dict[str, tuple[float, int]] = {}
+        self._warn = ThrottledWarnings(self)
         self.plant_pub = self.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
         self.done_pub = self.create_publisher(EpisodeResult, ROLLOUT_DONE, REPORT_QOS)
@@ -263,17 +262,6 @@ class SimNode(Node):
             f"episode {self.episode} done: {self.steps} steps, return {self.episode_return:.3f}"
             + (f", {self.ignored_actions} actions ignored so far" if self.ignored_actions else "")
         )
-
-    def _warn(self, kind: str, message: str) -> None:
-        """At most one warning per kind and second, with a count of what was suppressed."""
-        now = time.monotonic()
-        last, suppressed = self._warned.get(kind, (-float("inf"), 0))
-        if now - last < WARN_EVERY_S:
-            self._warned[kind] = (last, suppressed + 1)
-            return
-        extra = f" ({suppressed} more like it suppressed)" if suppressed else ""
-        self.get_logger().warning(message + extra)
-        self._warned[kind] = (now, 0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

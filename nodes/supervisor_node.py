@@ -21,6 +21,7 @@ from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from npp_interfaces.srv import ExpertTrajectory, GetTrajectories, ResetEpisode
+from rclpy.client import Client
 from rclpy.node import Node
 from std_msgs.msg import UInt32
 
@@ -61,7 +62,7 @@ PARAMS: list[tuple[str, object, str]] = [
     ("max_episodes", 1000, "stop uncertified after this many episodes"),
     ("run_dir", "runs/graph", "run folder: run.sqlite, gaps.csv, episodes.csv"),
     ("expert_timeout", 30.0, "seconds to wait for one expert answer"),
-    ("expert_retries", 3, "expert attempts per episode before the run stops with an error"),
+    ("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops with an error"),
     ("rollouts", True, "let the policy drive each episode through the sim"),
     ("rollout_timeout", 120.0, "seconds to wait for the policy's episode before skipping its return"),
 ]
@@ -74,6 +75,9 @@ calls       /{EXPERT_SERVICE}, /{RESET_SERVICE}
 serves      /{DATASET_SERVICE}
 {parameter_help(PARAMS)}
 """
+
+
+RETRY_PAUSE_S = 0.25  # first pause between expert attempts; doubles each time, capped at expert_timeout
 
 
 class ExpertUnavailable(RuntimeError):
@@ -214,10 +218,13 @@ class SupervisorNode(Node):
             self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
         store.close()
 
-    def wait_future(self, future, timeout: float):
+    def call(self, client: Client, request, timeout: float):
+        """One service call with a deadline; an unanswered request is withdrawn, not left pending forever."""
+        future = client.call_async(request)
         done = threading.Event()
         future.add_done_callback(lambda _f: done.set())
         if not done.wait(timeout):
+            client.remove_pending_request(future)
             future.cancel()
             return None
         return future.result()
@@ -247,7 +254,7 @@ class RosExpert:
                 last = f"service /{EXPERT_SERVICE} not available after {self.timeout:g} s"
             else:
                 request = ExpertTrajectory.Request(state=initial_state.tolist(), horizon=0)
-                response = self.node.wait_future(self.node.expert.call_async(request), self.timeout)
+                response = self.node.call(self.node.expert, request, self.timeout)
                 if response is None:
                     last = f"no answer within {self.timeout:g} s"
                 elif not response.success:
@@ -257,6 +264,10 @@ class RosExpert:
                         response.states, response.actions, response.values, response.state_dim, response.action_dim
                     )
             log.warning(f"expert call {attempt}/{self.retries} failed: {last}")
+            if attempt < self.retries:
+                # A just-restarted expert refuses until it has the plant: pause before asking again,
+                # or every retry is spent within milliseconds.
+                self.node.stop.wait(min(self.timeout, RETRY_PAUSE_S * 2 ** (attempt - 1)))
         raise ExpertUnavailable(f"the expert did not deliver after {self.retries} attempts: {last}")
 
 
@@ -280,7 +291,7 @@ class RosRollouts:
             log.warning(f"episode {episode}: sim reset service unavailable; no rollout this episode")
             return None
         request = ResetEpisode.Request(state=initial_state.tolist(), episode=episode)
-        response = node.wait_future(node.reset.call_async(request), self.timeout)
+        response = node.call(node.reset, request, self.timeout)
         if response is None or not response.success:
             log.warning(f"episode {episode}: sim reset failed: {getattr(response, 'message', 'no answer')}")
             return None
