@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
+from expert_checks import TIMEOUT, check_good, request, wait_until_modelling
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
 from rclpy.client import Client
@@ -19,43 +19,6 @@ from npp_ros.lqr import LQRExpert, LQRPlant
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
-
-TIMEOUT = 60.0
-
-
-def request(state: list[float] | np.ndarray, horizon: int = 0) -> ExpertTrajectory.Request:
-    return ExpertTrajectory.Request(state=[float(x) for x in state], horizon=horizon)
-
-
-def wait_until_modelling(client: RosClient, expert: Client, timeout: float = TIMEOUT) -> None:
-    """The service exists before the plant description arrives: poll until the expert has it."""
-    deadline = time.monotonic() + timeout
-    while True:
-        answer = client.call(expert, request([]), timeout)
-        if "no plant description" not in answer.message:
-            return
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"expert never received the plant description: {answer.message}")
-        time.sleep(0.1)
-
-
-def unpack(answer: ExpertTrajectory.Response) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    n, m = answer.state_dim, answer.action_dim
-    states = np.asarray(answer.states).reshape(-1, n)
-    actions = np.asarray(answer.actions).reshape(-1, m)
-    return states, actions, np.asarray(answer.values)
-
-
-def check_good(answer: ExpertTrajectory.Response, expert: LQRExpert, s0: np.ndarray, steps: int) -> None:
-    assert answer.success, answer.message
-    assert (answer.state_dim, answer.action_dim) == (expert.plant.state_dim, expert.plant.action_dim)
-    states, actions, values = unpack(answer)
-    assert states.shape == (steps, expert.plant.state_dim) and values.shape == (steps,)
-    np.testing.assert_array_equal(states[0], s0)
-    np.testing.assert_allclose(values, expert.value(states), rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(actions, states @ -expert.K.T, rtol=1e-9, atol=1e-12)
-    predicted = states[:-1] @ expert.A.T + actions[:-1] @ expert.B.T
-    np.testing.assert_allclose(states[1:], predicted, rtol=0, atol=1e-9)
 
 
 @pytest.fixture(scope="module")
@@ -111,40 +74,6 @@ def test_bad_requests_get_precise_errors_and_the_node_keeps_serving(
     assert len(answer.states) == len(answer.actions) == len(answer.values) == 0
     s0 = np.array([0.5, -0.5, 0.1, 0.0])
     check_good(client.call(service, request(s0, 30)), expert_2_1, s0, 30)
-
-
-def test_several_clients_concurrently(
-    graph_2_1: Launcher, ros_client: Callable[..., RosClient], expert_2_1: LQRExpert
-) -> None:
-    clients = [ros_client(f"expert_client_{i}") for i in range(4)]
-    services = [c.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT) for c in clients]
-    for client, service in zip(clients, services, strict=True):
-        wait_until_modelling(client, service)  # also proves each client's response path is matched
-    errors: list[BaseException] = []
-    answered = [0] * len(clients)
-
-    def work(i: int) -> None:
-        try:
-            rng = np.random.default_rng(100 + i)
-            pending = []
-            for _ in range(5):  # several requests in flight per client
-                s0 = rng.normal(size=4)
-                pending.append((s0, services[i].call_async(request(s0, 200))))
-            for s0, future in pending:
-                check_good(clients[i].wait_for(future, TIMEOUT, "expert answer"), expert_2_1, s0, 200)
-                answered[i] += 1
-        except BaseException as exc:
-            errors.append(exc)
-
-    threads = [threading.Thread(target=work, args=(i,)) for i in range(len(clients))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(TIMEOUT * 2)
-    assert not errors, errors
-    assert answered == [5, 5, 5, 5]
-    for proc, _, _ in graph_2_1.procs:
-        graph_2_1.assert_alive(proc)
 
 
 def test_expert_follows_the_sims_plant_description(launch: Launcher, ros_client: Callable[..., RosClient]) -> None:
