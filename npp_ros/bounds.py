@@ -7,6 +7,11 @@ The policy is pi(s) = a_{i*} with i* the maximiser of (1); ties go to the smalle
 (Remark 3.2), which is what ``np.argmax`` returns. Distances are accumulated coordinate by
 coordinate in a fixed order, so a single query and the same state inside a batch give the same
 floating-point numbers, bit for bit.
+
+V_lb and V_ub (and so the gap and the policy) go through :class:`npp_ros.kdtree.BoundIndex`, an
+exact branch-and-bound kd-tree that returns the same values and indices as the brute force here,
+bit for bit, ties included; ``index=False`` keeps the plain brute force (the reference). Q_lb and
+Q_ub, which add an action term, stay brute force.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from npp_ros.dataset import Dataset, DatasetError, FloatArray
+from npp_ros.kdtree import BoundIndex
 
 # Upper limit on the (queries x points) block evaluated at once, to bound memory.
 _BLOCK_ELEMENTS = 1 << 22
@@ -45,13 +51,19 @@ def pairwise_distances(points: FloatArray, queries: FloatArray) -> FloatArray:
 
 
 class NonparametricPolicy:
-    """Bounds and greedy actions over a live :class:`Dataset` (brute force, exact)."""
+    """Bounds and greedy actions over a live :class:`Dataset`, exact.
 
-    def __init__(self, dataset: Dataset, lipschitz: float) -> None:
+    ``index`` (default on) answers V_lb / V_ub with the kd-tree index; ``compress`` (default on)
+    lets that index skip points that can never attain a bound (the dataset keeps them). Both
+    return exactly what the brute force returns.
+    """
+
+    def __init__(self, dataset: Dataset, lipschitz: float, *, index: bool = True, compress: bool = True) -> None:
         if not np.isfinite(lipschitz) or lipschitz <= 0:
             raise ValueError(f"the Lipschitz constant must be finite and > 0, got {lipschitz!r}")
         self.dataset = dataset
         self.lipschitz = float(lipschitz)
+        self.index = BoundIndex(dataset, self.lipschitz, compress=compress) if index else None
 
     # ----------------------------------------------------------------- validation
     def _states(self, states: ArrayLike) -> tuple[FloatArray, bool]:
@@ -80,6 +92,9 @@ class NonparametricPolicy:
     # ----------------------------------------------------------------- core search
     def _search(self, queries: FloatArray, offsets: FloatArray | None, lower: bool) -> BoundQuery:
         """max_i (Q_i - L d_i) if lower else min_j (Q_j + L d_j); d may include an action term."""
+        if offsets is None and self.index is not None:
+            value, index = self.index.search(queries, lower)
+            return BoundQuery(value, index)
         data = self.dataset
         count = queries.shape[0]
         if len(data) == 0:
