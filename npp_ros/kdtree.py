@@ -42,6 +42,7 @@ LEAF_SIZE = 16
 """Points per leaf: small leaves prune more, large ones amortise the node overhead."""
 TAIL_LIMIT = 2048
 """The newest points stay in the brute-force tail until there are this many."""
+_PROVISIONAL_TREE = 4096  # dominance checks over more new points than this search a tree built for them
 _STACK = 256  # depth-first stack; a median-split tree over < 2^63 points is < 64 levels deep
 
 
@@ -487,7 +488,7 @@ class BoundIndex:
         ball = 4.0 * radius + 1.0
         threshold = dominance_threshold(float(np.max(np.abs(values))), self.lipschitz, ball + radius, data.state_dim)
         forests, tail = self._forests, a
-        if b - a > 4 * self.tail_limit:  # the new points get a provisional tree instead of a long tail
+        if b - a > _PROVISIONAL_TREE:  # the new points get a provisional tree instead of a long brute-force tail
             provisional = self._make_segment(a, b, math.inf, {1.0: everything, -1.0: everything})
             forests, tail = self._make_forests([*self.segments, provisional]), b
         kept = {}
