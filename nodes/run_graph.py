@@ -33,7 +33,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--task", default="lqr_2_1", help="lqr_2_1 or lqr_6_2")
     ap.add_argument("--seed", type=int, default=0, help="task seed")
     ap.add_argument("--horizon", type=int, default=1000, help="episode length")
-    ap.add_argument("--epsilon", type=float, default=-1.0, help="target gap; <= 0: the paper's (50 / 300)")
+    ap.add_argument("--epsilon", type=float, default=0.0, help="target gap > 0; 0: the paper's (50 / 300)")
     ap.add_argument("--lipschitz", default="analytic", help="'analytic', 'paper' (not a bound) or a number")
     ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")

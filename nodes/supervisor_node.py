@@ -10,6 +10,7 @@ certificate latched. Restarted on the same run folder, it resumes where the file
 from __future__ import annotations
 
 import csv
+import math
 import sys
 import threading
 import time
@@ -54,7 +55,7 @@ from npp_ros.lqr import PAPER_EPSILON, LQRExpert
 from npp_ros.storage import EpisodeRow, RunStore
 
 PARAMS: list[tuple[str, object, str]] = [
-    ("epsilon", -1.0, "target suboptimality; <= 0 means the paper's value for the task (50 / 300)"),
+    ("epsilon", 0.0, "target suboptimality > 0; 0 means the paper's value for the task (50 / 300)"),
     ("lipschitz", "analytic", "L: 'analytic' (a true bound), 'paper' (50 / 200, not a bound) or a number"),
     ("condition", "i", "Theorem 4.1 condition: i or ii"),
     ("p", 0.9, "probability level of condition (i)"),
@@ -113,22 +114,26 @@ class SupervisorNode(Node):
     def _validated(values: dict) -> dict:
         """All parameter checks in one place; a bad value refuses to start with the reason."""
         if values["condition"] not in ("i", "ii"):
-            raise StartupError(f"condition must be 'i' or 'ii', got {values['condition']!r}")
+            raise StartupError(f"parameter condition must be 'i' or 'ii', got {values['condition']!r}")
         for name in ("p", "delta"):
             if not 0 < float(values[name]) < 1:
-                raise StartupError(f"{name} must lie in (0, 1), got {values[name]!r}")
-        if int(values["max_episodes"]) < 1 or int(values["expert_retries"]) < 1:
-            raise StartupError("max_episodes and expert_retries must be >= 1")
-        if float(values["expert_timeout"]) <= 0 or float(values["rollout_timeout"]) <= 0:
-            raise StartupError("expert_timeout and rollout_timeout must be > 0")
+                raise StartupError(f"parameter {name} must lie in (0, 1), got {values[name]!r}")
+        if not 0 <= float(values["epsilon"]) < math.inf:
+            raise StartupError(f"parameter epsilon must be > 0 (or 0 for the paper's value), got {values['epsilon']!r}")
+        for name in ("max_episodes", "expert_retries"):
+            if int(values[name]) < 1:
+                raise StartupError(f"parameter {name} must be >= 1, got {values[name]!r}")
+        for name in ("expert_timeout", "rollout_timeout"):
+            if not 0 < float(values[name]) < math.inf:
+                raise StartupError(f"parameter {name} must be a number of seconds > 0, got {values[name]!r}")
         lipschitz = str(values["lipschitz"])
         if lipschitz not in ("analytic", "paper"):
             try:
-                if not float(lipschitz) > 0:
+                if not 0 < float(lipschitz) < math.inf:
                     raise ValueError
             except ValueError:
                 raise StartupError(
-                    f"lipschitz must be 'analytic', 'paper' or a number > 0, got {lipschitz!r}"
+                    f"parameter lipschitz must be 'analytic', 'paper' or a finite number > 0, got {lipschitz!r}"
                 ) from None
         return values
 
