@@ -23,7 +23,7 @@ import subprocess
 import sys
 import time
 import tomllib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
 
@@ -76,6 +76,7 @@ def ros_domain(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
     with domain_id() as domain:
         os.environ.update(overrides, ROS_DOMAIN_ID=str(domain))
         os.environ.pop("ROS_STATIC_PEERS", None)
+        assert_confined(os.environ, int(domain))
         try:
             yield int(domain)
         finally:
@@ -86,9 +87,17 @@ def ros_domain(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
                     os.environ[key] = value
 
 
+def assert_confined(env: Mapping[str, str], domain: int) -> None:
+    """Every ROS participant a test creates runs on the session's domain with localhost-only discovery."""
+    assert env.get("ROS_DOMAIN_ID") == str(domain), f"ROS_DOMAIN_ID {env.get('ROS_DOMAIN_ID')!r}, expected {domain}"
+    assert env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST", "discovery must stay on this machine"
+    assert "ROS_STATIC_PEERS" not in env, "no static peers: nothing outside this machine is contacted"
+
+
 @pytest.fixture(scope="session")
 def ros_context(ros_domain: int) -> Iterator[None]:
     """rclpy.init once per session, after the domain is set (Jazzy: init returns None, no `with`)."""
+    assert_confined(os.environ, ros_domain)
     rclpy.init()
     try:
         yield
@@ -133,24 +142,30 @@ def _default_sigint() -> None:
 class Launcher:
     """Starts node processes and stops every one of them, whatever the test did."""
 
-    def __init__(self, log_dir: Path, failed: Callable[[], bool]) -> None:
+    def __init__(self, log_dir: Path, failed: Callable[[], bool], domain: int) -> None:
         self.log_dir = log_dir
         self.failed = failed
+        self.domain = domain
         self.procs: list[tuple[subprocess.Popen[bytes], Path, IO[bytes]]] = []
 
     def __call__(
-        self, target: str, params: dict[str, Any] | None = None, namespace: str = ""
+        self, target: str, params: dict[str, Any] | None = None, namespace: str = "", domain: int | None = None
     ) -> subprocess.Popen[bytes]:
-        """Start `target` (console script or module); `namespace` isolates it from other graphs."""
+        """Start `target` (console script or module); `namespace` isolates it from other graphs, `domain`
+        (another free id from domain_coordinator) puts it on another ROS_DOMAIN_ID, still localhost-only."""
         label = target.rsplit(".", 1)[-1]
         log = self.log_dir / f"{len(self.procs):02d}-{label}.log"
+        env = dict(os.environ)
+        if domain is not None:
+            env["ROS_DOMAIN_ID"] = str(domain)
+        assert_confined(env, self.domain if domain is None else domain)
         fh = open(log, "wb")  # closed in stop_all
         proc = subprocess.Popen(
             node_command(target, params, namespace),
             stdout=fh,
             stderr=subprocess.STDOUT,
             cwd=REPO,
-            env=dict(os.environ),
+            env=env,
             preexec_fn=_default_sigint,
         )
         self.procs.append((proc, log, fh))
@@ -197,7 +212,7 @@ class Launcher:
 @pytest.fixture
 def launch(ros_domain: int, tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Launcher]:
     """launch(target, params) -> Popen, one process per call; all stopped at teardown."""
-    launcher = Launcher(tmp_path, lambda: _test_failed(request.node))
+    launcher = Launcher(tmp_path, lambda: _test_failed(request.node), ros_domain)
     try:
         yield launcher
     finally:
@@ -210,7 +225,9 @@ def launch_module(
 ) -> Iterator[Launcher]:
     """Like `launch`, but the processes live for the whole test module (logs shown if any test failed)."""
     failures_before = request.session.testsfailed
-    launcher = Launcher(tmp_path_factory.mktemp("nodes"), lambda: request.session.testsfailed > failures_before)
+    launcher = Launcher(
+        tmp_path_factory.mktemp("nodes"), lambda: request.session.testsfailed > failures_before, ros_domain
+    )
     try:
         yield launcher
     finally:
