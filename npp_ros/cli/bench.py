@@ -1,0 +1,564 @@
+"""npp-bench: the exact bound index against plain 1-NN trees and brute force, in one run.
+
+Measures side by side, on real LQR expert trajectories (``LQRExpert.trajectory`` from
+``sample_initial_state``) and queries near fresh expert trajectories:
+
+* 12-D lqr_6_2-like data and 4-D lqr_2_1-like data: V_lb (the policy query), V_ub and both,
+  against pykdtree and scipy's cKDTree 1-NN on the same points, batched and single;
+* brute-force numpy (the reference implementation) against the index at 10^4, 10^5, 10^6 points;
+* exactness against the brute force on every run: same values and same indices, ties included
+  (a tie-heavy grid case runs every time);
+* the first-call cost of the compiled kernels with a cold and a warm numba cache;
+* optionally the compression of stored runs (``--runs``) and the ROS loop rate (``--ros``).
+
+Everything is single-threaded (OMP_NUM_THREADS=1 for pykdtree), so the ratios compare
+algorithms, not core counts. Writes ``bench.md`` and ``bench.json`` into the output folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenMP runtime
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.compression import compression_report, index_report
+from npp_ros.dataset import Dataset, FloatArray
+from npp_ros.kdtree import BoundIndex
+from npp_ros.lqr import PAPER_LIPSCHITZ, LQRExpert, sample_initial_state
+
+try:  # the registry's fastest plain 1-NN tree; the benchmark still runs without it
+    from pykdtree.kdtree import KDTree as PyKDTree
+except ImportError:  # pragma: no cover - pykdtree is pinned in the dev set
+    PyKDTree = None
+
+TARGETS = {"policy": 2.0, "both": 3.0, "4d": 3.0, "brute": 20.0}
+DEFAULT_OUT = Path("results/bench")
+
+
+# ----------------------------------------------------------------------------- progress and stats
+class Progress:
+    """One line per step on stderr, with the elapsed time, so a long run shows where it is."""
+
+    def __init__(self, total: int, stream=sys.stderr) -> None:
+        self.total, self.done, self.t0, self.stream = total, 0, time.perf_counter(), stream
+
+    def step(self, text: str) -> None:
+        self.done += 1
+        elapsed = time.perf_counter() - self.t0
+        self.stream.write(f"[{self.done:2d}/{self.total}] {elapsed:7.1f}s  {text}\n")
+        self.stream.flush()
+
+    def note(self, text: str) -> None:
+        self.stream.write(f"          {text}\n")
+        self.stream.flush()
+
+
+def summary(samples: list[float]) -> dict[str, Any]:
+    """Median and spread (min, max, relative half-range) of per-query microseconds."""
+    arr = np.asarray(samples, dtype=float)
+    med = float(np.median(arr))
+    return {
+        "median_us": med,
+        "min_us": float(arr.min()),
+        "max_us": float(arr.max()),
+        "spread": float((arr.max() - arr.min()) / (2 * med)) if med > 0 else 0.0,
+        "samples_us": [float(x) for x in arr],
+    }
+
+
+def per_query_us(fn: Callable[[], object], count: int) -> float:
+    t = time.perf_counter()
+    fn()
+    return (time.perf_counter() - t) / count * 1e6
+
+
+def single_loop(fn: Callable[[FloatArray], object], queries: FloatArray) -> Callable[[], None]:
+    rows = [q[None, :].copy() for q in queries]
+
+    def run() -> None:
+        for row in rows:
+            fn(row)
+
+    return run
+
+
+# ----------------------------------------------------------------------------- data
+def expert_data(task: str, trajectories: int, seed: int) -> tuple[Dataset, LQRExpert]:
+    """Real LQR expert trajectories from s0 ~ rho, H = 1000 points each."""
+    expert = LQRExpert(task, 0)
+    rng = np.random.default_rng(seed)
+    data = Dataset(expert.plant.state_dim, expert.plant.actuators, capacity=trajectories * expert.horizon)
+    for _ in range(trajectories):
+        data.append(expert.trajectory(sample_initial_state(task, rng)))
+    return data, expert
+
+
+def near_trajectory_queries(expert: LQRExpert, task: str, count: int, seed: int) -> FloatArray:
+    """States of fresh expert trajectories (every 50th step), slightly perturbed: what the policy meets."""
+    rng = np.random.default_rng(seed + 10_000)
+    per = max(1, expert.horizon // 50)
+    states = []
+    while sum(len(s) for s in states) < count:
+        states.append(expert.trajectory(sample_initial_state(task, rng)).states[::50])
+    out = np.concatenate(states)[:count]
+    scale = 1e-2 * np.abs(out).mean(axis=0, keepdims=True)
+    del per
+    return out + scale * rng.standard_normal(out.shape)
+
+
+def prefix(data: Dataset, size: int) -> Dataset:
+    out = Dataset(data.state_dim, data.action_dim, capacity=size)
+    out.append_arrays(data.states[:size], data.actions[:size], data.values[:size])
+    return out
+
+
+# ----------------------------------------------------------------------------- checks
+def exactness(index: BoundIndex, data: Dataset, lipschitz: float, queries: FloatArray) -> dict[str, Any]:
+    """Index vs numpy brute force on ``queries``: same values (bit for bit) and same indices."""
+    brute = NonparametricPolicy(data, lipschitz, index=False)
+    out: dict[str, Any] = {"queries": len(queries)}
+    ok = True
+    for name, lower in (("lower", True), ("upper", False)):
+        value, idx = index.search(queries, lower)
+        ref = brute.lower(queries) if lower else brute.upper(queries)
+        same_idx = int(np.sum(idx == ref.index))
+        same_val = int(np.sum(value == ref.value))
+        out[f"{name}_same_index"] = same_idx
+        out[f"{name}_same_value"] = same_val
+        ok = ok and same_idx == len(queries) and same_val == len(queries)
+    out["exact"] = ok
+    return out
+
+
+def tie_case(seed: int, size: int, count: int) -> dict[str, Any]:
+    """Integer grid data with L = 1: exact ties everywhere; the index must pick the smallest index."""
+    rng = np.random.default_rng(seed)
+    data = Dataset(3, 1)
+    data.append_arrays(
+        rng.integers(-4, 5, size=(size, 3)).astype(float), np.zeros((size, 1)), rng.integers(0, 6, size).astype(float)
+    )
+    queries = rng.integers(-5, 6, size=(count, 3)).astype(float)
+    index = BoundIndex(data, 1.0, tail_limit=max(1, size // 8), leaf_size=4)
+    result = exactness(index, data, 1.0, queries)
+    scores = data.values[None, :] - np.sqrt(((queries[:, None, :] - data.states[None, :, :]) ** 2).sum(axis=2))
+    result["tied_queries_lower"] = int(np.sum((scores == scores.max(axis=1, keepdims=True)).sum(axis=1) > 1))
+    return result
+
+
+def compile_cost() -> dict[str, float]:
+    """First build + search in a fresh process with an empty numba cache, then again with it warm."""
+    code = (
+        "import time; t = time.perf_counter()\n"
+        "import numpy as np\n"
+        "from npp_ros.dataset import Dataset\n"
+        "from npp_ros.kdtree import BoundIndex\n"
+        "t_import = time.perf_counter() - t\n"
+        "d = Dataset(3, 1); r = np.random.default_rng(0)\n"
+        "d.append_arrays(r.normal(size=(600, 3)), np.zeros((600, 1)), r.normal(size=600))\n"
+        "t = time.perf_counter(); i = BoundIndex(d, 1.0, tail_limit=100); i.search(np.zeros((1, 3)), True)\n"
+        "i.search(np.zeros((1, 3)), False); print(t_import, time.perf_counter() - t)\n"
+    )
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="npp-numba-cache-") as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        for label in ("cold", "warm"):
+            res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+            t_import, t_first = (float(x) for x in res.stdout.split())
+            out[f"{label}_import_s"] = t_import
+            out[f"{label}_first_query_s"] = t_first
+    return out
+
+
+# ----------------------------------------------------------------------------- cases
+@dataclass
+class Case:
+    name: str
+    task: str
+    dim: int
+    points: int
+    lipschitz: float
+    lipschitz_source: str
+    build_s: dict[str, float] = field(default_factory=dict)
+    timings: dict[str, dict[str, Any]] = field(default_factory=dict)
+    ratios: dict[str, float] = field(default_factory=dict)
+    exact: dict[str, Any] = field(default_factory=dict)
+    compression: dict[str, Any] = field(default_factory=dict)
+
+
+def run_case(
+    name: str, task: str, data: Dataset, L: float, source: str, queries: FloatArray, args: argparse.Namespace,
+    progress: Progress,
+) -> Case:  # fmt: skip
+    case = Case(name, task, data.state_dim, len(data), L, source)
+    points = np.ascontiguousarray(data.states)
+    t = time.perf_counter()
+    index = BoundIndex(data, L)  # the policy's default: compression on
+    index.sync()
+    case.build_s["index"] = time.perf_counter() - t
+    report = index_report(index)
+    case.compression = report.as_dict()
+    t = time.perf_counter()
+    trees: dict[str, Any] = {"ckdtree": cKDTree(points, leafsize=16)}
+    case.build_s["ckdtree"] = time.perf_counter() - t
+    if PyKDTree is not None:
+        t = time.perf_counter()
+        trees["pykdtree"] = PyKDTree(points, leafsize=16)
+        case.build_s["pykdtree"] = time.perf_counter() - t
+    progress.step(f"{name}: built (index {case.build_s['index']:.2f}s, kept {report.kept_either}/{report.points})")
+
+    single = queries[: args.single]
+    nq, ns = len(queries), len(single)
+    fns: dict[str, tuple[Callable[[], object], int]] = {
+        "index_lower_batch": (lambda: index.search(queries, True), nq),
+        "index_upper_batch": (lambda: index.search(queries, False), nq),
+        "index_lower_single": (single_loop(lambda q: index.search(q, True), single), ns),
+        "index_upper_single": (single_loop(lambda q: index.search(q, False), single), ns),
+    }
+    for label, tree in trees.items():
+        if label == "pykdtree":
+            fns[f"{label}_batch"] = (lambda tree=tree: tree.query(queries, k=1), nq)
+            fns[f"{label}_single"] = (single_loop(lambda q, tree=tree: tree.query(q, k=1), single), ns)
+        else:
+            fns[f"{label}_batch"] = (lambda tree=tree: tree.query(queries, k=1, workers=1), nq)
+            fns[f"{label}_single"] = (single_loop(lambda q, tree=tree: tree.query(q, k=1, workers=1), single), ns)
+    for fn, _ in fns.values():  # warm-up: caches, page faults, lazy loads
+        fn()
+    samples: dict[str, list[float]] = {key: [] for key in fns}
+    for _ in range(args.repeats):
+        for key, (fn, count) in fns.items():  # interleaved, so load changes hit every method alike
+            samples[key].append(per_query_us(fn, count))
+    case.timings = {key: summary(vals) for key, vals in samples.items()}
+    for mode in ("batch", "single"):
+        base = min(case.timings[f"{t}_{mode}"]["median_us"] for t in trees)
+        lo = case.timings[f"index_lower_{mode}"]["median_us"]
+        hi = case.timings[f"index_upper_{mode}"]["median_us"]
+        case.ratios[f"lower_vs_1nn_{mode}"] = lo / base
+        case.ratios[f"both_vs_1nn_{mode}"] = (lo + hi) / base
+        case.ratios[f"baseline_{mode}_us"] = base
+    progress.step(
+        f"{name}: V_lb {case.ratios['lower_vs_1nn_batch']:.2f}x, both {case.ratios['both_vs_1nn_batch']:.2f}x "
+        f"the fastest 1-NN (batch)"
+    )
+    check = queries[: args.check]
+    case.exact = exactness(index, data, L, check)
+    progress.step(f"{name}: exact on {len(check)} queries: {case.exact['exact']}")
+    return case
+
+
+def run_scaling(
+    name: str, data: Dataset, L: float, queries: FloatArray, sizes: list[int], args: argparse.Namespace,
+    progress: Progress,
+) -> list[dict[str, Any]]:  # fmt: skip
+    rows = []
+    for size in sizes:
+        sub = prefix(data, size)
+        index = BoundIndex(sub, L)
+        index.sync()
+        brute = NonparametricPolicy(sub, L, index=False)
+        nb = max(2, min(len(queries), int(args.brute_budget / size)))
+        bq = queries[:nb]
+        index.search(bq, True)
+        brute_s, index_s = [], []
+        for _ in range(max(1, args.repeats // 2)):
+            brute_s.append(per_query_us(lambda brute=brute, bq=bq: brute.lower(bq), nb))
+            index_s.append(per_query_us(lambda index=index: index.search(queries, True), len(queries)))
+        exact = exactness(index, sub, L, bq)
+        b, i = summary(brute_s), summary(index_s)
+        rows.append({
+            "case": name, "points": size, "brute_queries": nb, "brute": b, "index": i,
+            "speedup": b["median_us"] / i["median_us"], "exact": exact,
+        })  # fmt: skip
+        progress.step(f"{name} {size:>9,d} points: brute {b['median_us']:.0f}us, index {i['median_us']:.1f}us "
+                      f"({rows[-1]['speedup']:.0f}x), exact {exact['exact']}")  # fmt: skip
+    return rows
+
+
+def machine_info() -> dict[str, Any]:
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+
+    def version(pkg: str) -> str:
+        try:
+            return metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            return "absent"
+
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "usable_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "machine": platform.machine(),
+        "system": f"{platform.system()} {platform.release()}",
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "numba": version("numba"),
+        "scipy": version("scipy"),
+        "pykdtree": version("pykdtree"),
+        "load_average_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "threads": "single-threaded: OMP_NUM_THREADS=" + os.environ.get("OMP_NUM_THREADS", "?") + ", cKDTree workers=1",
+    }
+
+
+def targets(cases: list[Case], scaling: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    rows = []
+    for case in cases:
+        for mode in ("batch", "single"):
+            if case.dim >= 12:
+                checks = [
+                    ("V_lb (policy) vs 1-NN", "lower", TARGETS["policy"]),
+                    ("both bounds vs 1-NN", "both", TARGETS["both"]),
+                ]
+            else:
+                checks = [
+                    ("V_lb (policy) vs 1-NN", "lower", TARGETS["4d"]),
+                    ("both bounds vs 1-NN", "both", TARGETS["4d"]),
+                ]
+            for label, key, target in checks:
+                value = case.ratios[f"{key}_vs_1nn_{mode}"]
+                rows.append({"case": f"{case.name}, {mode}", "metric": label, "value": value,
+                             "target": f"<= {target:g}x", "met": value <= target})  # fmt: skip
+    for row in scaling:
+        if row["points"] >= 100_000:
+            rows.append({"case": f"{row['case']}, {row['points']:,d} points", "metric": "speed-up vs brute force",
+                         "value": row["speedup"], "target": f">= {TARGETS['brute']:g}x",
+                         "met": row["speedup"] >= TARGETS["brute"]})  # fmt: skip
+    return rows
+
+
+def compression_of_runs(run_dirs: list[Path], progress: Progress) -> list[dict[str, Any]]:
+    from npp_ros.storage import RunStore
+
+    rows = []
+    for run in run_dirs:
+        store = RunStore.open(run / "run.sqlite" if run.is_dir() else run)
+        data = store.load_dataset()
+        meta = store.metadata
+        t = time.perf_counter()
+        full = compression_report(data, meta.lipschitz)
+        elapsed = time.perf_counter() - t
+        rows.append({"run": str(run), "task": meta.task, "seed": meta.seed, "lipschitz": meta.lipschitz,
+                     "lipschitz_source": meta.lipschitz_source, "seconds": elapsed, **full.as_dict()})  # fmt: skip
+        progress.step(f"compression of {run}: kept V_lb {full.kept_lower}/{full.points}, "
+                      f"V_ub {full.kept_upper}/{full.points} ({elapsed:.1f}s)")  # fmt: skip
+    return rows
+
+
+# ----------------------------------------------------------------------------- report
+def fmt_us(t: dict[str, Any]) -> str:
+    return f"{t['median_us']:.1f} ±{100 * t['spread']:.0f}%"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    m = result["machine"]
+    lines = [
+        "# npp-bench",
+        "",
+        f"Command: `{result['command']}`  ",
+        f"Date: {result['date']}  ",
+        f"Machine: {m['cpu']}, {m['cores']} cores ({m['usable_cores']} usable), {m['system']}; Python {m['python']}, "
+        f"numpy {m['numpy']}, numba {m['numba']}, scipy {m['scipy']}, pykdtree {m['pykdtree']}; {m['threads']}.  ",
+        f"Load average at start: {m['load_average_start']}, at end: {result.get('load_average_end')}.  ",
+        f"All exact: **{result['all_exact']}** (same index and same value as brute force on every checked query).",
+        "",
+        "Times are microseconds per query: median over repeats, ± the half-range (max - min) / 2 as a "
+        "fraction of the median.",
+        "",
+        "## Targets",
+        "",
+        "| case | metric | value | target | met |",
+        "|---|---|---|---|---|",
+    ]
+    for row in result["targets"]:
+        lines.append(f"| {row['case']} | {row['metric']} | {row['value']:.2f}x | {row['target']} | "
+                     f"{'yes' if row['met'] else '**no**'} |")  # fmt: skip
+    lines += ["", "## Index vs 1-NN trees (same points, same queries)", ""]
+    lines += [
+        "| case | points | L | mode | V_lb | V_ub | pykdtree 1-NN | cKDTree 1-NN | V_lb / 1-NN | both / 1-NN |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for case in result["cases"]:
+        t = case["timings"]
+        for mode in ("batch", "single"):
+            py = fmt_us(t[f"pykdtree_{mode}"]) if f"pykdtree_{mode}" in t else "-"
+            lines.append(
+                f"| {case['name']} | {case['points']:,d} | {case['lipschitz']:.4g} ({case['lipschitz_source']}) | "
+                f"{mode} | "
+                f"{fmt_us(t[f'index_lower_{mode}'])} | {fmt_us(t[f'index_upper_{mode}'])} | {py} | "
+                f"{fmt_us(t[f'ckdtree_{mode}'])} | {case['ratios'][f'lower_vs_1nn_{mode}']:.2f}x | "
+                f"{case['ratios'][f'both_vs_1nn_{mode}']:.2f}x |"
+            )
+    lines += ["", "Build times (s) and what the compressed trees keep:", ""]
+    lines += ["| case | index build | pykdtree | cKDTree | kept for V_lb | kept for V_ub | exact (queries checked) |",
+              "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for case in result["cases"]:
+        b, c, e = case["build_s"], case["compression"], case["exact"]
+        lines.append(
+            f"| {case['name']} | {b['index']:.2f} | {b.get('pykdtree', float('nan')):.2f} | {b['ckdtree']:.2f} | "
+            f"{c['kept_lower']:,d} ({100 * c['kept_lower_fraction']:.1f}%) | "
+            f"{c['kept_upper']:,d} ({100 * c['kept_upper_fraction']:.1f}%) | {e['exact']} ({e['queries']}) |"
+        )
+    lines += ["", "## Brute force vs index (V_lb, batch)", ""]
+    lines += [
+        "| case | points | brute force | index | speed-up | exact (queries checked) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in result["scaling"]:
+        lines.append(f"| {row['case']} | {row['points']:,d} | {fmt_us(row['brute'])} | {fmt_us(row['index'])} | "
+                     f"{row['speedup']:.0f}x | {row['exact']['exact']} ({row['exact']['queries']}) |")  # fmt: skip
+    ties = result["ties"]
+    lines += ["", f"Tie case (integer grid, L = 1): {ties['queries']} queries, {ties['tied_queries_lower']} with tied "
+              f"maximisers; exact: {ties['exact']}.", ""]  # fmt: skip
+    cc = result.get("compile")
+    if cc:
+        lines += [
+            "## First call (numba compile or cache load)",
+            "",
+            f"Cold cache: import {cc['cold_import_s']:.2f}s, first build + queries {cc['cold_first_query_s']:.2f}s. "
+            f"Warm cache: import {cc['warm_import_s']:.2f}s, first build + queries {cc['warm_first_query_s']:.2f}s.",
+            "",
+        ]
+    if result.get("compression_runs"):
+        lines += ["## Compression of stored runs (every point checked against the whole dataset)", ""]
+        lines += [
+            "| run | task | L | points | kept for V_lb | kept for V_ub | kept for either |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for row in result["compression_runs"]:
+            lines.append(
+                f"| {row['run']} | {row['task']} | {row['lipschitz']:.4g} ({row['lipschitz_source']}) | "
+                f"{row['points']:,d} | {row['kept_lower']:,d} ({100 * row['kept_lower_fraction']:.1f}%) | "
+                f"{row['kept_upper']:,d} ({100 * row['kept_upper_fraction']:.1f}%) | "
+                f"{row['kept_either']:,d} ({100 * row['kept_either_fraction']:.1f}%) |"
+            )
+        lines.append("")
+    if result.get("ros"):
+        lines += ["## ROS loop", "", "```", json.dumps(result["ros"], indent=2), "```", ""]
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- main
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="npp-bench",
+        description=(
+            "npp-bench: the exact V_lb/V_ub index against pykdtree and cKDTree 1-NN and against brute force, "
+            "on real LQR expert trajectories; exactness is checked on every run. Writes bench.md and bench.json."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder")
+    parser.add_argument("--quick", action="store_true", help="a short smoke run on small data (seconds, not minutes)")
+    parser.add_argument("--trajectories", type=int, default=1000, help="expert trajectories per task (H = 1000 each)")
+    parser.add_argument("--queries", type=int, default=1000, help="batched queries near fresh trajectories")
+    parser.add_argument("--single", type=int, default=300, help="queries timed one at a time")
+    parser.add_argument("--check", type=int, default=100, help="queries checked against brute force per case")
+    parser.add_argument("--repeats", type=int, default=7, help="timing repeats (medians and spreads over these)")
+    parser.add_argument("--brute-budget", type=float, default=2e6, help="points x queries per brute-force timing")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the initial states")
+    parser.add_argument("--runs", type=Path, nargs="*", default=[], help="run folders whose compression to report")
+    parser.add_argument("--ros", action="store_true", help="also measure the ROS loop rate (nodes/bench_loop.py)")
+    parser.add_argument("--no-compile", action="store_true", help="skip the cold-cache compile measurement")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.trajectories = min(args.trajectories, 12)
+        args.queries, args.single, args.check, args.repeats = 200, 50, 50, 2
+        args.brute_budget = 2e5
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    n = args.trajectories * 1000
+    sizes = [s for s in (10_000, 100_000, 1_000_000) if s <= n] or [n]
+    tasks = [("lqr_6_2", "analytic"), ("lqr_2_1", "analytic"), ("lqr_2_1", "paper")]
+    total = 2 + 3 * len(tasks) + 2 * len(sizes) + 1 + (not args.no_compile) + len(args.runs) + args.ros + 1
+    progress = Progress(total)
+    result: dict[str, Any] = {
+        "command": "npp-bench " + " ".join(sys.argv[1:] if argv is None else argv),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+        "machine": machine_info(),
+        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "runs"},
+        "targets_spec": TARGETS,
+    }
+    datasets = {}
+    for task in ("lqr_6_2", "lqr_2_1"):
+        t = time.perf_counter()
+        data, expert = expert_data(task, args.trajectories, args.seed)
+        queries = near_trajectory_queries(expert, task, args.queries, args.seed)
+        datasets[task] = (data, expert, queries)
+        progress.step(f"{task}: {len(data):,d} expert points, {len(queries)} queries ({time.perf_counter() - t:.1f}s)")
+    cases = []
+    for task, choice in tasks:
+        data, expert, queries = datasets[task]
+        if choice == "analytic":
+            lip = expert.analytic_lipschitz()
+            L, source = lip.value, "analytic"
+        else:
+            L, source = PAPER_LIPSCHITZ[task], "paper"
+        name = f"{data.state_dim}-D {task}"
+        cases.append(run_case(f"{name}, L {source}", task, data, L, source, queries, args, progress))
+    scaling = []
+    for task in ("lqr_6_2", "lqr_2_1"):
+        data, expert, queries = datasets[task]
+        L = expert.analytic_lipschitz().value
+        scaling += run_scaling(f"{data.state_dim}-D {task}", data, L, queries, sizes, args, progress)
+    ties = tie_case(args.seed, 2000 if args.quick else 20_000, 300)
+    progress.step(f"tie case: {ties['tied_queries_lower']} tied queries, exact {ties['exact']}")
+    result["cases"] = [vars(c) for c in cases]
+    result["scaling"] = scaling
+    result["ties"] = ties
+    if not args.no_compile:
+        result["compile"] = compile_cost()
+        progress.step(f"compile: cold {result['compile']['cold_first_query_s']:.2f}s, "
+                      f"warm {result['compile']['warm_first_query_s']:.2f}s")  # fmt: skip
+    result["compression_runs"] = compression_of_runs(args.runs, progress)
+    if args.ros:
+        result["ros"] = ros_loop(args, progress)
+    result["targets"] = targets(cases, scaling)
+    checks = [c.exact["exact"] for c in cases] + [r["exact"]["exact"] for r in scaling] + [ties["exact"]]
+    result["all_exact"] = bool(all(checks))
+    result["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    (args.out / "bench.json").write_text(json.dumps(result, indent=2) + "\n")
+    (args.out / "bench.md").write_text(markdown(result))
+    progress.step(f"wrote {args.out / 'bench.md'} and {args.out / 'bench.json'}; all exact: {result['all_exact']}")
+    sys.stdout.write(markdown(result))
+    return 0 if result["all_exact"] else 1
+
+
+def ros_loop(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
+    """The ROS loop rate, measured by nodes/bench_loop.py in its own process (npp_ros stays ROS-free)."""
+    cmd = [sys.executable, "-m", "nodes.bench_loop", "--json", "-"] + (["--quick"] if args.quick else [])
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        out = {"error": res.stderr.strip()[-2000:] or f"exit {res.returncode}"}
+    else:
+        out = json.loads(res.stdout)
+    progress.step(f"ROS loop: {out}")
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())
