@@ -3,18 +3,27 @@
 The expert is built from the sim's latched plant description, never from its own parameters, and
 proves it models the same plant by comparing model fingerprints. Every request is validated; a bad
 one gets success = false and a message naming the problem, and the node keeps serving.
+
+Trajectories are computed by one worker thread while the executor keeps taking requests off the
+wire, so the node always knows its backlog: beyond `max_queue` waiting requests it answers at once
+with success = false and a message starting "busy:", instead of letting the middleware's queue
+overflow and drop requests silently.
 """
 
 from __future__ import annotations
 
+import queue
 import sys
+import threading
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
+from rclpy.task import Future
 
 from nodes.common import (
     EXPERT_SERVICE,
@@ -27,11 +36,13 @@ from nodes.common import (
     parameter_help,
     run_node,
 )
+from npp_ros.dataset import Trajectory
 from npp_ros.lqr import MAX_HORIZON, LQRExpert
 
 PARAMETERS: list[tuple[str, Any, str]] = [
     ("gamma", 1.0, "discount in (0, 1]; 1 = undiscounted H-step values V* = H - J*"),
     ("max_horizon", 10000, f"largest horizon a request may ask for, in [1, {MAX_HORIZON}]"),
+    ("max_queue", 100, "requests that may wait for the worker; more are refused at once with 'busy:' (>= 1)"),
 ]
 
 USAGE = f"""npp-expert: the LQR expert oracle as a ROS 2 service (node "npp_expert").
@@ -52,26 +63,42 @@ class ExpertNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_expert")
         params = declare_all(self, PARAMETERS)
-        self.gamma, self.max_horizon = self._validated(params)
+        self.gamma, self.max_horizon, self.max_queue = self._validated(params)
+        self.waiting = 0  # accepted requests not yet answered (executor thread only)
+        self.busy_refusals = 0
+        self._jobs: queue.SimpleQueue[tuple[LQRExpert, np.ndarray, int, Future] | None] = queue.SimpleQueue()
+        self._worker = threading.Thread(target=self._work, name="npp-expert-worker", daemon=True)
+        self._worker.start()
         self.expert: LQRExpert | None = None
         self.description: PlantDescription | None = None
         self.refusal: str | None = None  # set when the described plant cannot be modelled
         self._plant_sub = self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
-        self._service = self.create_service(ExpertTrajectory, EXPERT_SERVICE, self.on_request, qos_profile=SERVICE_QOS)
+        # Reentrant: the next request is taken while earlier ones await the worker (a mutually exclusive
+        # group would hold every request back until the one before it is answered).
+        self._service = self.create_service(
+            ExpertTrajectory,
+            EXPERT_SERVICE,
+            self.on_request,
+            qos_profile=SERVICE_QOS,
+            callback_group=ReentrantCallbackGroup(),
+        )
         self.get_logger().info(
             f"waiting for the plant description on {self._plant_sub.topic_name}; "
-            f"serving {self.resolve_service_name(EXPERT_SERVICE)} (gamma {self.gamma}, max_horizon {self.max_horizon})"
+            f"serving {self.resolve_service_name(EXPERT_SERVICE)} (gamma {self.gamma}, max_horizon {self.max_horizon}, "
+            f"max_queue {self.max_queue})"
         )
 
     @staticmethod
-    def _validated(params: dict[str, Any]) -> tuple[float, int]:
+    def _validated(params: dict[str, Any]) -> tuple[float, int, int]:
         """All parameter checks in one place, so a bad launch fails at once with the reason."""
-        gamma, max_horizon = params["gamma"], params["max_horizon"]
+        gamma, max_horizon, max_queue = params["gamma"], params["max_horizon"], params["max_queue"]
         if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 < float(gamma) <= 1.0:
             raise StartupError(f"parameter gamma must be a number in (0, 1], got {gamma!r}")
         if isinstance(max_horizon, bool) or not isinstance(max_horizon, int) or not 1 <= max_horizon <= MAX_HORIZON:
             raise StartupError(f"parameter max_horizon must be an integer in [1, {MAX_HORIZON}], got {max_horizon!r}")
-        return float(gamma), int(max_horizon)
+        if isinstance(max_queue, bool) or not isinstance(max_queue, int) or max_queue < 1:
+            raise StartupError(f"parameter max_queue must be an integer >= 1, got {max_queue!r}")
+        return float(gamma), int(max_horizon), int(max_queue)
 
     # ------------------------------------------------------------------ plant
     def on_plant(self, desc: PlantDescription) -> None:
@@ -108,27 +135,64 @@ class ExpertNode(Node):
         )
 
     # ---------------------------------------------------------------- service
-    def on_request(
+    async def on_request(
         self, request: ExpertTrajectory.Request, response: ExpertTrajectory.Response
     ) -> ExpertTrajectory.Response:
+        """Validate at once; queue the computation for the worker, or refuse as busy when the queue is full.
+
+        A coroutine: while it awaits the worker, the executor takes further requests, so the backlog
+        is counted here rather than hidden in the middleware's queue.
+        """
         try:
             problem = self._problem(request.state, int(request.horizon))
-            if problem is not None:
-                return self._refuse(response, problem)
-            assert self.expert is not None
-            horizon = int(request.horizon) or self.expert.horizon
-            traj = self.expert.trajectory(np.asarray(request.state, dtype=np.float64), horizon)
         except Exception as exc:  # never let an exception escape into the executor
+            problem = f"internal error while checking the request: {exc}"
+        if problem is not None:
+            return self._refuse(response, problem)
+        if self.waiting >= self.max_queue:
+            self.busy_refusals += 1
+            return self._refuse(
+                response,
+                f"busy: {self.waiting} requests are waiting (parameter max_queue {self.max_queue}); "
+                "nothing was computed, ask again later",
+            )
+        assert self.expert is not None
+        expert = self.expert
+        done = Future()
+        self.waiting += 1
+        try:
+            self._jobs.put((expert, np.asarray(request.state, dtype=np.float64), int(request.horizon), done))
+            traj: Trajectory = await done
+        except Exception as exc:
             self.get_logger().error(f"expert request failed: {type(exc).__name__}: {exc}")
             return self._refuse(response, f"internal error while computing the trajectory: {exc}")
+        finally:
+            self.waiting -= 1
         response.success = True
-        response.message = f"{len(traj)} steps of {self.expert.task} seed {self.expert.seed}"
-        response.state_dim = self.expert.plant.state_dim
-        response.action_dim = self.expert.plant.action_dim
+        response.message = f"{len(traj)} steps of {expert.task} seed {expert.seed}"
+        response.state_dim = expert.plant.state_dim
+        response.action_dim = expert.plant.action_dim
         response.states = float64_array(traj.states.ravel())
         response.actions = float64_array(traj.actions.ravel())
         response.values = float64_array(traj.values)
         return response
+
+    def _work(self) -> None:
+        """Worker thread: one trajectory at a time, in arrival order; wakes the executor when one is done."""
+        while (job := self._jobs.get()) is not None:
+            expert, state, horizon, done = job
+            try:
+                done.set_result(expert.trajectory(state, horizon or expert.horizon))
+            except Exception as exc:  # reported to the waiting request, never kills the worker
+                done.set_exception(exc)
+            executor = self.executor
+            if executor is not None:
+                executor.wake()
+
+    def destroy_node(self) -> None:
+        self._jobs.put(None)
+        self._worker.join(timeout=5.0)
+        super().destroy_node()
 
     def _problem(self, state: Sequence[float], horizon: int) -> str | None:
         """What is wrong with a request, in words, or None if it can be served."""

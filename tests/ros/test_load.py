@@ -1,7 +1,8 @@
 """Load: many expert clients at once, and a state stream faster than the policy answers.
 
 - 8 client nodes send 200 expert requests, all in flight at once. Every request is accounted for:
-  answered with the closed-form trajectory, or refused with "busy"; none may be lost silently.
+  answered with the closed-form trajectory, or refused with "busy:"; none may be lost silently. With
+  the default queue (100) and with a tiny one (2), where most requests must be refused as busy.
 - The policy under a flood of states answers only the newest, drops the ones overtaken while it
   was busy, reports the count on /npp/policy/dropped_states and in its log, and builds no backlog.
 """
@@ -15,6 +16,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pytest
 from builtin_interfaces.msg import Time
 from expert_checks import TIMEOUT, check_good, request, wait_until_modelling
 from npp_interfaces.msg import PlantDescription
@@ -47,11 +49,12 @@ REQUESTS = 200
 FLOOD = 3000
 
 
+@pytest.mark.parametrize(("max_queue", "max_horizon"), [(100, 1000), (2, 10_000)])
 def test_expert_serves_8_clients_200_requests_and_loses_none(
-    launch: Launcher, ros_client: Callable[..., RosClient], expert_2_1: LQRExpert
+    launch: Launcher, ros_client: Callable[..., RosClient], expert_2_1: LQRExpert, max_queue: int, max_horizon: int
 ) -> None:
     launch("nodes.sim_node", {"task": "lqr_2_1", "seed": 0})
-    expert = launch("nodes.expert_node")
+    expert = launch("nodes.expert_node", {"max_queue": max_queue})
     clients = [ros_client(f"load_client_{i}") for i in range(CLIENTS)]
     services = [c.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT) for c in clients]
     for client, service in zip(clients, services, strict=True):
@@ -63,7 +66,7 @@ def test_expert_serves_8_clients_200_requests_and_loses_none(
     def work(i: int) -> None:
         try:
             rng = np.random.default_rng(1000 + i)
-            cases = [(rng.normal(size=4), int(rng.integers(1, 1001))) for _ in range(REQUESTS // CLIENTS)]
+            cases = [(rng.normal(size=4), int(rng.integers(1, max_horizon + 1))) for _ in range(REQUESTS // CLIENTS)]
             start.wait()
             pending = [(s0, h, services[i].call_async(request(s0, h))) for s0, h in cases]  # all in flight
             deadline = time.monotonic() + 300.0  # a hang guard, not a speed requirement
@@ -73,7 +76,8 @@ def test_expert_serves_8_clients_200_requests_and_loses_none(
                 except TimeoutError:
                     outcomes[i]["lost"] += 1
                     continue
-                if not answer.success and "busy" in answer.message:
+                if not answer.success and answer.message.startswith("busy:"):
+                    assert f"max_queue {max_queue}" in answer.message, answer.message
                     outcomes[i]["busy"] += 1
                     continue
                 check_good(answer, expert_2_1, s0, horizon)
@@ -88,9 +92,12 @@ def test_expert_serves_8_clients_200_requests_and_loses_none(
         t.join(400.0)
     assert not errors, errors
     total = sum(outcomes, Counter())
-    print(f"\nexpert load: {CLIENTS} clients, {REQUESTS} requests: {dict(total)}")
+    print(f"\nexpert load (max_queue {max_queue}): {CLIENTS} clients, {REQUESTS} requests: {dict(total)}")
     assert total["lost"] == 0
     assert total["answered correctly"] + total["busy"] == REQUESTS
+    assert total["answered correctly"] >= 1
+    if max_queue == 2:  # 200 requests at once, of up to 10,000 steps each, cannot all fit a queue of 2
+        assert total["busy"] > 0
     assert all(sum(c.values()) == REQUESTS // CLIENTS for c in outcomes)
     launch.assert_alive(expert)
     s0 = np.array([0.2, -0.1, 0.0, 0.3])
