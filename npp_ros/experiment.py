@@ -38,7 +38,7 @@ from npp_ros.storage import EpisodeRow
 
 EXPERTS = ("optimal", "detuned")
 LIPSCHITZ_SETTINGS = ("paper", "analytic")
-DEFAULT_CHECKPOINTS = (10, 25, 50, 100, 200, 400, 700, 1000)
+DEFAULT_CHECKPOINTS = (10, 25, 50, 100, 250, 500, 1000)
 DETUNED_CONTROL_WEIGHT = 0.1
 EVALUATION_STREAM = 1 << 30  # rng stream for evaluation s0; the run's own s0 use [seed, episode]
 VIOLATION_TOLERANCE = 1e-9
