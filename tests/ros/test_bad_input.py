@@ -325,6 +325,7 @@ BAD_SIM_PARAMS = st.one_of(
 BAD_EXPERT_PARAMS = st.one_of(
     OUTSIDE_UNIT.filter(lambda g: g != 1.0).map(lambda g: ({"gamma": g}, "parameter gamma must be a number in (0, 1]")),
     st.integers(-1000, 0).map(lambda h: ({"max_horizon": h}, "parameter max_horizon must be an integer")),
+    st.integers(-1000, 0).map(lambda q: ({"max_queue": q}, "parameter max_queue must be an integer >= 1")),
 )
 BAD_SUPERVISOR_PARAMS = st.one_of(
     NEGATIVE.map(lambda e: ({"epsilon": e}, "parameter epsilon must be > 0")),
