@@ -42,6 +42,9 @@ LEAF_SIZE = 16
 """Points per leaf: small leaves prune more, large ones amortise the node overhead."""
 TAIL_LIMIT = 2048
 """The newest points stay in the brute-force tail until there are this many."""
+DOMINANCE_BUDGET = 8
+"""Leaves a dominance check may visit before it keeps the point (bounds the compression cost)."""
+_DOMINANCE_SAMPLE = 256  # new points checked first; if none is dominated, the rest are not checked
 _PROVISIONAL_TREE = 4096  # dominance checks over more new points than this search a tree built for them
 _STACK = 256  # depth-first stack; a median-split tree over < 2^63 points is < 64 levels deep
 
@@ -269,11 +272,13 @@ def _search(
 @njit(cache=True)
 def _exceeds(
     queries, thresholds, lipschitz, sign, data_states, data_values, tail_start,
-    pts, vals, order, box_lo, box_hi, node_v, start, end, child, roots, out,
+    pts, vals, order, box_lo, box_hi, node_v, start, end, child, roots, leaf_budget, out,
 ):  # fmt: skip  # pragma: no cover - compiled
-    """out[b] = whether some point scores strictly above thresholds[b] at queries[b] (early exit).
+    """out[b] = whether some point is found scoring strictly above thresholds[b] at queries[b].
 
-    Only for dominance checks at data points, which all lie inside every segment's safe ball.
+    For dominance checks: a dominator, if any, is usually close, so the search visits the most
+    promising leaves first and gives up after ``leaf_budget`` leaves (False: the point is kept,
+    which is always safe). That bounds the cost where nothing dominates (a true Lipschitz L).
     """
     n_queries, n = queries.shape
     total = data_values.shape[0]
@@ -294,20 +299,26 @@ def _exceeds(
                 found = True
                 break
         g = 0
-        while not found and g < roots.shape[0]:
+        leaves = 0
+        while not found and g < roots.shape[0] and leaves < leaf_budget:
             st_node[0] = roots[g]
             top = 1
-            while top > 0 and not found:
+            while top > 0 and not found and leaves < leaf_budget:
                 top -= 1
                 c = st_node[top]
-                if _box_bound(q, box_lo, box_hi, node_v, c, lipschitz) <= thr:
-                    continue
                 left = child[c]
                 if left >= 0:
-                    st_node[top] = left + 1
-                    st_node[top + 1] = left
-                    top += 2
+                    b1 = _box_bound(q, box_lo, box_hi, node_v, left, lipschitz)
+                    b2 = _box_bound(q, box_lo, box_hi, node_v, left + 1, lipschitz)
+                    first, second = (left, left + 1) if b1 >= b2 else (left + 1, left)
+                    if min(b1, b2) > thr:
+                        st_node[top] = second
+                        top += 1
+                    if max(b1, b2) > thr:
+                        st_node[top] = first
+                        top += 1
                     continue
+                leaves += 1
                 for p in range(start[c], end[c]):
                     v = vals[p]
                     if v <= thr:
@@ -430,6 +441,7 @@ class BoundIndex:
         leaf_size: int = LEAF_SIZE,
         tail_limit: int = TAIL_LIMIT,
         value_weight: float = 1.0,
+        dominance_budget: int = DOMINANCE_BUDGET,
     ) -> None:
         if not math.isfinite(lipschitz) or lipschitz <= 0:
             raise ValueError(f"the Lipschitz constant must be finite and > 0, got {lipschitz!r}")
@@ -441,6 +453,7 @@ class BoundIndex:
         self.leaf_size = int(leaf_size)
         self.tail_limit = int(tail_limit)
         self.value_weight = float(value_weight)
+        self.dominance_budget = int(dominance_budget)
         self.segments: list[_Segment] = []
         self._forests = self._make_forests(self.segments)
 
@@ -487,20 +500,37 @@ class BoundIndex:
         radius = math.sqrt(float(np.max(np.einsum("ij,ij->i", states, states)))) * (1 + 1e-9)
         ball = 4.0 * radius + 1.0
         threshold = dominance_threshold(float(np.max(np.abs(values))), self.lipschitz, ball + radius, data.state_dim)
-        forests, tail = self._forests, a
-        if b - a > _PROVISIONAL_TREE:  # the new points get a provisional tree instead of a long brute-force tail
-            provisional = self._make_segment(a, b, math.inf, {1.0: everything, -1.0: everything})
-            forests, tail = self._make_forests([*self.segments, provisional]), b
+        # A sample first: where it finds nothing dominated (typically a true Lipschitz L), checking every
+        # point would cost a search each for nothing, so all are kept (always safe).
+        sample = np.unique(np.linspace(a, b - 1, min(b - a, _DOMINANCE_SAMPLE)).astype(np.int64))
         kept = {}
+        provisional: dict[float, _Forest] | None = None
         for sign in (1.0, -1.0):
-            out = np.empty(b - a, dtype=np.bool_)
-            f = forests[sign]
-            _exceeds(
-                states[a:b], sign * values[a:b] + threshold, self.lipschitz, sign, states, values, tail,
-                f.pts, f.vals, f.order, f.box_lo, f.box_hi, f.node_v, f.start, f.end, f.child, f.roots, out,
-            )  # fmt: skip
-            kept[sign] = everything[~out]
+            if b - a > _DOMINANCE_SAMPLE and not self._dominated(sign, sample, threshold, self._forests, a).any():
+                kept[sign] = everything
+                continue
+            forests, tail = self._forests, a
+            if b - a > _PROVISIONAL_TREE:  # the new points get a provisional tree instead of a long brute-force tail
+                if provisional is None:
+                    segment = self._make_segment(a, b, math.inf, {1.0: everything, -1.0: everything})
+                    provisional = self._make_forests([*self.segments, segment])
+                forests, tail = provisional, b
+            kept[sign] = everything[~self._dominated(sign, everything, threshold, forests, tail)]
         return ball * ball, kept
+
+    def _dominated(
+        self, sign: float, points: IntArray, threshold: float, forests: dict[float, _Forest], tail: int
+    ) -> NDArray[np.bool_]:
+        """Whether a point safely dominates each of ``points`` (within the search budget)."""
+        data, f = self.dataset, forests[sign]
+        states, values = data.states, data.values
+        out = np.empty(points.shape[0], dtype=np.bool_)
+        _exceeds(
+            np.ascontiguousarray(states[points]), sign * values[points] + threshold, self.lipschitz, sign,
+            states, values, tail, f.pts, f.vals, f.order, f.box_lo, f.box_hi, f.node_v, f.start, f.end, f.child,
+            f.roots, self.dominance_budget, out,
+        )  # fmt: skip
+        return out
 
     def stats(self) -> IndexStats:
         self.sync()
