@@ -305,6 +305,8 @@ class RosRollouts:
                 lambda: episode in node._rollouts, timeout=max(deadline - time.monotonic(), 1.0)
             )
             result = node._rollouts.pop(episode, None)
+            for late in [k for k in node._rollouts if k < episode]:  # skipped episodes finishing late
+                del node._rollouts[late]
         if result is None:
             log.warning(f"episode {episode}: the policy's episode did not finish in time; no return recorded")
             return None
