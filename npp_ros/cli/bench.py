@@ -453,8 +453,22 @@ def markdown(result: dict[str, Any]) -> str:
                 f"{row['kept_either']:,d} ({100 * row['kept_either_fraction']:.1f}%) |"
             )
         lines.append("")
-    if result.get("ros"):
-        lines += ["## ROS loop", "", "```", json.dumps(result["ros"], indent=2), "```", ""]
+    ros = result.get("ros")
+    if ros:
+        lines += ["## ROS loop (sim <-> policy lockstep vs a bare rclpy ping-pong, same messages)", ""]
+        if ros.get("error"):
+            lines += [f"Failed: {ros['error']}", ""]
+        lines += ["| task | points | graph steps/s | ping-pong steps/s | ratio | target | met |",
+                  "|---|---|---|---|---|---|---|"]  # fmt: skip
+        for c in ros.get("cases", []):
+            graph = ", ".join(f"{r:.0f}" for r in c["graph_steps_per_s"])
+            pingpong = ", ".join(f"{r:.0f}" for r in c["pingpong_steps_per_s"])
+            lines.append(
+                f"| {c['task']} | {c['points']:,d} | {c['graph_median']:.0f} ({graph}) | "
+                f"{c['pingpong_median']:.0f} ({pingpong}) | "
+                f"{c['ratio']:.2f} | >= {c['target']:.2f} | {'yes' if c['met'] else '**no**'} |"
+            )
+        lines.append("")
     return "\n".join(lines) + "\n"
 
 
@@ -538,6 +552,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.ros:
         result["ros"] = ros_loop(args, progress)
     result["targets"] = targets(cases, scaling)
+    for c in result.get("ros", {}).get("cases", []):
+        result["targets"].append({"case": f"ROS loop {c['task']}, {c['points']:,d} points",
+                                  "metric": "graph / bare ping-pong steps/s", "value": c["ratio"],
+                                  "target": f">= {c['target']:g}x", "met": c["met"]})  # fmt: skip
     checks = [c.exact["exact"] for c in cases] + [r["exact"]["exact"] for r in scaling] + [ties["exact"]]
     result["all_exact"] = bool(all(checks))
     result["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
@@ -551,12 +569,13 @@ def main(argv: list[str] | None = None) -> int:
 def ros_loop(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
     """The ROS loop rate, measured by nodes/bench_loop.py in its own process (npp_ros stays ROS-free)."""
     cmd = [sys.executable, "-m", "nodes.bench_loop", "--json", "-"] + (["--quick"] if args.quick else [])
-    res = subprocess.run(cmd, capture_output=True, text=True)
+    res = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its progress goes to our stderr
     if res.returncode != 0:
-        out = {"error": res.stderr.strip()[-2000:] or f"exit {res.returncode}"}
+        out: dict[str, Any] = {"error": f"nodes.bench_loop exited with {res.returncode}", "cases": []}
     else:
         out = json.loads(res.stdout)
-    progress.step(f"ROS loop: {out}")
+    done = ", ".join(f"{c['task']} {c['ratio']:.2f}" for c in out.get("cases", []))
+    progress.step(f"ROS loop: graph / ping-pong {done or out.get('error')}")
     return out
 
 

@@ -1,0 +1,284 @@
+"""Closed-loop steps per second through ROS: the policy node against a bare rclpy ping-pong.
+
+This process plays the sim: it publishes a JointState on /npp/state, waits for the JointState
+answer on /npp/action, steps the plant's exact linear model x' = A x + B u with it, and repeats,
+in lockstep. Against it, in separate processes, runs either
+
+* the real policy node (``nodes.policy_node``), which catches the dataset up through this
+  process's /npp/dataset/get service and answers with the greedy NPP action, or
+* a bare echo node (``--echo``): same message types, same QoS, same executor, answers at once.
+
+Both are measured in the same run with the same driver, so their ratio is the cost of the
+policy (its query and its node code) relative to the ROS round trip itself. Every run gets its
+own ROS_DOMAIN_ID and localhost-only discovery.
+
+Usage: python -m nodes.bench_loop [--quick] [--json FILE|-] [--steps N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from npp_interfaces.msg import PlantDescription
+from npp_interfaces.msg import Trajectory as TrajectoryMsg
+from npp_interfaces.srv import GetTrajectories
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import UInt32
+
+from nodes.common import (
+    ACTION,
+    CONTROL_QOS,
+    DATASET_SERVICE,
+    LATCHED_QOS,
+    PLANT,
+    POLICY_STATUS,
+    SERVICE_QOS,
+    STATE,
+    float64_array,
+    run_node,
+)
+from npp_ros.dataset import Dataset
+from npp_ros.lqr import LQRExpert, sample_initial_state
+
+CASES = (("lqr_2_1", 100), ("lqr_6_2", 1000))  # (task, trajectories): 10^5 points in 4-D, 10^6 in 12-D
+TARGETS = {"lqr_2_1": 0.8, "lqr_6_2": 0.5}
+
+
+class EchoNode(Node):
+    """The bare ping-pong partner: answers every state with a zero action at once."""
+
+    def __init__(self) -> None:
+        super().__init__("npp_bench_echo")
+        self.pub = self.create_publisher(JointState, ACTION, CONTROL_QOS)
+        self.create_subscription(JointState, STATE, self.on_state, CONTROL_QOS)
+        self.action_dim = int(os.environ.get("NPP_BENCH_ACTION_DIM", "1"))
+        self.names = [f"actuator{i}" for i in range(self.action_dim)]
+
+    def on_state(self, msg: JointState) -> None:
+        out = JointState()
+        out.header.stamp = msg.header.stamp
+        out.name = self.names
+        out.effort = [0.0] * self.action_dim
+        self.pub.publish(out)
+
+
+class Driver(Node):
+    """Plays the sim (states out, actions in) and the supervisor's dataset service."""
+
+    def __init__(self, expert: LQRExpert, data: Dataset, task: str, seed: int, namespace: str) -> None:
+        super().__init__("npp_bench_driver", namespace=namespace)
+        self.expert, self.data, self.task = expert, data, task
+        plant = expert.plant
+        self.bodies = plant.bodies
+        self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
+        self.plant_pub = self.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
+        self.create_subscription(JointState, ACTION, self.on_action, CONTROL_QOS)
+        self.create_subscription(UInt32, POLICY_STATUS, self.on_status, LATCHED_QOS)
+        self.create_service(GetTrajectories, DATASET_SERVICE, self.on_dataset, qos_profile=SERVICE_QOS)
+        self.plant_pub.publish(PlantDescription(
+            task=task, seed=seed, horizon=expert.horizon, timestep=plant.dt, state_dim=plant.state_dim,
+            action_dim=plant.action_dim, joint_names=list(plant.joint_names),
+            actuated_joint_names=list(plant.actuated_joint_names), model_sha256=plant.model_sha256(),
+        ))  # fmt: skip
+        self.held = 0
+        self.answer: JointState | None = None
+        self.sent_ns = 0
+
+    def on_status(self, msg: UInt32) -> None:
+        self.held = int(msg.data)
+
+    def on_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
+        total = self.data.num_trajectories
+        lip = self.expert.analytic_lipschitz()
+        response.success, response.total = True, total
+        response.lipschitz, response.lipschitz_source = lip.value, lip.source
+        stop = min(total, request.start + (request.max_count or 50))
+        for k in range(request.start, stop):
+            traj = self.data.trajectory(k)
+            response.trajectories.append(TrajectoryMsg(
+                index=k, state_dim=self.data.state_dim, action_dim=self.data.action_dim,
+                states=float64_array(traj.states.ravel()), actions=float64_array(traj.actions.ravel()),
+                values=float64_array(traj.values),
+            ))  # fmt: skip
+        return response
+
+    def on_action(self, msg: JointState) -> None:
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if stamp == self.sent_ns:
+            self.answer = msg
+
+    def send(self, state: np.ndarray, step_ns: int) -> None:
+        msg = JointState()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(step_ns, 1_000_000_000)
+        msg.position = float64_array(state[: self.bodies])
+        msg.velocity = float64_array(state[self.bodies :])
+        self.sent_ns = step_ns
+        self.answer = None
+        self.state_pub.publish(msg)
+
+
+def wait_for(executor: SingleThreadedExecutor, done, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while not done():
+        if time.monotonic() > end:
+            return False
+        executor.spin_once(timeout_sec=0.05)
+    return True
+
+
+def lockstep(executor: SingleThreadedExecutor, driver: Driver, steps: int, s0: np.ndarray, counter: list[int]) -> float:
+    """Steps per second of the closed loop x' = A x + B u(x) through the partner node."""
+    A, B = driver.expert.A, driver.expert.B
+    x = s0.copy()
+    t = time.perf_counter()
+    for _ in range(steps):
+        counter[0] += 1
+        driver.send(x, counter[0])
+        tries = 0
+        while not wait_for(executor, lambda: driver.answer is not None, 2.0):
+            tries += 1  # lost before the partner matched (warm-up), or a slow first answer: ask again
+            if tries > 30:
+                raise RuntimeError(f"no answer to state {counter[0]} within 60 s")
+            driver.send(x, counter[0])
+        u = np.asarray(driver.answer.effort, dtype=np.float64)
+        x = A @ x + B @ u if u.shape[0] == B.shape[1] else x
+    return steps / (time.perf_counter() - t)
+
+
+def spawn(module_args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
+    handle = log.open("w")
+    return subprocess.Popen([sys.executable, "-m", *module_args], env=env, stdout=handle, stderr=subprocess.STDOUT)
+
+
+def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: dict[str, str], logs: Path) -> dict:
+    t = time.perf_counter()
+    expert = LQRExpert(task, 0)
+    rng = np.random.default_rng(args.seed)
+    data = Dataset(expert.plant.state_dim, expert.plant.actuators, capacity=trajectories * expert.horizon)
+    for _ in range(trajectories):
+        data.append(expert.trajectory(sample_initial_state(task, rng)))
+    starts = [sample_initial_state(task, rng) for _ in range(args.repeats)]
+    log(f"{task}: {len(data):,d} points generated ({time.perf_counter() - t:.1f}s)")
+    executor = SingleThreadedExecutor()
+    partners = ("pingpong", "graph")
+    drivers = {name: Driver(expert, data, task, 0, f"/bench_{name}") for name in partners}
+    for driver in drivers.values():
+        executor.add_node(driver)
+    counter = [0]
+    result: dict[str, Any] = {"task": task, "points": len(data), "state_dim": data.state_dim, "steps": args.steps}
+    procs = []
+    try:
+        for name in partners:
+            cmd = ["nodes.bench_loop", "--echo"] if name == "pingpong" else ["nodes.policy_node"]
+            child_env = {**env, "NPP_BENCH_ACTION_DIM": str(data.action_dim)}
+            procs.append(
+                spawn([*cmd, "--ros-args", "-r", f"__ns:=/bench_{name}"], child_env, logs / f"{task}-{name}.log")
+            )
+        for name, driver in drivers.items():
+            t = time.perf_counter()
+            ready = wait_for(
+                executor,
+                lambda d=driver, n=name: (
+                    d.state_pub.get_subscription_count() > 0
+                    and d.count_publishers(ACTION) > 0
+                    and (n == "pingpong" or d.held >= data.num_trajectories)
+                ),
+                900.0,
+            )
+            if not ready:
+                raise RuntimeError(f"the {name} partner is not ready (holds {driver.held} trajectories); see {logs}")
+            result[f"{name}_ready_s"] = time.perf_counter() - t
+            t = time.perf_counter()  # warm-up: the index build on the first query, caches
+            lockstep(executor, driver, 20, starts[0], counter)
+            result[f"{name}_first_answers_s"] = time.perf_counter() - t
+        rates: dict[str, list[float]] = {name: [] for name in partners}
+        for s0 in starts:  # interleaved, so load changes on the machine hit both alike
+            for name in partners:
+                rates[name].append(lockstep(executor, drivers[name], args.steps, s0, counter))
+        for name in partners:
+            result[f"{name}_steps_per_s"] = rates[name]
+            result[f"{name}_median"] = float(np.median(rates[name]))
+            log(f"{task} {name}: median {result[f'{name}_median']:.0f} steps/s over {len(rates[name])} runs")
+    finally:
+        for proc in procs:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        for driver in drivers.values():
+            executor.remove_node(driver)
+            driver.destroy_node()
+        executor.shutdown()
+    result["ratio"] = result["graph_median"] / result["pingpong_median"]
+    result["target"] = TARGETS[task]
+    result["met"] = result["ratio"] >= TARGETS[task]
+    return result
+
+
+def log(text: str) -> None:
+    sys.stderr.write(f"bench_loop: {text}\n")
+    sys.stderr.flush()
+
+
+def isolated_env() -> dict[str, str]:
+    """A free ROS_DOMAIN_ID (domain_coordinator if present) and localhost-only discovery."""
+    env = dict(os.environ)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    if "ROS_DOMAIN_ID" not in os.environ:
+        env["ROS_DOMAIN_ID"] = str(50 + os.getpid() % 50)
+    return env
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m nodes.bench_loop", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--echo", action="store_true", help="run the bare ping-pong partner node")
+    parser.add_argument("--quick", action="store_true", help="small datasets and few steps (smoke run)")
+    parser.add_argument("--steps", type=int, default=2000, help="lockstep steps per timed run")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per partner")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", default=None, help="write the result as JSON to this file ('-' = stdout)")
+    parser.add_argument("--logs", type=Path, default=None, help="folder for the partner nodes' logs")
+    args, _ = parser.parse_known_args(argv)
+    if args.echo:
+        return run_node(
+            EchoNode, [sys.argv[0], *(sys.argv[sys.argv.index("--ros-args") :] if "--ros-args" in sys.argv else [])]
+        )
+    if args.quick:
+        args.steps, args.repeats = 200, 2
+    cases = [(task, 2 if args.quick else n) for task, n in CASES]
+    env = isolated_env()
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
+    logs = args.logs or Path(os.environ.get("TMPDIR", "/tmp")) / f"npp-bench-loop-{os.getpid()}"
+    logs.mkdir(parents=True, exist_ok=True)
+    rclpy.init()
+    try:
+        results = [measure_case(task, n, args, env, logs) for task, n in cases]
+    finally:
+        rclpy.try_shutdown()
+    out = {"domain_id": env["ROS_DOMAIN_ID"], "logs": str(logs), "cases": results}
+    text = json.dumps(out, indent=2)
+    if args.json == "-":
+        sys.stdout.write(text + "\n")
+    elif args.json:
+        Path(args.json).write_text(text + "\n")
+    for r in results:
+        log(f"{r['task']} {r['points']:,d} points: graph {r['graph_median']:.0f} steps/s, ping-pong "
+            f"{r['pingpong_median']:.0f} steps/s, ratio {r['ratio']:.2f} (target >= {r['target']:.2f})")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
