@@ -461,8 +461,62 @@ def write_results(rows: Iterable[ResultRow], out_dir: Path) -> list[Path]:
         for row in rows:
             writer.writerow(["" if v is None else v for v in (getattr(row, n) for n in RESULT_FIELDS)])
     paths[1].write_text(json.dumps([asdict(row) for row in rows], indent=2) + "\n")
-    paths[2].write_text(markdown_table(rows))
+    paths[2].write_text(
+        "# npp-experiment results\n\n## Per arm (seeds pooled)\n\n"
+        + summary_table(rows)
+        + "\n"
+        + COLUMN_NOTES
+        + "\n## Per seed\n\n"
+        + markdown_table(rows)
+    )
     return paths
+
+
+COLUMN_NOTES = """\
+- gap: V^expert(s0) - V^pi(s0), measured H-step returns from the same s0, at the last evaluation (the
+  certificate's episode, or the budget). For the detuned expert this is the gap the certificate is about
+  (its data bound V^expert, not V*); "gap to optimum" compares with the optimal LQR controller.
+- within eps: the fraction of the N fresh s0 with gap <= epsilon. Condition (i) claims >= p.
+- returns < V_lb: rollouts whose return fell below V_lb(s0); impossible when L bounds the value's slope
+  (Theorem 3.4, B.1 i).
+- V_ub < V_lb at s0: episodes whose bounds crossed, which the data alone show cannot happen with a valid L.
+- verdict: "held" when within eps >= p and no return fell below V_lb; "FAILED" when a one-sided binomial
+  test rejects P(gap <= eps) >= p at level delta.
+"""
+
+
+def summary_table(rows: Sequence[ResultRow]) -> str:
+    """One line per arm: what a user needs to decide whether to trust the certificates."""
+    head = (
+        "| task | expert | L used (slope needed) | certified | certified at (median, range) | oracle calls "
+        "| within eps (worst seed) | returns < V_lb | V_ub < V_lb episodes | verdicts | compute s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    groups: dict[tuple[str, str, str], list[ResultRow]] = {}
+    for row in rows:
+        groups.setdefault((row.task, row.expert, row.lipschitz_setting), []).append(row)
+    lines = []
+    for (task, expert, _), group in groups.items():
+        used = "/".join(f"{r.lipschitz:.0f}" for r in group)
+        needed = "/".join(f"{r.slope_needed:.0f}" for r in group)
+        bound = "" if all(r.l_is_bound for r in group) else " **not a bound**"
+        certs = [r.certified_episode for r in group if r.certified_episode is not None]
+        at = f"{int(np.median(certs))} ({min(certs)}-{max(certs)})" if certs else "-"
+        calls = int(np.median([r.oracle_calls for r in group]))
+        worst = min(r.fraction_within_epsilon for r in group)
+        below = sum(r.lower_bound_violations for r in group)
+        total = sum(r.rollouts for r in group)
+        crossed = sum(r.crossed_bounds for r in group)
+        verdicts: dict[str, int] = {}
+        for r in group:
+            key = r.verdict.split(" (")[0].split(":")[0]
+            verdicts[key] = verdicts.get(key, 0) + 1
+        said = ", ".join(f"{v} x {k}" for k, v in verdicts.items())
+        lines.append(
+            f"| {task} | {expert} | {used} ({needed}){bound} | {len(certs)}/{len(group)} | {at} | {calls} "
+            f"| {worst:.0%} | {below}/{total} | {crossed} | {said} | {sum(r.wall_time_s for r in group):.0f} |"
+        )
+    return head + "\n".join(lines) + "\n"
 
 
 def markdown_table(rows: Sequence[ResultRow]) -> str:

@@ -69,7 +69,11 @@ def test_writes_figures_and_tables(reduced_run: Path) -> None:
     with (reduced_run / "results.csv").open() as fh:
         assert len(list(csv.DictReader(fh))) == 3
     table = (reduced_run / "results.md").read_text()
-    assert table.count("\n| lqr_2_1 |") == 3 and "**not a bound**" in table
+    per_arm, per_seed = table.split("## Per seed")
+    assert per_arm.count("\n| lqr_2_1 |") == 3 and per_seed.count("\n| lqr_2_1 |") == 3
+    assert "**not a bound**" in per_arm and "**not a bound**" in per_seed
+    history = json.loads((reduced_run / "experiment.json").read_text())["invocations"]
+    assert history[0]["runs"] == 3 and history[0]["failed"] == []
 
 
 def test_table_claims_follow_from_the_measured_columns(reduced_run: Path) -> None:

@@ -182,14 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     wall = time.perf_counter() - started
 
     rows = report(records, settings, args.out)
-    meta = {
-        "command": "npp-experiment " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "wall_time_s": wall,
-        "runs": len(jobs),
-        "failed": failures,
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
-    }
-    (args.out / "experiment.json").write_text(json.dumps(meta, indent=2) + "\n")
+    record_invocation(args.out / "experiment.json", argv, wall, len(jobs), failures)
     for row in rows:
         print(
             f"{row.task:8s} {row.expert:8s} L {row.lipschitz_setting:8s} seed {row.seed}: "
@@ -200,6 +193,22 @@ def main(argv: list[str] | None = None) -> int:
     for failure in failures:
         print(f"npp-experiment: run failed: {failure}", file=sys.stderr)
     return 1 if failures else 0
+
+
+def record_invocation(path: Path, argv: list[str] | None, wall: float, runs: int, failures: list[str]) -> None:
+    """Appends this command to the folder's history: a resumed run keeps the first one's wall time."""
+    history = json.loads(path.read_text()).get("invocations", []) if path.exists() else []
+    history.append(
+        {
+            "command": "npp-experiment " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "wall_time_s": round(wall, 1),
+            "runs": runs,
+            "failed": failures,
+        }
+    )
+    machine = {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}
+    path.write_text(json.dumps({"machine": machine, "invocations": history}, indent=2) + "\n")
 
 
 def report(records: list[RunRecord], settings: ExperimentSettings, out: Path) -> list[ResultRow]:
