@@ -36,6 +36,11 @@ DATASET_SERVICE = "npp/dataset/get"
 POLICY_STATUS = "npp/policy/trajectories"
 POLICY_DROPPED = "npp/policy/dropped_states"
 
+# Service refusals that say "ask again": a caller retries these within its deadline; any other refusal
+# (a bad request, a foreign plant) is final for that request.
+BUSY = "busy:"
+NOT_READY = "not ready:"
+
 # Lockstep control: every state and action matters, so reliable with a short queue.
 CONTROL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 # Reports a monitor may read late: reliable, deeper queue.

@@ -26,8 +26,10 @@ from rclpy.node import Node
 from rclpy.task import Future
 
 from nodes.common import (
+    BUSY,
     EXPERT_SERVICE,
     LATCHED_QOS,
+    NOT_READY,
     PLANT,
     SERVICE_QOS,
     StartupError,
@@ -153,7 +155,7 @@ class ExpertNode(Node):
             self.busy_refusals += 1
             return self._refuse(
                 response,
-                f"busy: {self.waiting} requests are waiting (parameter max_queue {self.max_queue}); "
+                f"{BUSY} {self.waiting} requests are waiting (parameter max_queue {self.max_queue}); "
                 "nothing was computed, ask again later",
             )
         assert self.expert is not None
@@ -199,7 +201,7 @@ class ExpertNode(Node):
         if self.refusal is not None:
             return self.refusal
         if self.expert is None:
-            return f"no plant description received yet from the sim on {self._plant_sub.topic_name}"
+            return f"{NOT_READY} no plant description received yet from the sim on {self._plant_sub.topic_name}"
         plant = self.expert.plant
         n = plant.state_dim
         layout = f"qpos then qvel of {plant.bodies} joints of {plant.task}"

@@ -27,6 +27,7 @@ from rclpy.node import Node
 from std_msgs.msg import UInt32
 
 from nodes.common import (
+    BUSY,
     CERTIFICATE,
     DATASET_SERVICE,
     DATASET_TOPIC,
@@ -34,6 +35,7 @@ from nodes.common import (
     EXPERT_SERVICE,
     GAP,
     LATCHED_QOS,
+    NOT_READY,
     PLANT,
     POLICY_STATUS,
     REPORT_QOS,
@@ -62,7 +64,7 @@ PARAMS: list[tuple[str, object, str]] = [
     ("delta", 0.1, "confidence"),
     ("max_episodes", 1000, "stop uncertified after this many episodes"),
     ("run_dir", "runs/graph", "run folder: run.sqlite, gaps.csv, episodes.csv"),
-    ("expert_timeout", 30.0, "seconds to wait for one expert answer"),
+    ("expert_timeout", 30.0, "seconds one expert attempt may take (a busy or not-ready expert is asked again)"),
     ("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops with an error"),
     ("rollouts", True, "let the policy drive each episode through the sim"),
     ("rollout_timeout", 120.0, "seconds to wait for the policy's episode before skipping its return"),
@@ -255,25 +257,41 @@ class RosExpert:
         log = self.node.get_logger()
         last = "no answer"
         for attempt in range(1, self.retries + 1):
-            if not self.node.expert.wait_for_service(timeout_sec=self.timeout):
-                last = f"service /{EXPERT_SERVICE} not available after {self.timeout:g} s"
-            else:
-                request = ExpertTrajectory.Request(state=initial_state.tolist(), horizon=0)
-                response = self.node.call(self.node.expert, request, self.timeout)
-                if response is None:
-                    last = f"no answer within {self.timeout:g} s"
-                elif not response.success:
-                    last = f"expert refused: {response.message}"
-                else:
-                    return trajectory_arrays(
-                        response.states, response.actions, response.values, response.state_dim, response.action_dim
-                    )
+            response, last = self._attempt(initial_state)
+            if response is not None:
+                return trajectory_arrays(
+                    response.states, response.actions, response.values, response.state_dim, response.action_dim
+                )
             log.warning(f"expert call {attempt}/{self.retries} failed: {last}")
             if attempt < self.retries:
-                # A just-restarted expert refuses until it has the plant: pause before asking again,
-                # or every retry is spent within milliseconds.
                 self.node.stop.wait(min(self.timeout, RETRY_PAUSE_S * 2 ** (attempt - 1)))
         raise ExpertUnavailable(f"the expert did not deliver after {self.retries} attempts: {last}")
+
+    def _attempt(self, initial_state: FloatArray) -> tuple[ExpertTrajectory.Response | None, str]:
+        """One attempt: a trajectory within expert_timeout, or why not.
+
+        "busy:" and "not ready:" refusals (an expert with a full queue, or just restarted and still
+        waiting for the plant) are asked again within the attempt, after growing pauses.
+        """
+        deadline = time.monotonic() + self.timeout
+        pause = RETRY_PAUSE_S
+        request = ExpertTrajectory.Request(state=initial_state.tolist(), horizon=0)
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not self.node.expert.wait_for_service(timeout_sec=remaining):
+                return None, f"service /{EXPERT_SERVICE} not available after {self.timeout:g} s"
+            response = self.node.call(self.node.expert, request, remaining)
+            if response is None:
+                return None, f"no answer within {self.timeout:g} s"
+            if response.success:
+                return response, ""
+            refusal = f"expert refused: {response.message}"
+            if not response.message.startswith((BUSY, NOT_READY)) or deadline - time.monotonic() <= pause:
+                return None, refusal
+            self.node.get_logger().info(refusal + "; asking again", throttle_duration_sec=5.0)
+            if self.node.stop.wait(pause):
+                return None, refusal
+            pause = min(2 * pause, 2.0)
 
 
 class RosRollouts:

@@ -36,6 +36,8 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.task import Future
 
+from nodes.common import SERVICE_QOS
+
 REPO = Path(__file__).resolve().parents[2]
 STOP_TIMEOUT_S = 10.0
 LOG_TAIL_LINES = 60
@@ -256,8 +258,12 @@ class RosClient:
         return True
 
     def client(self, srv_type: Any, name: str, timeout: float = 30.0) -> Client:
-        """A service client, returned once the service is reachable."""
-        client = self.node.create_client(srv_type, name)
+        """A service client, returned once the service is reachable.
+
+        Its response queue is as deep as the services' request queue: with the default (KEEP_LAST 10), a
+        client with more than 10 requests in flight that is slow to spin loses responses silently.
+        """
+        client = self.node.create_client(srv_type, name, qos_profile=SERVICE_QOS)
         self.wait_for(client.service_is_ready, timeout, f"service {client.srv_name}")
         return client
 

@@ -100,7 +100,7 @@ def test_expert_waits_for_the_plant_and_refuses_a_foreign_model(
     s0 = [0.3, 0.1, 0.0, 0.0]
     answer = client.call(service, request(s0))
     assert not answer.success
-    assert answer.message == "no plant description received yet from the sim on /fake/npp/sim/plant"
+    assert answer.message == "not ready: no plant description received yet from the sim on /fake/npp/sim/plant"
 
     plant = LQRPlant("lqr_2_1", 0)
     desc = PlantDescription(

@@ -8,8 +8,9 @@ stored (published on /npp/dataset/trajectory, which happens only after its commi
 once. At the end of each run: it reaches its certificate, and its episodes and dataset equal an
 uninterrupted in-process run's, so every restarted supervisor resumed instead of starting over.
 
-Outcome counts go to fault-report.json / fault-report.md in the test's tmp folder and are printed.
-NPP_FAULT_SEED changes the seed (default below); the plan of every trial is in the report.
+Outcome counts go to fault-report.json / fault-report.md in the test's tmp folder (and to the folder
+NPP_FAULT_REPORT names, if set) and are printed. NPP_FAULT_SEED changes the seed (default below); the
+plan and result of every trial is in the JSON report.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ class Trial:
     delay_s: float  # ... and then this long
     killed_during_episode: int = -1  # the last episode reported when the signal went out
     outcome: str = ""
+    detail: str = ""
     checks: list[str] = field(default_factory=list)
 
 
@@ -89,7 +91,10 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[RunRecord]
     """Collects every run; at the end writes and prints the outcome counts."""
     records: list[RunRecord] = []
     yield records
-    out = tmp_path_factory.mktemp("fault-report")
+    outs = [tmp_path_factory.mktemp("fault-report")]
+    if os.environ.get("NPP_FAULT_REPORT"):
+        outs.append(Path(os.environ["NPP_FAULT_REPORT"]))
+        outs[-1].mkdir(parents=True, exist_ok=True)
     trials = [t for r in records for t in r.trials]
     summary: dict[str, Any] = {
         "seed": SEED,
@@ -103,7 +108,8 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[RunRecord]
         "wall_s": round(sum(r.wall_s for r in records), 1),
         "detail": [asdict(r) for r in records],
     }
-    (out / "fault-report.json").write_text(json.dumps(summary, indent=2))
+    for out in outs:
+        (out / "fault-report.json").write_text(json.dumps(summary, indent=2))
     lines = [
         f"# Fault injection (seed {SEED})",
         "",
@@ -118,8 +124,9 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[RunRecord]
         for outcome, count in sorted(summary["outcomes"][node].items()):
             lines.append(f"| {node} | {kills} | {outcome} | {count} |")
     lines += ["", "Checks passed: " + ", ".join(f"{k} {v}" for k, v in sorted(summary["checks_passed"].items()))]
-    (out / "fault-report.md").write_text("\n".join(lines) + "\n")
-    print("\n" + "\n".join(lines) + f"\n(report: {out})")
+    for out in outs:
+        (out / "fault-report.md").write_text("\n".join(lines) + "\n")
+    print("\n" + "\n".join(lines) + f"\n(report: {', '.join(map(str, outs))})")
 
 
 def expected_run(task_seed: int) -> tuple[list[tuple[Any, ...]], Dataset, int]:
@@ -242,6 +249,7 @@ def test_sigkill_any_node_mid_run_loses_nothing(
             log = graph.launch.log(graph.procs["supervisor"])
             assert f"resuming at episode {resume_at} in" in log, log[-2000:]
             trial.outcome = "resumed from run.sqlite"
+            trial.detail = f"resumed at episode {resume_at}"
         elif trial.node == "expert":
             retried = graph.supervisor_logs().count("expert call") > expert_failures
             trial.outcome = "an expert call failed and was retried" if retried else "no expert call was affected"

@@ -26,6 +26,7 @@ from std_msgs.msg import UInt32, UInt64
 
 from nodes.common import (
     ACTION,
+    BUSY,
     CONTROL_QOS,
     DATASET_SERVICE,
     EXPERT_SERVICE,
@@ -76,7 +77,7 @@ def test_expert_serves_8_clients_200_requests_and_loses_none(
                 except TimeoutError:
                     outcomes[i]["lost"] += 1
                     continue
-                if not answer.success and answer.message.startswith("busy:"):
+                if not answer.success and answer.message.startswith(BUSY):
                     assert f"max_queue {max_queue}" in answer.message, answer.message
                     outcomes[i]["busy"] += 1
                     continue
