@@ -480,6 +480,8 @@ COLUMN_NOTES = """\
 - returns < V_lb: rollouts whose return fell below V_lb(s0); impossible when L bounds the value's slope
   (Theorem 3.4, B.1 i).
 - V_ub < V_lb at s0: episodes whose bounds crossed, which the data alone show cannot happen with a valid L.
+- max slope visited: the largest |grad V^expert| = |P x| along the policy's evaluation rollouts; L bounds the
+  slope only where this stays below it.
 - verdict: "held" when within eps >= p and no return fell below V_lb; "FAILED" when a one-sided binomial
   test rejects P(gap <= eps) >= p at level delta.
 """
@@ -522,8 +524,9 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
 def markdown_table(rows: Sequence[ResultRow]) -> str:
     head = (
         "| task | expert | L (needed) | seed | certified at | oracle calls | \\|D\\| | gap q50 / q90 / max "
-        "| within eps | gap to optimum q50 | returns < V_lb | V_ub < V_lb at s0 | verdict | wall s |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| within eps | gap to optimum q50 | returns < V_lb | V_ub < V_lb at s0 | max slope visited "
+        "| verdict | wall s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for r in rows:
@@ -533,6 +536,6 @@ def markdown_table(rows: Sequence[ResultRow]) -> str:
             f"| {r.task} | {r.expert} | {r.lipschitz:.0f} ({r.slope_needed:.0f}){bound} | {r.seed} | {cert} "
             f"| {r.oracle_calls} | {r.dataset_size} | {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
             f"| {r.fraction_within_epsilon:.0%} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
-            f"| {r.crossed_bounds} | {r.verdict} | {r.wall_time_s:.0f} |"
+            f"| {r.crossed_bounds} | {r.max_visited_slope:.1f} | {r.verdict} | {r.wall_time_s:.0f} |"
         )
     return head + "\n".join(lines) + "\n"
