@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from domain_coordinator import domain_id
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from npp_interfaces.srv import GetTrajectories
@@ -233,12 +234,12 @@ def log(text: str) -> None:
     sys.stderr.flush()
 
 
-def isolated_env() -> dict[str, str]:
-    """A free ROS_DOMAIN_ID (domain_coordinator if present) and localhost-only discovery."""
+def isolated_env(domain: int) -> dict[str, str]:
+    """The reserved ROS_DOMAIN_ID and localhost-only discovery, for this process and its partners."""
     env = dict(os.environ)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    if "ROS_DOMAIN_ID" not in os.environ:
-        env["ROS_DOMAIN_ID"] = str(50 + os.getpid() % 50)
+    env["ROS_DOMAIN_ID"] = str(domain)
+    env.pop("ROS_STATIC_PEERS", None)
     return env
 
 
@@ -259,15 +260,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.steps, args.repeats = 200, 2
     cases = [(task, 2 if args.quick else n) for task, n in CASES]
-    env = isolated_env()
-    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
     logs = args.logs or Path(os.environ.get("TMPDIR", "/tmp")) / f"npp-bench-loop-{os.getpid()}"
     logs.mkdir(parents=True, exist_ok=True)
-    rclpy.init()
-    try:
-        results = [measure_case(task, n, args, env, logs) for task, n in cases]
-    finally:
-        rclpy.try_shutdown()
+    with domain_id() as domain:  # a domain no other session (tests, runs) is using
+        env = isolated_env(int(domain))
+        os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
+        os.environ.pop("ROS_STATIC_PEERS", None)
+        rclpy.init()
+        try:
+            results = [measure_case(task, n, args, env, logs) for task, n in cases]
+        finally:
+            rclpy.try_shutdown()
     out = {"domain_id": env["ROS_DOMAIN_ID"], "logs": str(logs), "cases": results}
     text = json.dumps(out, indent=2)
     if args.json == "-":

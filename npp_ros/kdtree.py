@@ -382,34 +382,67 @@ class _Segment:
 
 
 class _Forest:
-    """The trees of one sign, concatenated so one compiled call searches them all."""
+    """The trees of one sign laid end to end, so one compiled call searches them all.
 
-    def __init__(self, segments: list[_Segment], sign: float, state_dim: int) -> None:
-        trees = [seg.trees[sign] for seg in segments]
-        point_off = np.cumsum([0] + [t.size for t in trees]).astype(np.int64)
-        node_off = np.cumsum([0] + [t.node_v.shape[0] for t in trees]).astype(np.int64)
+    Buffers grow by doubling and segments only change at the end (merges replace the newest
+    ones), so appending a segment costs its own size, not the forest's.
+    """
+
+    _FIELDS = ("pts", "vals", "order", "box_lo", "box_hi", "node_v", "node_min", "start", "end", "child")
+    _POINT_FIELDS = frozenset({"pts", "vals", "order"})
+
+    def __init__(self, sign: float, state_dim: int) -> None:
+        self.sign = sign
         n = state_dim
-        if trees:
-            self.pts = np.concatenate([t.pts for t in trees])
-            self.vals = np.concatenate([t.vals for t in trees])
-            self.order = np.concatenate([t.order for t in trees])
-            self.box_lo = np.concatenate([t.box_lo for t in trees])
-            self.box_hi = np.concatenate([t.box_hi for t in trees])
-            self.node_v = np.concatenate([t.node_v for t in trees])
-            self.node_min = np.concatenate([t.node_min for t in trees])
-            self.start = np.concatenate([t.start + point_off[k] for k, t in enumerate(trees)])
-            self.end = np.concatenate([t.end + point_off[k] for k, t in enumerate(trees)])
-            self.child = np.concatenate(
-                [np.where(t.child >= 0, t.child + node_off[k], -1) for k, t in enumerate(trees)]
-            )
-        else:
-            self.pts, self.vals, self.order = np.empty((0, n)), np.empty(0), np.empty(0, dtype=np.int64)
-            self.box_lo, self.box_hi, self.node_v = np.empty((0, n)), np.empty((0, n)), np.empty(0)
-            self.node_min = self.start = self.end = self.child = np.empty(0, dtype=np.int64)
-        self.roots = node_off[:-1].copy()
-        self.r2 = np.array([seg.r2 for seg in segments], dtype=np.float64)
-        self.a = np.array([seg.a for seg in segments], dtype=np.int64)
-        self.b = np.array([seg.b for seg in segments], dtype=np.int64)
+        self._buf: dict[str, np.ndarray] = {
+            "pts": np.empty((0, n)), "vals": np.empty(0), "order": np.empty(0, dtype=np.int64),
+            "box_lo": np.empty((0, n)), "box_hi": np.empty((0, n)), "node_v": np.empty(0),
+            "node_min": np.empty(0, dtype=np.int64), "start": np.empty(0, dtype=np.int64),
+            "end": np.empty(0, dtype=np.int64), "child": np.empty(0, dtype=np.int64),
+        }  # fmt: skip
+        self._offsets: list[tuple[int, int]] = []  # (first point, first node) of each segment
+        self._segments: list[_Segment] = []
+        self.points = self.nodes = 0
+        self._refresh()
+
+    def truncate(self, count: int) -> None:
+        """Keep the first ``count`` segments."""
+        if count < len(self._offsets):
+            self.points, self.nodes = self._offsets[count]
+            del self._offsets[count:]
+            del self._segments[count:]
+            self._refresh()
+
+    def append(self, segment: _Segment) -> None:
+        tree = segment.trees[self.sign]
+        p0, n0 = self.points, self.nodes
+        p1, n1 = p0 + tree.size, n0 + tree.node_v.shape[0]
+        for name in self._FIELDS:
+            buf = self._buf[name]
+            need = p1 if name in self._POINT_FIELDS else n1
+            if buf.shape[0] < need:
+                grown = np.empty((max(need, 2 * buf.shape[0]), *buf.shape[1:]), dtype=buf.dtype)
+                grown[: p0 if name in self._POINT_FIELDS else n0] = buf[: p0 if name in self._POINT_FIELDS else n0]
+                self._buf[name] = buf = grown
+            lo, hi = (p0, p1) if name in self._POINT_FIELDS else (n0, n1)
+            values = getattr(tree, name)
+            if name in ("start", "end"):
+                values = values + p0
+            elif name == "child":
+                values = np.where(values >= 0, values + n0, -1)
+            buf[lo:hi] = values
+        self._offsets.append((p0, n0))
+        self._segments.append(segment)
+        self.points, self.nodes = p1, n1
+        self._refresh()
+
+    def _refresh(self) -> None:
+        for name in self._FIELDS:
+            setattr(self, name, self._buf[name][: self.points if name in self._POINT_FIELDS else self.nodes])
+        self.roots = np.array([n0 for _, n0 in self._offsets], dtype=np.int64)
+        self.r2 = np.array([seg.r2 for seg in self._segments], dtype=np.float64)
+        self.a = np.array([seg.a for seg in self._segments], dtype=np.int64)
+        self.b = np.array([seg.b for seg in self._segments], dtype=np.int64)
 
 
 @dataclass(frozen=True)
@@ -455,7 +488,7 @@ class BoundIndex:
         self.value_weight = float(value_weight)
         self.dominance_budget = int(dominance_budget)
         self.segments: list[_Segment] = []
-        self._forests = self._make_forests(self.segments)
+        self._forests = {sign: _Forest(sign, dataset.state_dim) for sign in (1.0, -1.0)}
 
     # ------------------------------------------------------------------ maintenance
     @property
@@ -477,7 +510,9 @@ class BoundIndex:
             merged = {s: np.concatenate([last.trees[s].order, segment.trees[s].order]) for s in (1.0, -1.0)}
             segment = self._make_segment(last.a, segment.b, min(last.r2, segment.r2), merged)
         self.segments.append(segment)
-        self._forests = self._make_forests(self.segments)
+        for forest in self._forests.values():
+            forest.truncate(len(self.segments) - 1)
+            forest.append(segment)
 
     def _make_segment(self, a: int, b: int, r2: float, kept: dict[float, IntArray]) -> _Segment:
         data, scale, leaf = self.dataset, self.value_weight / self.lipschitz, self.leaf_size
@@ -486,9 +521,6 @@ class BoundIndex:
             idx = np.sort(idx)
             trees[sign] = _Tree.build(data.states[idx], sign * data.values[idx], idx, scale, leaf)
         return _Segment(a, b, r2, trees)
-
-    def _make_forests(self, segments: list[_Segment]) -> dict[float, _Forest]:
-        return {sign: _Forest(segments, sign, self.dataset.state_dim) for sign in (1.0, -1.0)}
 
     def _compress(self, a: int, b: int) -> tuple[float, dict[float, IntArray]]:
         """Safe ball and kept points of the new points [a, b): those no other point dominates."""
@@ -504,25 +536,28 @@ class BoundIndex:
         # point would cost a search each for nothing, so all are kept (always safe).
         sample = np.unique(np.linspace(a, b - 1, min(b - a, _DOMINANCE_SAMPLE)).astype(np.int64))
         kept = {}
-        provisional: dict[float, _Forest] | None = None
+        provisional: _Segment | None = None
         for sign in (1.0, -1.0):
-            if b - a > _DOMINANCE_SAMPLE and not self._dominated(sign, sample, threshold, self._forests, a).any():
+            forest = self._forests[sign]
+            if b - a > _DOMINANCE_SAMPLE and not self._dominated(forest, sample, threshold, a).any():
                 kept[sign] = everything
                 continue
-            forests, tail = self._forests, a
-            if b - a > _PROVISIONAL_TREE:  # the new points get a provisional tree instead of a long brute-force tail
-                if provisional is None:
-                    segment = self._make_segment(a, b, math.inf, {1.0: everything, -1.0: everything})
-                    provisional = self._make_forests([*self.segments, segment])
-                forests, tail = provisional, b
-            kept[sign] = everything[~self._dominated(sign, everything, threshold, forests, tail)]
+            if b - a <= _PROVISIONAL_TREE:
+                kept[sign] = everything[~self._dominated(forest, everything, threshold, a)]
+                continue
+            # many new points: search them through a provisional tree instead of a long brute-force tail
+            if provisional is None:
+                provisional = self._make_segment(a, b, math.inf, {1.0: everything, -1.0: everything})
+            forest.append(provisional)
+            try:
+                kept[sign] = everything[~self._dominated(forest, everything, threshold, b)]
+            finally:
+                forest.truncate(len(self.segments))
         return ball * ball, kept
 
-    def _dominated(
-        self, sign: float, points: IntArray, threshold: float, forests: dict[float, _Forest], tail: int
-    ) -> NDArray[np.bool_]:
+    def _dominated(self, f: _Forest, points: IntArray, threshold: float, tail: int) -> NDArray[np.bool_]:
         """Whether a point safely dominates each of ``points`` (within the search budget)."""
-        data, f = self.dataset, forests[sign]
+        data, sign = self.dataset, f.sign
         states, values = data.states, data.values
         out = np.empty(points.shape[0], dtype=np.bool_)
         _exceeds(

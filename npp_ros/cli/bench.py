@@ -468,7 +468,13 @@ def markdown(result: dict[str, Any]) -> str:
                 f"{c['pingpong_median']:.0f} ({pingpong}) | "
                 f"{c['ratio']:.2f} | >= {c['target']:.2f} | {'yes' if c['met'] else '**no**'} |"
             )
-        lines.append("")
+        lines += [
+            "",
+            "Graph: this process plays the sim in lockstep with the policy node (nodes/policy_node.py), "
+            "stepping the plant's exact linear model with each answer. Ping-pong: the same driver against a "
+            "node that answers at once, in its own process, same messages, QoS and executor.",
+            "",
+        ]
     return "\n".join(lines) + "\n"
 
 
