@@ -455,7 +455,7 @@ def markdown(result: dict[str, Any]) -> str:
         lines.append("")
     ros = result.get("ros")
     if ros:
-        lines += ["## ROS loop (sim <-> policy lockstep vs a bare rclpy ping-pong, same messages)", ""]
+        lines += ["## ROS loop (sim <-> policy lockstep vs a bare ROS ping-pong, same messages)", ""]
         if ros.get("error"):
             lines += [f"Failed: {ros['error']}", ""]
         lines += ["| task | points | graph steps/s | ping-pong steps/s | ratio | target | met |",
