@@ -202,17 +202,35 @@ class PolicyNode(Node):
         return None
 
     def _answer_loop(self) -> None:
-        """Answer thread: always the newest state; whatever arrived meanwhile replaced it."""
+        """Answer thread: always the newest state; whatever arrived meanwhile replaced it.
+
+        When no state waits it brings the search index up to date with newly appended data, so
+        index builds and merges (seconds at 10^6 points) happen between episodes, not inside a
+        control step.
+        """
         while True:
             with self._mail:
-                self._mail.wait_for(lambda: self._mailbox is not None or self._closing)
+                ready = self._mail.wait_for(lambda: self._mailbox is not None or self._closing, timeout=0.1)
                 if self._closing:
                     return
-                msg, self._mailbox = self._mailbox, None
+                if not ready:
+                    msg = None
+                else:
+                    msg, self._mailbox = self._mailbox, None
+            if msg is None:
+                self._warm_index()
+                continue
             try:
                 self._answer(msg)
             except Exception as exc:  # the answer thread must outlive any single bad state
                 self.get_logger().error(f"could not answer a state: {type(exc).__name__}: {exc}")
+
+    def _warm_index(self) -> None:
+        policy = self.policy
+        if policy is None or policy.index is None:
+            return
+        with self._data_lock:
+            policy.index.sync()
 
     def _answer(self, msg: JointState) -> None:
         assert self.policy is not None and self.plant is not None
