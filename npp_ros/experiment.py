@@ -480,19 +480,26 @@ COLUMN_NOTES = """\
 - returns < V_lb: rollouts whose return fell below V_lb(s0); impossible when L bounds the value's slope
   (Theorem 3.4, B.1 i).
 - V_ub < V_lb at s0: episodes whose bounds crossed, which the data alone show cannot happen with a valid L.
-- max slope visited: the largest |grad V^expert| = |P x| along the policy's evaluation rollouts; L bounds the
-  slope only where this stays below it.
+- max slope visited: the largest |grad V^expert| = |P x| along the policy's evaluation rollouts. The analytic L
+  is the sup over the expert's own trajectories; where the policy leaves them the slope can exceed it, and the
+  guarantees then rest on an assumption this column shows to be false there.
 - verdict: "held" when within eps >= p and no return fell below V_lb; "FAILED" when a one-sided binomial
   test rejects P(gap <= eps) >= p at level delta.
 """
+
+
+def _slope_cell(row: ResultRow) -> str:
+    above = row.max_visited_slope > row.lipschitz
+    return f"**{row.max_visited_slope:.1f} > L**" if above else f"{row.max_visited_slope:.1f}"
 
 
 def summary_table(rows: Sequence[ResultRow]) -> str:
     """One line per arm: what a user needs to decide whether to trust the certificates."""
     head = (
         "| task | expert | L used (slope needed) | certified | certified at (median, range) | oracle calls "
-        "| within eps (worst seed) | returns < V_lb | V_ub < V_lb episodes | verdicts | compute s |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| within eps (worst seed) | returns < V_lb | V_ub < V_lb episodes | slope visited / L (max) "
+        "| verdicts | compute s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     groups: dict[tuple[str, str, str], list[ResultRow]] = {}
     for row in rows:
@@ -514,9 +521,13 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
             key = r.verdict.split(" (")[0].split(":")[0]
             verdicts[key] = verdicts.get(key, 0) + 1
         said = ", ".join(f"{v} x {k}" for k, v in verdicts.items())
+        compute = sum(r.wall_time_s for r in group)
+        ratio = f"{max(r.max_visited_slope / r.lipschitz for r in group):.2f}"
+        above = sum(r.max_visited_slope > r.lipschitz for r in group)
+        ratio += f" (**{above} of {len(group)} seeds above L**)" if above else ""
         lines.append(
             f"| {task} | {expert} | {used} ({needed}){bound} | {len(certs)}/{len(group)} | {at} | {calls} "
-            f"| {worst:.0%} | {below}/{total} | {crossed} | {said} | {sum(r.wall_time_s for r in group):.0f} |"
+            f"| {worst:.0%} | {below}/{total} | {crossed} | {ratio} | {said} | {compute:.0f} |"
         )
     return head + "\n".join(lines) + "\n"
 
@@ -536,6 +547,6 @@ def markdown_table(rows: Sequence[ResultRow]) -> str:
             f"| {r.task} | {r.expert} | {r.lipschitz:.0f} ({r.slope_needed:.0f}){bound} | {r.seed} | {cert} "
             f"| {r.oracle_calls} | {r.dataset_size} | {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
             f"| {r.fraction_within_epsilon:.0%} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
-            f"| {r.crossed_bounds} | {r.max_visited_slope:.1f} | {r.verdict} | {r.wall_time_s:.0f} |"
+            f"| {r.crossed_bounds} | {_slope_cell(r)} | {r.verdict} | {r.wall_time_s:.0f} |"
         )
     return head + "\n".join(lines) + "\n"

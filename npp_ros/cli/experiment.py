@@ -200,7 +200,7 @@ def record_invocation(path: Path, argv: list[str] | None, wall: float, runs: int
     history = json.loads(path.read_text()).get("invocations", []) if path.exists() else []
     history.append(
         {
-            "command": "npp-experiment " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "command": " ".join(["npp-experiment", *(argv if argv is not None else sys.argv[1:])]),
             "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "wall_time_s": round(wall, 1),
             "runs": runs,
