@@ -177,6 +177,23 @@ def _box_bound(q, box_lo, box_hi, node_v, c, lipschitz):  # pragma: no cover - c
     return node_v[c] - lipschitz * np.sqrt(acc)
 
 
+@njit(cache=True, inline="always")
+def _scan_range(q, lipschitz, sign, data_states, data_values, a, b, best, bi):  # pragma: no cover - compiled
+    """Brute force over dataset rows [a, b) on top of a running best (best, bi); ties to the smallest index."""
+    for i in range(a, b):
+        v = sign * data_values[i]
+        if v < best:
+            continue
+        acc = 0.0
+        for k in range(q.shape[0]):
+            d = q[k] - data_states[i, k]
+            acc += d * d
+        s = v - lipschitz * np.sqrt(acc)
+        if bi < 0 or s > best or (s == best and i < bi):
+            best, bi = s, i
+    return best, bi
+
+
 @njit(cache=True)
 def _search(
     queries, lipschitz, sign, data_states, data_values, tail_start,
@@ -195,33 +212,13 @@ def _search(
     for b in range(n_queries):
         q = queries[b]
         best, bi = -np.inf, -1
-        for i in range(tail_start, total):
-            v = sign * data_values[i]
-            if v < best:
-                continue
-            acc = 0.0
-            for k in range(n):
-                d = q[k] - data_states[i, k]
-                acc += d * d
-            s = v - lipschitz * np.sqrt(acc)
-            if bi < 0 or s > best or (s == best and i < bi):
-                best, bi = s, i
+        best, bi = _scan_range(q, lipschitz, sign, data_states, data_values, tail_start, total, best, bi)
         r2 = 0.0
         for k in range(n):
             r2 += q[k] * q[k]
         for g in range(roots.shape[0]):
             if r2 > seg_r2[g]:
-                for i in range(seg_a[g], seg_b[g]):
-                    v = sign * data_values[i]
-                    if v < best:
-                        continue
-                    acc = 0.0
-                    for k in range(n):
-                        d = q[k] - data_states[i, k]
-                        acc += d * d
-                    s = v - lipschitz * np.sqrt(acc)
-                    if bi < 0 or s > best or (s == best and i < bi):
-                        best, bi = s, i
+                best, bi = _scan_range(q, lipschitz, sign, data_states, data_values, seg_a[g], seg_b[g], best, bi)
                 continue
             st_node[0] = roots[g]
             st_bound[0] = _box_bound(q, box_lo, box_hi, node_v, roots[g], lipschitz)
