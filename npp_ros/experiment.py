@@ -11,6 +11,7 @@ rebuilt from the files, so a resumed or repeated run gives the same numbers.
 from __future__ import annotations
 
 import csv
+import json
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -451,8 +452,6 @@ RESULT_FIELDS = [f.name for f in fields(ResultRow)]
 
 def write_results(rows: Iterable[ResultRow], out_dir: Path) -> list[Path]:
     """results.csv and results.json for tools, results.md for people."""
-    import json
-
     rows = list(rows)
     paths = [out_dir / "results.csv", out_dir / "results.json", out_dir / "results.md"]
     with paths[0].open("w", newline="") as fh:

@@ -213,7 +213,7 @@ def record_invocation(path: Path, argv: list[str] | None, wall: float, runs: int
 
 def report(records: list[RunRecord], settings: ExperimentSettings, out: Path) -> list[ResultRow]:
     """Figures per arm, then the table; the table's order is the arms' then the seeds'."""
-    from npp_ros.plots import gap_distributions, training_curves
+    from npp_ros.plots import gap_distributions, training_curves  # matplotlib: the parent only, not each worker
 
     by_arm: dict[Arm, list[RunRecord]] = defaultdict(list)
     for record in sorted(records, key=lambda r: (r.arm.task, r.arm.expert, r.arm.lipschitz, r.seed)):
