@@ -32,11 +32,10 @@ import numpy as np
 import pytest
 from npp_interfaces.msg import Certificate, GapReport
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
+from reference import decisions, uninterrupted_run
 
 from nodes.common import CERTIFICATE, DATASET_TOPIC, GAP, LATCHED_QOS, REPORT_QOS
 from npp_ros.dataset import Dataset
-from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
-from npp_ros.lqr import LQRExpert
 from npp_ros.storage import RunStore, trajectory_digest
 
 if TYPE_CHECKING:
@@ -131,14 +130,9 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[RunRecord]
 
 def expected_run(task_seed: int) -> tuple[list[tuple[Any, ...]], Dataset, int]:
     """The uninterrupted run in process: the numbers every faulted run must end with."""
-    expert = LQRExpert("lqr_2_1", task_seed, horizon=HORIZON)
-    config = build_config(
-        "lqr_2_1", task_seed, resolve_lipschitz("lqr_2_1", "analytic", expert), EPSILON, horizon=HORIZON
-    )
-    loop = build_loop(config, expert)
-    result = loop.run(max_episodes=MAX_EPISODES)
+    loop, result = uninterrupted_run(task_seed, EPSILON, HORIZON, MAX_EPISODES)
     assert result.certified
-    return [(r.initial_state, r.gap, r.oracle_called) for r in result.rows], loop.dataset, result.episodes
+    return decisions(result.rows), loop.dataset, result.episodes
 
 
 class Graph:
@@ -266,7 +260,7 @@ def test_sigkill_any_node_mid_run_loses_nothing(
         stored_certificate = store.certificate()
     assert stored_certificate is not None and certificates[-1].episodes == len(rows) == expected_episodes
     # Resumed, never restarted: the same episodes, gaps and data as an uninterrupted run.
-    assert [(r.initial_state, r.gap, r.oracle_called) for r in rows] == expected_rows
+    assert decisions(rows) == expected_rows
     np.testing.assert_array_equal(data.states, expected_data.states)
     np.testing.assert_array_equal(data.values, expected_data.values)
     with (run_dir / "gaps.csv").open() as fh:  # each supervisor appended only episodes it ran itself

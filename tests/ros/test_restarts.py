@@ -8,10 +8,9 @@ from pathlib import Path
 
 import numpy as np
 from npp_interfaces.msg import Certificate, GapReport
+from reference import decisions, uninterrupted_run
 
 from nodes.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
-from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
-from npp_ros.lqr import LQRExpert
 from npp_ros.storage import RunStore
 
 SUPERVISOR = "nodes.supervisor_node"
@@ -66,13 +65,8 @@ def test_killing_policy_then_supervisor_loses_no_expert_data(launch, ros_client,
     np.testing.assert_array_equal(after.states[: len(before)], before.states)
     assert [r.trajectory for r in rows if r.oracle_called] == list(range(after.num_trajectories))
     # The resumed run is the same run: same dataset and gap sequence as uninterrupted, in process.
-    expert = LQRExpert("lqr_2_1", 0)
-    config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "analytic", expert), 50.0)
-    local = build_loop(config, expert)
-    result = local.run(max_episodes=400)
-    assert [(r.initial_state, r.gap, r.oracle_called) for r in rows] == [
-        (r.initial_state, r.gap, r.oracle_called) for r in result.rows
-    ]
+    local, result = uninterrupted_run()
+    assert decisions(rows) == decisions(result.rows)
     np.testing.assert_array_equal(after.states, local.dataset.states)
     assert certificates[-1].episodes == len(rows) == result.episodes
     # The restarted policy drove the episodes after its restart.
