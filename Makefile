@@ -19,7 +19,7 @@ test: $(STAMP)
 	$(PY) -m pytest
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check npp_ros nodes tests && $(VENV)/bin/ruff format --check npp_ros nodes tests
+	$(VENV)/bin/ruff check npp_ros npp_ros_graph nodes tests && $(VENV)/bin/ruff format --check npp_ros npp_ros_graph nodes tests
 
 clean-venv:
 	rm -rf $(VENV)

@@ -1,9 +1,10 @@
 """Security basics: nothing that loads data can execute it.
 
-Every module of the core (npp_ros/) and the nodes (nodes/) is parsed, and the test fails on: pickle-like
-modules (pickle, cPickle, dill, shelve, marshal, joblib), eval/exec/compile/__import__, unsafe YAML
-loading (yaml.load, yaml.unsafe_load, yaml.full_load, yaml.Loader / UnsafeLoader / FullLoader),
-numpy.load with allow_pickle=True, torch.load, and subprocess calls with shell=True.
+Every module of the core (npp_ros/), the ROS graph (npp_ros_graph/) and the node scripts (nodes/) is parsed,
+and the test fails on: pickle-like modules (pickle, cPickle, dill, shelve, marshal, joblib),
+eval/exec/compile/__import__, unsafe YAML loading (yaml.load, yaml.unsafe_load, yaml.full_load,
+yaml.Loader / UnsafeLoader / FullLoader), numpy.load with allow_pickle=True, torch.load, and subprocess
+calls with shell=True.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SOURCES = sorted(p for folder in ("npp_ros", "nodes") for p in (REPO / folder).rglob("*.py"))
+SOURCES = sorted(p for folder in ("npp_ros", "npp_ros_graph", "nodes") for p in (REPO / folder).rglob("*.py"))
 PICKLE_LIKE = {"pickle", "cPickle", "_pickle", "dill", "shelve", "marshal", "joblib", "cloudpickle"}
 CALLS = {"eval", "exec", "compile", "__import__"}
 UNSAFE_ATTRS = {

@@ -470,7 +470,7 @@ def markdown(result: dict[str, Any]) -> str:
             )
         lines += [
             "",
-            "Graph: this process plays the sim in lockstep with the policy node (nodes/policy_node.py), "
+            "Graph: this process plays the sim in lockstep with the policy node (npp_ros_graph/policy_node.py), "
             "stepping the plant's exact linear model with each answer. Ping-pong: the same driver against a "
             "node that answers at once, in its own process, same messages, QoS and executor.",
             "",
@@ -498,7 +498,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--brute-budget", type=float, default=2e6, help="points x queries per brute-force timing")
     parser.add_argument("--seed", type=int, default=0, help="seed of the initial states")
     parser.add_argument("--runs", type=Path, nargs="*", default=[], help="run folders whose compression to report")
-    parser.add_argument("--ros", action="store_true", help="also measure the ROS loop rate (nodes/bench_loop.py)")
+    parser.add_argument("--ros", action="store_true", help="also measure the ROS loop rate (npp_ros_graph.bench_loop)")
     parser.add_argument("--no-compile", action="store_true", help="skip the cold-cache compile measurement")
     args = parser.parse_args(argv)
     if args.quick:
@@ -573,11 +573,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def ros_loop(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
-    """The ROS loop rate, measured by nodes/bench_loop.py in its own process (npp_ros stays ROS-free)."""
-    cmd = [sys.executable, "-m", "nodes.bench_loop", "--json", "-"] + (["--quick"] if args.quick else [])
+    """The ROS loop rate, measured by npp_ros_graph/bench_loop.py in its own process (npp_ros stays ROS-free)."""
+    cmd = [sys.executable, "-m", "npp_ros_graph.bench_loop", "--json", "-"] + (["--quick"] if args.quick else [])
     res = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its progress goes to our stderr
     if res.returncode != 0:
-        out: dict[str, Any] = {"error": f"nodes.bench_loop exited with {res.returncode}", "cases": []}
+        out: dict[str, Any] = {"error": f"npp_ros_graph.bench_loop exited with {res.returncode}", "cases": []}
     else:
         out = json.loads(res.stdout)
     done = ", ".join(f"{c['task']} {c['ratio']:.2f}" for c in out.get("cases", []))

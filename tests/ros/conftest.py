@@ -36,7 +36,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.task import Future
 
-from nodes.common import SERVICE_QOS
+from npp_ros_graph.common import SERVICE_QOS
 
 REPO = Path(__file__).resolve().parents[2]
 STOP_TIMEOUT_S = 10.0
@@ -44,7 +44,7 @@ LOG_TAIL_LINES = 60
 
 
 def _console_scripts() -> dict[str, str]:
-    """npp-sim -> nodes.sim_node:main, from pyproject (the one source of truth)."""
+    """npp-sim -> npp_ros_graph.sim_node:main, from pyproject (the one source of truth)."""
     with open(REPO / "pyproject.toml", "rb") as fh:
         return dict(tomllib.load(fh)["project"].get("scripts", {}))
 
@@ -120,7 +120,7 @@ def _ros_value(value: Any) -> str:
 
 
 def node_command(target: str, params: dict[str, Any] | None = None, namespace: str = "") -> list[str]:
-    """The argv that runs a console script (npp-sim) or a module (nodes.sim_node) with parameters."""
+    """The argv that runs a console script (npp-sim) or a module (npp_ros_graph.sim_node) with parameters."""
     if target in CONSOLE_SCRIPTS:
         module, func = CONSOLE_SCRIPTS[target].split(":")
         code = f"import sys; sys.argv[0] = {target!r}; from {module} import {func}; sys.exit({func}())"

@@ -41,7 +41,10 @@ from rclpy.client import Client
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 
-from nodes.common import (
+from npp_ros.inprocess import build_config, resolve_lipschitz
+from npp_ros.lqr import LQRExpert
+from npp_ros.storage import RunStore
+from npp_ros_graph.common import (
     ACTION,
     CERTIFICATE,
     CONTROL_QOS,
@@ -53,9 +56,6 @@ from nodes.common import (
     ROLLOUT_DONE,
     STATE,
 )
-from npp_ros.inprocess import build_config, resolve_lipschitz
-from npp_ros.lqr import LQRExpert
-from npp_ros.storage import RunStore
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -114,7 +114,7 @@ def graph(launch_module: Launcher, ros_client_module: Callable[..., RosClient], 
         "supervisor": {"run_dir": str(run_dir), "max_episodes": 400},
     }
     for name, values in params.items():
-        g.procs[name] = launch_module(f"nodes.{name}_node", values, namespace=ns)
+        g.procs[name] = launch_module(f"npp_ros_graph.{name}_node", values, namespace=ns)
     client.wait_for(lambda: bool(certificates), 600.0, "the certificate of the /bad graph")
     time.sleep(0.5)  # the supervisor's worker closes the run file after certifying
     g.run_hash = sha256(g.run_file)
@@ -237,7 +237,9 @@ class SimAlone:
     """A sim with nobody answering its states but the test."""
 
     def __init__(self, launch: Launcher, client: RosClient) -> None:
-        self.proc = launch("nodes.sim_node", {"task": "lqr_2_1", "seed": 0, "horizon": 100_000}, namespace="/bad_sim")
+        self.proc = launch(
+            "npp_ros_graph.sim_node", {"task": "lqr_2_1", "seed": 0, "horizon": 100_000}, namespace="/bad_sim"
+        )
         self.client = client
         self.states = client.collect(JointState, STATE, CONTROL_QOS)
         plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
@@ -351,7 +353,7 @@ def test_bad_parameters_refuse_to_start_with_the_reason(
         "expert": expert,
         "supervisor": ({**supervisor[0], "run_dir": str(graph.run_dir)}, supervisor[1]),
     }
-    procs = {name: launch_module(f"nodes.{name}_node", params, namespace="/refused") for name, (params, _) in
+    procs = {name: launch_module(f"npp_ros_graph.{name}_node", params, namespace="/refused") for name, (params, _) in
              cases.items()}  # fmt: skip
     for name, proc in procs.items():
         assert proc.wait(timeout=120) == 2, launch_module.log(proc)
@@ -371,7 +373,9 @@ def test_supervisor_refuses_a_run_file_for_other_dimensions(graph: Graph, tmp_pa
     RunStore.create(path, replace(config.metadata(), state_dim=12, action_dim=2)).close()
     before = sha256(path)
     launch_module = graph.launch
-    proc = launch_module("nodes.supervisor_node", {"run_dir": str(path.parent), "epsilon": 50.0}, namespace="/bad")
+    proc = launch_module(
+        "npp_ros_graph.supervisor_node", {"run_dir": str(path.parent), "epsilon": 50.0}, namespace="/bad"
+    )
     assert proc.wait(timeout=120) == 1
     log = launch_module.log(proc)
     assert "belongs to another run and was left untouched" in log and "state_dim: file has 12" in log, log

@@ -14,8 +14,8 @@ from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
 from rclpy.client import Client
 
-from nodes.common import EXPERT_SERVICE, LATCHED_QOS, PLANT
 from npp_ros.lqr import LQRExpert, LQRPlant
+from npp_ros_graph.common import EXPERT_SERVICE, LATCHED_QOS, PLANT
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient

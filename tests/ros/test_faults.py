@@ -34,9 +34,9 @@ from npp_interfaces.msg import Certificate, GapReport
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from reference import decisions, uninterrupted_run
 
-from nodes.common import CERTIFICATE, DATASET_TOPIC, GAP, LATCHED_QOS, REPORT_QOS
 from npp_ros.dataset import Dataset
 from npp_ros.storage import RunStore, trajectory_digest
+from npp_ros_graph.common import CERTIFICATE, DATASET_TOPIC, GAP, LATCHED_QOS, REPORT_QOS
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -144,7 +144,7 @@ class Graph:
         self.history: dict[str, list[subprocess.Popen[bytes]]] = {name: [] for name in NODES}
 
     def start(self, name: str) -> None:
-        self.procs[name] = self.launch(f"nodes.{name}_node", self.params[name])
+        self.procs[name] = self.launch(f"npp_ros_graph.{name}_node", self.params[name])
         self.history[name].append(self.procs[name])
 
     def kill(self, name: str) -> None:

@@ -15,10 +15,10 @@ from npp_ros.storage import RunStore
 def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
     monitor = subprocess.Popen(
-        [sys.executable, "-m", "nodes.monitor", "--exit-on-certificate"], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-m", "npp_ros_graph.monitor", "--exit-on-certificate"], stdout=subprocess.PIPE, text=True
     )
     run = subprocess.run(
-        [sys.executable, "-m", "nodes.run_graph", "--run-dir", str(run_dir), "--max-episodes", "400"],
+        [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--max-episodes", "400"],
         capture_output=True,
         text=True,
         timeout=1200,

@@ -24,7 +24,10 @@ from npp_interfaces.srv import ExpertTrajectory, GetTrajectories
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32, UInt64
 
-from nodes.common import (
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.dataset import Dataset
+from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros_graph.common import (
     ACTION,
     BUSY,
     CONTROL_QOS,
@@ -37,10 +40,7 @@ from nodes.common import (
     REPORT_QOS,
     STATE,
 )
-from nodes.supervisor_node import trajectory_msg
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.dataset import Dataset
-from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros_graph.supervisor_node import trajectory_msg
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -54,8 +54,8 @@ FLOOD = 3000
 def test_expert_serves_8_clients_200_requests_and_loses_none(
     launch: Launcher, ros_client: Callable[..., RosClient], expert_2_1: LQRExpert, max_queue: int, max_horizon: int
 ) -> None:
-    launch("nodes.sim_node", {"task": "lqr_2_1", "seed": 0})
-    expert = launch("nodes.expert_node", {"max_queue": max_queue})
+    launch("npp_ros_graph.sim_node", {"task": "lqr_2_1", "seed": 0})
+    expert = launch("npp_ros_graph.expert_node", {"max_queue": max_queue})
     clients = [ros_client(f"load_client_{i}") for i in range(CLIENTS)]
     services = [c.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT) for c in clients]
     for client, service in zip(clients, services, strict=True):
@@ -144,7 +144,7 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
     actions = tester.collect(JointState, ACTION, CONTROL_QOS)
     dropped = tester.collect(UInt64, POLICY_DROPPED, REPORT_QOS)
     state_pub = node.create_publisher(JointState, STATE, CONTROL_QOS)
-    policy = launch("nodes.policy_node", namespace=ns)
+    policy = launch("npp_ros_graph.policy_node", namespace=ns)
     tester.wait_for(lambda: bool(held) and held[-1].data == 20, TIMEOUT, "the policy to hold the dataset")
     tester.wait_for(lambda: state_pub.get_subscription_count() > 0, TIMEOUT, "the policy's state subscription")
 

@@ -18,8 +18,8 @@ from rclpy.client import Client
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 
-from nodes.common import ACTION, CONTROL_QOS, LATCHED_QOS, PLANT, REPORT_QOS, RESET_SERVICE, ROLLOUT_DONE, STATE
 from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
+from npp_ros_graph.common import ACTION, CONTROL_QOS, LATCHED_QOS, PLANT, REPORT_QOS, RESET_SERVICE, ROLLOUT_DONE, STATE
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient

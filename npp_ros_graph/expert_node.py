@@ -25,7 +25,9 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 
-from nodes.common import (
+from npp_ros.dataset import Trajectory
+from npp_ros.lqr import MAX_HORIZON, LQRExpert
+from npp_ros_graph.common import (
     BUSY,
     EXPERT_SERVICE,
     LATCHED_QOS,
@@ -38,8 +40,6 @@ from nodes.common import (
     parameter_help,
     run_node,
 )
-from npp_ros.dataset import Trajectory
-from npp_ros.lqr import MAX_HORIZON, LQRExpert
 
 PARAMETERS: list[tuple[str, Any, str]] = [
     ("gamma", 1.0, "discount in (0, 1]; 1 = undiscounted H-step values V* = H - J*"),

@@ -25,7 +25,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32, UInt64
 
-from nodes.common import (
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.dataset import Dataset, DatasetError
+from npp_ros_graph.common import (
     ACTION,
     CONTROL_QOS,
     DATASET_SERVICE,
@@ -40,8 +42,6 @@ from nodes.common import (
     run_node,
     trajectory_arrays,
 )
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.dataset import Dataset, DatasetError
 
 CATCH_UP_TIMEOUT_S = 5.0  # a catch-up request unanswered this long is withdrawn and sent again
 REPORT_EVERY_S = 1.0

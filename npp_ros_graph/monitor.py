@@ -11,7 +11,7 @@ from npp_interfaces.msg import Certificate, EpisodeResult, GapReport
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from nodes.common import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.common import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
 
 
 def gap_line(msg: GapReport) -> str:

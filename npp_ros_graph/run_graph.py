@@ -22,8 +22,8 @@ from npp_interfaces.msg import Certificate, GapReport
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from nodes.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
-from nodes.monitor import certificate_line, gap_line
+from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.monitor import certificate_line, gap_line
 
 
 def parser() -> argparse.ArgumentParser:
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     }  # fmt: skip
     procs: dict[str, subprocess.Popen] = {}
     for name, values in params.items():
-        cmd = [sys.executable, "-m", f"nodes.{name}_node", "--ros-args"]
+        cmd = [sys.executable, "-m", f"npp_ros_graph.{name}_node", "--ros-args"]
         for key, value in values.items():
             text = (
                 str(value).lower() if isinstance(value, bool) else repr(value) if isinstance(value, str) else str(value)

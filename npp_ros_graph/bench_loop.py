@@ -4,7 +4,7 @@ This process plays the sim: it publishes a JointState on /npp/state, waits for t
 answer on /npp/action, steps the plant's exact linear model x' = A x + B u with it, and repeats,
 in lockstep. Against it, in separate processes, runs either
 
-* the real policy node (``nodes.policy_node``), which catches the dataset up through this
+* the real policy node (``npp_ros_graph.policy_node``), which catches the dataset up through this
   process's /npp/dataset/get service and answers with the greedy NPP action, or
 * a bare echo node (``--echo``): same message types, same QoS, same executor, answers at once.
 
@@ -12,7 +12,7 @@ Both are measured in the same run with the same driver, so their ratio is the co
 policy (its query and its node code) relative to the ROS round trip itself. Every run gets its
 own ROS_DOMAIN_ID and localhost-only discovery.
 
-Usage: python -m nodes.bench_loop [--quick] [--json FILE|-] [--steps N]
+Usage: python -m npp_ros_graph.bench_loop [--quick] [--json FILE|-] [--steps N]
 """
 
 from __future__ import annotations
@@ -37,7 +37,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32
 
-from nodes.common import (
+from npp_ros.dataset import Dataset
+from npp_ros.lqr import LQRExpert, sample_initial_state
+from npp_ros_graph.common import (
     ACTION,
     CONTROL_QOS,
     DATASET_SERVICE,
@@ -49,8 +51,6 @@ from nodes.common import (
     float64_array,
     run_node,
 )
-from npp_ros.dataset import Dataset
-from npp_ros.lqr import LQRExpert, sample_initial_state
 
 CASES = (("lqr_2_1", 100), ("lqr_6_2", 1000))  # (task, trajectories): 10^5 points in 4-D, 10^6 in 12-D
 TARGETS = {"lqr_2_1": 0.8, "lqr_6_2": 0.5}
@@ -181,7 +181,7 @@ def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: di
     procs = []
     try:
         for name in partners:
-            cmd = ["nodes.bench_loop", "--echo"] if name == "pingpong" else ["nodes.policy_node"]
+            cmd = ["npp_ros_graph.bench_loop", "--echo"] if name == "pingpong" else ["npp_ros_graph.policy_node"]
             child_env = {**env, "NPP_BENCH_ACTION_DIM": str(data.action_dim)}
             procs.append(
                 spawn([*cmd, "--ros-args", "-r", f"__ns:=/bench_{name}"], child_env, logs / f"{task}-{name}.log")
@@ -244,7 +244,7 @@ def isolated_env(domain: int) -> dict[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m nodes.bench_loop", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m npp_ros_graph.bench_loop", description=__doc__.split("\n\n")[0])
     parser.add_argument("--echo", action="store_true", help="run the bare ping-pong partner node")
     parser.add_argument("--quick", action="store_true", help="small datasets and few steps (smoke run)")
     parser.add_argument("--steps", type=int, default=2000, help="lockstep steps per timed run")

@@ -20,7 +20,8 @@ from npp_interfaces.srv import ResetEpisode
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from nodes.common import (
+from npp_ros.lqr import MAX_HORIZON, TASKS, LQRPlant, UnknownTaskError, check_task, episode_rng, sample_initial_state
+from npp_ros_graph.common import (
     ACTION,
     CONTROL_QOS,
     LATCHED_QOS,
@@ -37,7 +38,6 @@ from nodes.common import (
     parameter_help,
     run_node,
 )
-from npp_ros.lqr import MAX_HORIZON, TASKS, LQRPlant, UnknownTaskError, check_task, episode_rng, sample_initial_state
 
 PARAMETERS: list[tuple[str, Any, str]] = [
     ("task", "lqr_2_1", f"dm_control lqr task, one of {', '.join(sorted(TASKS))}"),

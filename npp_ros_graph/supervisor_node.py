@@ -26,7 +26,14 @@ from rclpy.client import Client
 from rclpy.node import Node
 from std_msgs.msg import UInt32
 
-from nodes.common import (
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.certification import Certificate, CertificationStatus
+from npp_ros.dataset import FloatArray, Trajectory
+from npp_ros.inprocess import build_config, initial_state_fn, resolve_lipschitz
+from npp_ros.loop import NPPLoop, Observer
+from npp_ros.lqr import PAPER_EPSILON, LQRExpert
+from npp_ros.storage import EpisodeRow, RunStore
+from npp_ros_graph.common import (
     BUSY,
     CERTIFICATE,
     DATASET_SERVICE,
@@ -48,13 +55,6 @@ from nodes.common import (
     run_node,
     trajectory_arrays,
 )
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import Certificate, CertificationStatus
-from npp_ros.dataset import FloatArray, Trajectory
-from npp_ros.inprocess import build_config, initial_state_fn, resolve_lipschitz
-from npp_ros.loop import NPPLoop, Observer
-from npp_ros.lqr import PAPER_EPSILON, LQRExpert
-from npp_ros.storage import EpisodeRow, RunStore
 
 PARAMS: list[tuple[str, object, str]] = [
     ("epsilon", 0.0, "target suboptimality > 0; 0 means the paper's value for the task (50 / 300)"),

@@ -1,0 +1,8 @@
+"""npp-monitor as a script: `python nodes/npp_monitor.py [--ros-args ...]` does what the npp-monitor command does."""
+
+import sys
+
+from npp_ros_graph.monitor import main
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,8 @@
+"""npp-sim as a script: `python nodes/npp_sim.py [--ros-args ...]` does what the npp-sim command does."""
+
+import sys
+
+from npp_ros_graph.sim_node import main
+
+if __name__ == "__main__":
+    sys.exit(main())
