@@ -1,0 +1,300 @@
+"""dm_control pendulum swing-up as a plant, and its expert: iLQR from an energy-shaping warm start.
+
+Task (``suite.load("pendulum", "swingup")``): one hinge, angle 0 = upright, gravity 9.81, torque
+limited to [-1, 1] (a fifth of the gravity torque at 90 degrees, so the pole must be pumped up
+over several swings). One control step is one MuJoCo step of 0.02 s (``control_timestep`` =
+``timestep``, ``n_sub_steps`` = 1); H = 1000 steps is dm_control's 20 s episode. The reward is
+dm_control's own, from the physics after the step: 1 when the pole's vertical axis is within
+8 degrees of upright (``tolerance(pole_zz, (cos 8deg, 1))``, margin 0), else 0.
+
+State representation (what the dataset stores and the policy compares): [angle wrapped to
+(-pi, pi], angular velocity], see :func:`represent`. The true state space is a cylinder; the
+Euclidean distance on wrapped coordinates is never below the cylinder's geodesic distance
+(|a - b| >= |wrap(a - b)| for wrapped a, b), so a value L-Lipschitz on the cylinder is
+L-Lipschitz for the stored Euclidean distance: the core's bounds stay valid, only looser for
+pairs on either side of the seam at +-pi. It keeps dim(S) = 2, as in the paper's Appendix B.
+The plant's ``state()`` returns this representation; ``raw_state()`` returns MuJoCo's
+[qpos, qvel], whose angle is continuous (the optimizer works on it) and may leave (-pi, pi].
+
+Action bounds: the optimizer is box-constrained DDP (controls clamped to ctrlrange in the
+forward pass, the clamped directions removed from the feedback gains); ``step`` clamps as
+MuJoCo does for a ctrllimited actuator, so any finite action is accepted.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.linalg import solve_discrete_are
+
+from npp_ros.dataset import DatasetError, FloatArray, Trajectory
+from npp_ros.trajopt import ILQR, ExpertSolution, TrajOptResult, check_time_budget, replay_return_to_go
+
+TASK = "pendulum_swingup"
+DEFAULT_HORIZON = 1000
+PAPER_LIPSCHITZ = 4300.0
+"""The paper's L for this task (Appendix B), with a PPO expert; not a measured bound here."""
+PAPER_EPSILON = 130.0
+UPRIGHT_DEGREES = 8.0
+DEFAULT_TIME_BUDGET = 5.0
+
+
+def wrap_angle(angle: ArrayLike) -> FloatArray:
+    """Map angles to (-pi, pi] (pi stays pi, -pi becomes pi)."""
+    a = np.asarray(angle, dtype=np.float64)
+    out = np.pi - np.mod(np.pi - a, 2 * np.pi)
+    return out
+
+
+def represent(raw: ArrayLike) -> FloatArray:
+    """Raw [qpos, qvel] (one state or rows) -> stored [wrapped angle, velocity]."""
+    x = np.array(raw, dtype=np.float64, copy=True)
+    x[..., 0] = wrap_angle(x[..., 0])
+    return x
+
+
+def sample_initial_state(rng: np.random.Generator) -> FloatArray:
+    """s0 ~ rho: angle uniform in [-pi, pi), zero velocity (dm_control's initialize_episode)."""
+    return np.array([rng.uniform(-np.pi, np.pi), 0.0])
+
+
+def initial_state_diameter() -> float:
+    """diam(S0) in the stored metric: angles span [-pi, pi), velocity is zero."""
+    return 2 * np.pi
+
+
+class PendulumPlant:
+    """The swing-up task driven step by step, with an explicit horizon and no termination."""
+
+    def __init__(self, seed: int = 0) -> None:
+        os.environ.setdefault("MUJOCO_GL", "disable")
+        from dm_control import suite
+
+        env = suite.load("pendulum", "swingup", task_kwargs={"random": int(seed)})
+        n_sub = round(env.control_timestep() / env.physics.model.opt.timestep)
+        if n_sub != 1:
+            raise RuntimeError(f"pendulum control step is {n_sub} physics steps; this plant assumes 1")
+        self.task = TASK
+        self.seed = int(seed)
+        self.physics = env.physics
+        self._task = env.task
+        model = self.physics.model
+        self.dt = float(env.control_timestep())
+        self.state_dim = 2
+        self.action_dim = 1
+        self.joint_names = [model.id2name(i, "joint") for i in range(model.njnt)]
+        self.actuated_joint_names = [model.id2name(int(model.actuator_trnid[i, 0]), "joint") for i in range(model.nu)]
+        self.action_low = model.actuator_ctrlrange[:, 0].astype(np.float64)
+        self.action_high = model.actuator_ctrlrange[:, 1].astype(np.float64)
+        self.steps = 0
+
+    def model_sha256(self) -> str:
+        """Fingerprint of the compiled model's dynamics, so an expert can prove it models this plant."""
+        m = self.physics.model
+        parts = [
+            m.opt.timestep,
+            m.opt.gravity,
+            m.dof_damping,
+            m.jnt_stiffness,
+            m.body_mass,
+            m.body_inertia,
+            m.body_ipos,
+            m.body_pos,
+            m.actuator_gear,
+            m.actuator_ctrlrange,
+        ]
+        blob = b"".join(np.ascontiguousarray(np.asarray(x, dtype=np.float64)).tobytes() for x in parts)
+        return hashlib.sha256(blob).hexdigest()
+
+    def clone(self) -> PendulumPlant:
+        twin = copy.copy(self)
+        twin.physics = self.physics.copy(share_model=True)
+        twin.steps = 0
+        return twin
+
+    def check_state(self, state: ArrayLike, what: str = "state") -> FloatArray:
+        arr = np.asarray(state, dtype=np.float64)
+        if arr.shape != (self.state_dim,):
+            raise DatasetError(
+                f"{what} must have {self.state_dim} entries for {self.task} (hinge angle, angular velocity), "
+                f"got shape {arr.shape}"
+            )
+        if not np.isfinite(arr).all():
+            bad = int(np.argwhere(~np.isfinite(arr))[0, 0])
+            raise DatasetError(f"{what}[{bad}] is {float(arr[bad])}; states must be finite")
+        return arr
+
+    def check_action(self, action: ArrayLike) -> FloatArray:
+        arr = np.asarray(action, dtype=np.float64).reshape(-1)
+        if arr.shape != (self.action_dim,):
+            raise DatasetError(f"action must have {self.action_dim} entries for {self.task}, got {arr.shape[0]}")
+        if not np.isfinite(arr).all():
+            raise DatasetError("action entries must be finite")
+        return arr
+
+    def reset(self, state: ArrayLike) -> FloatArray:
+        """Set [angle, velocity] (any finite angle); returns the stored representation."""
+        x = self.check_state(state)
+        with self.physics.reset_context():
+            self.physics.data.qpos[:] = x[:1]
+            self.physics.data.qvel[:] = x[1:]
+        self.steps = 0
+        return represent(x)
+
+    def raw_state(self) -> FloatArray:
+        return np.concatenate([self.physics.data.qpos, self.physics.data.qvel]).astype(np.float64)
+
+    def state(self) -> FloatArray:
+        return represent(self.raw_state())
+
+    def step(self, action: ArrayLike) -> float:
+        """Apply u (clamped to ctrlrange, as MuJoCo does) for one control step; return dm_control's reward."""
+        u = np.clip(self.check_action(action), self.action_low, self.action_high)
+        self.physics.set_control(u)
+        self.physics.step()
+        self.steps += 1
+        return float(self._task.get_reward(self.physics))
+
+
+# ----------------------------------------------------------------------------- surrogate and warm start
+@dataclass(frozen=True)
+class SwingUpCost:
+    """Smooth surrogate of "be within 8 degrees of upright": s = w (1 - cos q) + v_w qdot^2 / 2, c = u_w u^2 / 2.
+
+    1 - cos q is smooth on the cylinder (no wrap needed) and has a single minimum upright; the
+    small velocity and torque weights make holding the pole still the cheapest way to stay there.
+    """
+
+    angle_weight: float = 1.0
+    velocity_weight: float = 0.01
+    control_weight: float = 0.01
+
+    def state_terms(self, states: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        q, v = states[:, 0], states[:, 1]
+        c, s = np.cos(q), np.sin(q)
+        value = self.angle_weight * (1.0 - c) + 0.5 * self.velocity_weight * v * v
+        grad = np.stack([self.angle_weight * s, self.velocity_weight * v], axis=1)
+        hess = np.zeros((len(states), 2, 2))
+        # Gauss-Newton-style floor: cos q < 0 would make the Hessian indefinite far from upright.
+        hess[:, 0, 0] = self.angle_weight * np.maximum(c, 0.0)
+        hess[:, 1, 1] = self.velocity_weight
+        return value, grad, hess
+
+    def control_terms(self, actions: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        value = 0.5 * self.control_weight * np.sum(actions * actions, axis=1)
+        grad = self.control_weight * actions
+        m = actions.shape[1]
+        hess = np.broadcast_to(self.control_weight * np.eye(m), (len(actions), m, m))
+        return value, grad, hess
+
+
+class EnergyShapingController:
+    """Pump energy towards the upright rest energy, then catch with LQR near the top.
+
+    E = I qdot^2 / 2 + mgl cos q (I, mgl read from the compiled model); below the target the
+    torque follows the velocity's sign at full scale (bang-bang pumping, plus damping
+    compensation), above it brakes. Within ``catch_degrees`` of upright an LQR designed on
+    MuJoCo's own linearisation at the top takes over. A warm start, not an expert.
+    """
+
+    def __init__(self, plant: PendulumPlant, catch_degrees: float = 25.0, gain: float = 5.0) -> None:
+        import mujoco
+
+        m = plant.physics.model.ptr
+        d = mujoco.MjData(m)
+        energies = []
+        for q in (0.0, np.pi):
+            d.qpos[:] = q
+            d.qvel[:] = 0.0
+            mujoco.mj_forward(m, d)
+            energies.append(float(d.energy[0]))
+        self.inertia = float(d.M[0]) if hasattr(d, "M") else float(d.qM[0])
+        self.mgl = 0.5 * (energies[0] - energies[1])
+        self.damping = float(m.dof_damping[0])
+        self.umax = float(m.actuator_ctrlrange[0, 1])
+        self.gain = float(gain)
+        self.catch_cos = math.cos(math.radians(catch_degrees))
+        d.qpos[:] = 0.0
+        d.qvel[:] = 0.0
+        d.ctrl[:] = 0.0
+        a = np.zeros((2, 2))
+        b = np.zeros((2, 1))
+        mujoco.mjd_transitionFD(m, d, 1e-6, True, a, b, None, None)
+        q, r = np.diag([1.0, 0.1]), np.array([[1.0]])
+        p = solve_discrete_are(a, b, q, r)
+        self.K = np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)
+
+    def energy(self, x: FloatArray) -> float:
+        return 0.5 * self.inertia * x[1] * x[1] + self.mgl * math.cos(x[0])
+
+    def __call__(self, x: FloatArray) -> FloatArray:
+        angle = float(wrap_angle(x[0]))
+        if math.cos(angle) > self.catch_cos:
+            u = -float(self.K[0] @ np.array([angle, x[1]]))
+        else:
+            shortfall = self.mgl - self.energy(x)
+            direction = 1.0 if x[1] >= 0.0 else -1.0
+            u = self.gain * shortfall * direction + self.damping * x[1]
+        return np.array([min(max(u, -self.umax), self.umax)])
+
+
+# ----------------------------------------------------------------------------- the expert
+class PendulumExpert:
+    """The TrajectoryOptimizer of Algorithm 1 for the swing-up: iLQR on the plant's own model.
+
+    Each request: roll the energy-shaping controller out from s0 (warm start), refine with
+    box-constrained iLQR on :class:`SwingUpCost` within ``time_budget`` seconds, then replay
+    the actions on the plant for dm_control's true rewards: Q_t is the return-to-go from step t,
+    Q_0 the trajectory's return.
+    """
+
+    def __init__(
+        self,
+        seed: int = 0,
+        horizon: int = DEFAULT_HORIZON,
+        time_budget: float = DEFAULT_TIME_BUDGET,
+        max_iterations: int = 50,
+        cost: SwingUpCost | None = None,
+    ) -> None:
+        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
+            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+        self.horizon = int(horizon)
+        self.time_budget = check_time_budget(time_budget)
+        self.max_iterations = int(max_iterations)
+        self.seed = int(seed)
+        self.task = TASK
+        self.plant = PendulumPlant(seed)  # its own instance: replays never disturb the caller's plant
+        self.cost = cost if cost is not None else SwingUpCost()
+        self.optimizer = ILQR(self.plant, self.cost)
+        self.warm_start = EnergyShapingController(self.plant)
+        self.max_slope_seen = 0.0
+        self.requests = 0
+
+    def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
+        x0 = self.plant.check_state(initial_state, "requested state")
+        steps = self.horizon if horizon is None or horizon == 0 else int(horizon)
+        result: TrajOptResult = self.optimizer.solve(
+            x0,
+            steps,
+            time_budget=self.time_budget,
+            initial_policy=self.warm_start,
+            max_iterations=self.max_iterations,
+        )
+        raw, values = replay_return_to_go(self.plant, x0, result.actions)
+        self.max_slope_seen = max(self.max_slope_seen, result.max_value_slope)
+        self.requests += 1
+        trajectory = Trajectory(represent(raw), result.actions.copy(), values)
+        return ExpertSolution(trajectory, result, raw)
+
+    def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:
+        return self.solve(initial_state, horizon).trajectory
+
+    def slope_floor(self) -> float:
+        """max |W_x| over every request so far (surrogate cost-to-go; see TrajOptResult)."""
+        return self.max_slope_seen

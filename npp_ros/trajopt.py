@@ -1,0 +1,642 @@
+"""Iterative LQR (box-constrained, Levenberg-Marquardt) on MuJoCo's own derivatives of the plant.
+
+The optimizer is the TrajectoryOptimizer of Algorithm 1 for plants without a closed form. It
+works on the plant's own compiled MuJoCo model (``plant.physics.model.ptr``), with its own
+``MjData``, so the dynamics it optimises are the dynamics the sim runs: one control step is one
+``mj_step`` from (qpos, qvel, ctrl), and the linearisation of that step is
+``mujoco.mjd_transitionFD`` with centred differences. There is no second model.
+
+Cost convention (as dm_control scores a step on the state *after* it): the objective of a
+request from x_0 with actions u_0 .. u_{T-1} is
+
+    J = sum_{t<T} [ c(u_t) + s(x_{t+1}) ],
+
+``s`` the state cost, ``c`` the control cost. On the lqr tasks s(x) = 0.5 x'Qc x and
+c(u) = 0.5 u'Ru make J = T - (the T-step return), so the optimum is the exact finite-horizon
+optimum of the task. Other tasks (the pendulum) use a smooth surrogate; the values handed to the
+dataset are always the *true* rewards, replayed on the plant (:func:`replay_return_to_go`).
+
+Determinism: every operation is sequential floating point on fixed inputs, so a request (start
+state, horizon, warm start, options) gives the same arrays bit for bit whenever it stops by
+convergence or the iteration cap. A stop by the time budget depends on the machine's speed by
+nature; the result says so (``stop_reason``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numba import njit
+from numpy.typing import ArrayLike
+
+from npp_ros.dataset import FloatArray, Trajectory
+
+DEFAULT_FD_EPS = 1e-6
+MU_MIN = 1e-8
+MU_MAX = 1e10
+LINE_SEARCH_STEPS = tuple(0.5**i for i in range(11))
+
+
+class PhysicsPlant(Protocol):
+    """What the optimizer needs from a plant: dm_control physics and its dimensions."""
+
+    physics: object
+    state_dim: int
+    action_dim: int
+
+
+class StageCost(Protocol):
+    """Smooth cost split as the task's reward is: state cost on post-step states, control cost.
+
+    Both are batched over rows, returning (values (N,), gradients (N, k), Hessians (N, k, k)).
+    """
+
+    def state_terms(self, states: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]: ...
+
+    def control_terms(self, actions: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]: ...
+
+
+@dataclass(frozen=True)
+class QuadraticCost:
+    """s(x) = 0.5 (x - x*)'Q(x - x*), c(u) = 0.5 u'Ru."""
+
+    state_weight: FloatArray
+    control_weight: FloatArray
+    target: FloatArray | None = None
+
+    def state_terms(self, states: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        dx = states if self.target is None else states - self.target
+        grad = dx @ self.state_weight.T
+        value = 0.5 * np.einsum("ij,ij->i", dx, grad)
+        hess = np.broadcast_to(self.state_weight, (len(states), *self.state_weight.shape))
+        return value, grad, hess
+
+    def control_terms(self, actions: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        grad = actions @ self.control_weight.T
+        value = 0.5 * np.einsum("ij,ij->i", actions, grad)
+        hess = np.broadcast_to(self.control_weight, (len(actions), *self.control_weight.shape))
+        return value, grad, hess
+
+
+def lqr_task_cost(plant: object) -> QuadraticCost:
+    """The lqr tasks' exact cost: 1 - r = 0.5 q'q + 0.5 u'Ru on the post-step state."""
+    return QuadraticCost(np.asarray(plant.state_cost, dtype=np.float64), np.asarray(plant.control_cost, np.float64))
+
+
+# ----------------------------------------------------------------------------- dynamics
+class MujocoDynamics:
+    """One control step of the plant's own model, and its centred finite-difference Jacobians.
+
+    The state is [qpos, qvel]; that is a coordinate chart only when nq = nv (hinge and slide
+    joints, as on the lqr, pendulum and cartpole tasks) and there is no actuator activation.
+    """
+
+    def __init__(self, plant: PhysicsPlant, fd_eps: float = DEFAULT_FD_EPS) -> None:
+        import mujoco
+
+        if not (math.isfinite(fd_eps) and fd_eps > 0):
+            raise ValueError(f"fd_eps must be finite and > 0, got {fd_eps!r}")
+        self._mujoco = mujoco
+        self.model = plant.physics.model.ptr
+        m = self.model
+        if m.nq != m.nv or m.na != 0:
+            raise ValueError(
+                f"the state [qpos, qvel] needs nq = nv and no activations; got nq={m.nq} nv={m.nv} na={m.na}"
+            )
+        self.data = mujoco.MjData(m)
+        self.nq = int(m.nq)
+        self.state_dim = 2 * self.nq
+        self.action_dim = int(m.nu)
+        if (plant.state_dim, plant.action_dim) != (self.state_dim, self.action_dim):
+            raise ValueError(
+                f"plant reports state_dim {plant.state_dim}, action_dim {plant.action_dim}; "
+                f"its model has {self.state_dim}, {self.action_dim}"
+            )
+        self.fd_eps = float(fd_eps)
+        limited = np.asarray(m.actuator_ctrllimited, dtype=bool)
+        ranges = np.asarray(m.actuator_ctrlrange, dtype=np.float64).reshape(-1, 2)
+        self.lower = np.where(limited, ranges[:, 0], -np.inf)
+        self.upper = np.where(limited, ranges[:, 1], np.inf)
+
+    def _load(self, x: FloatArray, u: FloatArray) -> None:
+        d = self.data
+        d.qpos[:] = x[: self.nq]
+        d.qvel[:] = x[self.nq :]
+        d.ctrl[:] = u
+
+    def step(self, x: FloatArray, u: FloatArray) -> FloatArray:
+        self._load(x, u)
+        self._mujoco.mj_step(self.model, self.data)
+        return np.concatenate([self.data.qpos, self.data.qvel])
+
+    def rollout(
+        self,
+        x0: FloatArray,
+        horizon: int,
+        actions: FloatArray | None = None,
+        policy: Callable[[FloatArray], ArrayLike] | None = None,
+    ) -> tuple[FloatArray, FloatArray]:
+        """States x_0 .. x_T and the applied (clamped) actions, open loop or under a feedback policy."""
+        states = np.empty((horizon + 1, self.state_dim))
+        applied = np.empty((horizon, self.action_dim))
+        states[0] = x0
+        for t in range(horizon):
+            u = actions[t] if policy is None else np.asarray(policy(states[t]), dtype=np.float64).reshape(-1)
+            applied[t] = np.minimum(np.maximum(u, self.lower), self.upper)
+            states[t + 1] = self.step(states[t], applied[t])
+        return states, applied
+
+    def closed_loop(
+        self, ref_states: FloatArray, ref_actions: FloatArray, k: FloatArray, gains: FloatArray, alpha: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """The line search's rollout: u_t = clamp(ubar_t + alpha k_t + K_t (x_t - xbar_t))."""
+        horizon = len(ref_actions)
+        states = np.empty_like(ref_states)
+        actions = np.empty_like(ref_actions)
+        states[0] = ref_states[0]
+        lo, hi = self.lower, self.upper
+        for t in range(horizon):
+            u = ref_actions[t] + alpha * k[t] + gains[t] @ (states[t] - ref_states[t])
+            actions[t] = np.minimum(np.maximum(u, lo), hi)
+            states[t + 1] = self.step(states[t], actions[t])
+        return states, actions
+
+    def jacobians(self, states: FloatArray, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """A_t = d x_{t+1} / d x_t, B_t = d x_{t+1} / d u_t by centred differences, per step."""
+        horizon = len(actions)
+        a = np.empty((horizon, self.state_dim, self.state_dim))
+        b = np.empty((horizon, self.state_dim, self.action_dim))
+        fd = self._mujoco.mjd_transitionFD
+        m, d, eps = self.model, self.data, self.fd_eps
+        for t in range(horizon):
+            self._load(states[t], actions[t])
+            fd(m, d, eps, True, a[t], b[t], None, None)
+        return a, b
+
+
+# ----------------------------------------------------------------------------- backward pass
+@njit(cache=True)
+def _cholesky(h: FloatArray) -> tuple[FloatArray, bool]:
+    n = h.shape[0]
+    lower = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = h[i, j]
+            for p in range(j):
+                acc -= lower[i, p] * lower[j, p]
+            if i == j:
+                if not acc > 0.0:
+                    return lower, False
+                lower[i, i] = math.sqrt(acc)
+            else:
+                lower[i, j] = acc / lower[j, j]
+    return lower, True
+
+
+@njit(cache=True)
+def _cholesky_solve(lower: FloatArray, rhs: FloatArray) -> FloatArray:
+    """Solve (L L') X = rhs column by column; rhs is (n, k)."""
+    n, cols = rhs.shape
+    out = np.empty((n, cols))
+    for c in range(cols):
+        y = np.empty(n)
+        for i in range(n):
+            acc = rhs[i, c]
+            for p in range(i):
+                acc -= lower[i, p] * y[p]
+            y[i] = acc / lower[i, i]
+        for i in range(n - 1, -1, -1):
+            acc = y[i]
+            for p in range(i + 1, n):
+                acc -= lower[p, i] * out[p, c]
+            out[i, c] = acc / lower[i, i]
+    return out
+
+
+@njit(cache=True)
+def _quadratic(h: FloatArray, g: FloatArray, x: FloatArray) -> float:
+    return 0.5 * x @ (h @ x) + g @ x
+
+
+@njit(cache=True)
+def _box_qp(
+    h: FloatArray, g: FloatArray, lo: FloatArray, hi: FloatArray, x0: FloatArray
+) -> tuple[FloatArray, np.ndarray]:
+    """min 0.5 x'hx + g'x on lo <= x <= hi by projected Newton (h positive definite).
+
+    Returns the minimiser and its free set (coordinates not held at a bound by the gradient).
+    With no finite bound this is one Newton step.
+    """
+    m = g.shape[0]
+    x = np.minimum(np.maximum(x0, lo), hi)
+    free = np.ones(m, dtype=np.bool_)
+    for _ in range(100):
+        grad = h @ x + g
+        nfree = 0
+        for i in range(m):
+            held = (x[i] <= lo[i] and grad[i] > 0.0) or (x[i] >= hi[i] and grad[i] < 0.0)
+            free[i] = not held
+            nfree += 0 if held else 1
+        if nfree == 0:
+            break
+        idx = np.nonzero(free)[0]
+        sub = np.empty((nfree, nfree))
+        rhs = np.empty((nfree, 1))
+        gnorm = 0.0
+        for a in range(nfree):
+            rhs[a, 0] = -grad[idx[a]]
+            gnorm = max(gnorm, abs(grad[idx[a]]))
+            for b in range(nfree):
+                sub[a, b] = h[idx[a], idx[b]]
+        if gnorm < 1e-13:
+            break
+        lower, _ = _cholesky(sub)
+        step = _cholesky_solve(lower, rhs)
+        direction = np.zeros(m)
+        for a in range(nfree):
+            direction[idx[a]] = step[a, 0]
+        f0 = _quadratic(h, g, x)
+        alpha = 1.0
+        moved = False
+        while alpha > 1e-12:
+            trial = np.minimum(np.maximum(x + alpha * direction, lo), hi)
+            if _quadratic(h, g, trial) - f0 <= 0.1 * (grad @ (trial - x)):
+                moved = True
+                break
+            alpha *= 0.5
+        if not moved:
+            break
+        shift = np.max(np.abs(trial - x))
+        x = trial
+        if shift < 1e-14:
+            break
+    grad = h @ x + g
+    for i in range(m):
+        free[i] = not ((x[i] <= lo[i] and grad[i] > 0.0) or (x[i] >= hi[i] and grad[i] < 0.0))
+    return x, free
+
+
+@njit(cache=True)
+def _backward_pass(
+    a: FloatArray,
+    b: FloatArray,
+    sx: FloatArray,
+    sxx: FloatArray,
+    cu: FloatArray,
+    cuu: FloatArray,
+    actions: FloatArray,
+    lo: FloatArray,
+    hi: FloatArray,
+    mu: float,
+    k_prev: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, float, float, int]:
+    """Riccati sweep of box-DDP with Gauss-Newton dynamics (iLQR) and Quu + mu I.
+
+    sx, sxx are the state cost's derivatives at x_0 .. x_T. Returns feedforward k (T, m),
+    gains K (T, m, n), W_x (T, n) = gradient of the cost-to-go from x_t (the post-step costs
+    of steps t .. T-1), the expected decrease terms, and -1 or the step where Quu + mu I was
+    not positive definite.
+    """
+    horizon, n, m = b.shape[0], b.shape[1], b.shape[2]
+    k = np.zeros((horizon, m))
+    gains = np.zeros((horizon, m, n))
+    wx = np.zeros((horizon, n))
+    vx = sx[horizon].copy()
+    vxx = sxx[horizon].copy()
+    dv1 = 0.0
+    dv2 = 0.0
+    eye = np.eye(m)
+    for t in range(horizon - 1, -1, -1):
+        at = a[t]
+        bt = b[t]
+        qx = at.T @ vx
+        qu = cu[t] + bt.T @ vx
+        va = vxx @ at
+        vb = vxx @ bt
+        qxx = at.T @ va
+        quu = cuu[t] + bt.T @ vb
+        qux = bt.T @ va
+        quu_reg = quu + mu * eye
+        _, ok = _cholesky(quu_reg)
+        if not ok:
+            return k, gains, wx, dv1, dv2, t
+        kt, free = _box_qp(quu_reg, qu, lo - actions[t], hi - actions[t], k_prev[t])
+        nfree = 0
+        for i in range(m):
+            nfree += 1 if free[i] else 0
+        kt_gain = np.zeros((m, n))
+        if nfree > 0:
+            idx = np.nonzero(free)[0]
+            sub = np.empty((nfree, nfree))
+            rhs = np.empty((nfree, n))
+            for p in range(nfree):
+                for q in range(nfree):
+                    sub[p, q] = quu_reg[idx[p], idx[q]]
+                for q in range(n):
+                    rhs[p, q] = -qux[idx[p], q]
+            sub_lower, _ = _cholesky(sub)
+            sol = _cholesky_solve(sub_lower, rhs)
+            for p in range(nfree):
+                for q in range(n):
+                    kt_gain[idx[p], q] = sol[p, q]
+        k[t] = kt
+        gains[t] = kt_gain
+        quu_k = quu @ kt
+        dv1 += kt @ qu
+        dv2 += 0.5 * (kt @ quu_k)
+        w = qx + kt_gain.T @ quu_k + kt_gain.T @ qu + qux.T @ kt
+        wxx = qxx + kt_gain.T @ (quu @ kt_gain) + kt_gain.T @ qux + qux.T @ kt_gain
+        wxx = 0.5 * (wxx + wxx.T)
+        wx[t] = w
+        vx = w + sx[t]
+        vxx = wxx + sxx[t]
+    return k, gains, wx, dv1, dv2, -1
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) the backward pass, so no request pays for it."""
+    n, m = 2, 1
+    _backward_pass(
+        np.zeros((1, n, n)),
+        np.zeros((1, n, m)),
+        np.zeros((2, n)),
+        np.zeros((2, n, n)),
+        np.zeros((1, m)),
+        np.ones((1, m, m)),
+        np.zeros((1, m)),
+        np.full(m, -1.0),
+        np.full(m, 1.0),
+        0.0,
+        np.zeros((1, m)),
+    )
+
+
+# ----------------------------------------------------------------------------- the optimizer
+@dataclass(frozen=True)
+class TrajOptResult:
+    """An optimised trajectory: x_0 .. x_{T-1}, u_0 .. u_{T-1}, and the backward pass's W_x.
+
+    ``value_gradient[t]`` is the gradient of the cost-to-go J_t(x) = sum_{k>=t} c(u_k) + s(x_{k+1})
+    at x_t under the returned actions' local policy. At a stationary point of the box-constrained
+    problem the feedforward terms vanish (k = 0 on free controls, K = 0 on clamped ones), so
+    W_x = Q_x = A'(s_x + W_x)_{t+1}: the costate recursion, i.e. the exact first-order slope of the
+    optimal cost-to-go along the trajectory (envelope theorem; the Gauss-Newton approximation only
+    touches second derivatives). Its norm is the slope of the expert's value at each visited state.
+    """
+
+    states: FloatArray  # (T, n)
+    final_state: FloatArray  # (n,)
+    actions: FloatArray  # (T, m)
+    value_gradient: FloatArray  # (T, n)
+    cost: float
+    iterations: int
+    converged: bool
+    stop_reason: str
+    wall_time: float
+    cost_history: tuple[float, ...]
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def timed_out(self) -> bool:
+        return self.stop_reason == "time budget"
+
+    @property
+    def max_value_slope(self) -> float:
+        """max_t |W_x(x_t)|: the steepest slope of the cost-to-go seen along this trajectory."""
+        return float(np.max(np.linalg.norm(self.value_gradient, axis=1)))
+
+
+def check_time_budget(budget: float) -> float:
+    if isinstance(budget, bool) or not isinstance(budget, (int, float, np.floating, np.integer)):
+        raise ValueError(f"time_budget must be a number of seconds, got {budget!r}")
+    if not (math.isfinite(budget) and budget > 0):
+        raise ValueError(f"time_budget must be finite and > 0 seconds, got {budget!r}")
+    return float(budget)
+
+
+class ILQR:
+    """Box-constrained iterative LQR (Tassa, Mansard & Todorov 2014) on a MuJoCo plant.
+
+    Regularisation: Levenberg-Marquardt on Quu (mu grows on a non-positive-definite Quu or a
+    failed line search, shrinks on success). Line search: alpha in 1, 1/2, ..., 1/1024; a step
+    is accepted when it lowers the cost by at least a tenth of the predicted decrease (or at all,
+    when the predicted decrease is at rounding level). Bounds are the actuators' ctrlrange.
+    """
+
+    def __init__(self, plant: PhysicsPlant, cost: StageCost, fd_eps: float = DEFAULT_FD_EPS) -> None:
+        self.dynamics = MujocoDynamics(plant, fd_eps)
+        compile_kernels()
+        self.cost = cost
+        self.state_dim = self.dynamics.state_dim
+        self.action_dim = self.dynamics.action_dim
+
+    def total_cost(self, states: FloatArray, actions: FloatArray) -> float:
+        s, _, _ = self.cost.state_terms(states[1:])
+        c, _, _ = self.cost.control_terms(actions)
+        return float(s.sum() + c.sum())
+
+    def check_request(self, x0: ArrayLike, horizon: int, actions: ArrayLike | None) -> tuple[FloatArray, int]:
+        x = np.asarray(x0, dtype=np.float64)
+        if x.shape != (self.state_dim,):
+            raise ValueError(f"initial state must have {self.state_dim} entries (qpos then qvel), got shape {x.shape}")
+        if not np.isfinite(x).all():
+            bad = int(np.argwhere(~np.isfinite(x))[0, 0])
+            raise ValueError(f"initial state[{bad}] is {float(x[bad])}; it must be finite")
+        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
+            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+        if actions is not None:
+            u = np.asarray(actions, dtype=np.float64)
+            if u.shape != (int(horizon), self.action_dim):
+                raise ValueError(
+                    f"warm-start actions must have shape ({int(horizon)}, {self.action_dim}), got {u.shape}"
+                )
+            if not np.isfinite(u).all():
+                where = tuple(int(i) for i in np.argwhere(~np.isfinite(u))[0])
+                raise ValueError(f"warm-start actions[{where[0]}, {where[1]}] is not finite")
+        return x, int(horizon)
+
+    def solve(
+        self,
+        x0: ArrayLike,
+        horizon: int,
+        *,
+        time_budget: float,
+        initial_actions: ArrayLike | None = None,
+        initial_policy: Callable[[FloatArray], ArrayLike] | None = None,
+        max_iterations: int = 100,
+        tolerance: float = 1e-7,
+    ) -> TrajOptResult:
+        """Optimise the actions from x0; warm start from an action sequence or a feedback policy.
+
+        Stops when the relative cost decrease of an accepted step falls below ``tolerance`` or the
+        feedforward is negligible (converged), at ``max_iterations``, when no step helps even at
+        the largest regularisation, or when the budget would be exceeded by another iteration
+        (the returned trajectory is then the best so far, and its W_x is from its own backward
+        pass: the search stops early enough to leave time for that pass).
+        """
+        start = time.perf_counter()
+        budget = check_time_budget(time_budget)
+        if initial_actions is not None and initial_policy is not None:
+            raise ValueError("give initial_actions or initial_policy, not both")
+        if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 0:
+            raise ValueError(f"max_iterations must be an integer >= 0, got {max_iterations!r}")
+        x, horizon = self.check_request(x0, horizon, initial_actions)
+        dyn = self.dynamics
+        timings = {"rollout": 0.0, "derivatives": 0.0, "backward": 0.0, "line_search": 0.0}
+
+        tick = time.perf_counter()
+        if initial_policy is not None:
+            states, actions = dyn.rollout(x, horizon, policy=initial_policy)
+        else:
+            warm = np.zeros((horizon, self.action_dim)) if initial_actions is None else np.asarray(initial_actions)
+            states, actions = dyn.rollout(x, horizon, actions=np.asarray(warm, dtype=np.float64))
+        timings["rollout"] += time.perf_counter() - tick
+        cost = self.total_cost(states, actions)
+        history = [cost]
+        mu, delta = 1e-6, 1.0
+        k_prev = np.zeros((horizon, self.action_dim))
+        iterations = 0
+        converged = False
+        last_decrease = math.inf
+        need_derivatives = True
+        pass_time = search_time = 0.0
+
+        while True:
+            # Derivatives and backward pass at the current trajectory (whose W_x is returned).
+            tick = time.perf_counter()
+            if need_derivatives:
+                a, b = dyn.jacobians(states, actions)
+                _, sx, sxx = self.cost.state_terms(states)
+                _, cu, cuu = self.cost.control_terms(actions)
+                sx, sxx = np.ascontiguousarray(sx), np.ascontiguousarray(sxx)
+                cu, cuu = np.ascontiguousarray(cu), np.ascontiguousarray(cuu)
+                timings["derivatives"] += time.perf_counter() - tick
+                need_derivatives = False
+            tock = time.perf_counter()
+            while True:
+                k, gains, wx, dv1, dv2, failed = _backward_pass(
+                    a, b, sx, sxx, cu, cuu, actions, dyn.lower, dyn.upper, mu, k_prev
+                )
+                if failed < 0 or mu > MU_MAX:
+                    break
+                delta = max(2.0, 2.0 * delta)
+                mu = max(MU_MIN, mu * delta)
+            timings["backward"] += time.perf_counter() - tock
+            pass_time = max(pass_time, time.perf_counter() - tick)
+            if failed >= 0:
+                stop_reason = "regularisation limit"
+                break
+            k_prev = k
+            step_size = float(np.mean(np.max(np.abs(k) / (np.abs(actions) + 1.0), axis=1)))
+            if step_size < 1e-6 or last_decrease < tolerance:
+                converged = True
+                stop_reason = "converged"
+                break
+            if iterations >= max_iterations:
+                stop_reason = "max iterations"
+                break
+            # Another iteration costs a line search and the next pass; leave time for both.
+            if time.perf_counter() - start + search_time + pass_time > budget:
+                stop_reason = "time budget"
+                break
+
+            tick = time.perf_counter()
+            accepted = False
+            for alpha in LINE_SEARCH_STEPS:
+                new_states, new_actions = dyn.closed_loop(states, actions, k, gains, alpha)
+                new_cost = self.total_cost(new_states, new_actions)
+                expected = -(alpha * dv1 + alpha * alpha * dv2)
+                actual = cost - new_cost
+                if (
+                    math.isfinite(new_cost)
+                    and actual > 0
+                    and (actual >= 0.1 * expected or expected < 1e-12 * abs(cost))
+                ):
+                    accepted = True
+                    break
+            search_time = max(search_time, time.perf_counter() - tick)
+            timings["line_search"] += time.perf_counter() - tick
+            iterations += 1
+            if accepted:
+                last_decrease = (cost - new_cost) / max(abs(cost), 1e-12)
+                states, actions, cost = new_states, new_actions, new_cost
+                history.append(cost)
+                need_derivatives = True
+                delta = min(0.5, delta / 2.0)
+                mu = mu * delta if mu * delta > MU_MIN else 0.0
+            else:
+                delta = max(2.0, 2.0 * delta)
+                mu = max(MU_MIN, mu * delta)
+                if mu > MU_MAX:
+                    stop_reason = "no improving step"
+                    break
+
+        return TrajOptResult(
+            states=states[:-1].copy(),
+            final_state=states[-1].copy(),
+            actions=actions.copy(),
+            value_gradient=wx,
+            cost=float(cost),
+            iterations=iterations,
+            converged=converged,
+            stop_reason=stop_reason,
+            wall_time=time.perf_counter() - start,
+            cost_history=tuple(history),
+            timings=timings,
+        )
+
+
+# ----------------------------------------------------------------------------- true returns
+class SteppablePlant(Protocol):
+    def reset(self, state: ArrayLike) -> FloatArray: ...
+
+    def step(self, action: ArrayLike) -> float: ...
+
+    def state(self) -> FloatArray: ...
+
+
+def replay_return_to_go(plant: SteppablePlant, x0: ArrayLike, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Replay ``actions`` on the plant from x0: raw states x_0 .. x_{T-1} and Q_t = sum_{k>=t} r_k.
+
+    The rewards are the task's own (``plant.step``), so Q_0 is the trajectory's true return.
+    The raw state is ``plant.raw_state()`` where the plant stores another representation.
+    """
+    read = getattr(plant, "raw_state", plant.state)
+    horizon = len(actions)
+    states = np.empty((horizon, len(np.asarray(x0))))
+    rewards = np.empty(horizon)
+    plant.reset(x0)
+    for t in range(horizon):
+        states[t] = read()
+        rewards[t] = plant.step(actions[t])
+    return states, np.cumsum(rewards[::-1])[::-1].copy()
+
+
+@dataclass(frozen=True)
+class ExpertSolution:
+    """What one expert request produced: the dataset trajectory and how it was found."""
+
+    trajectory: Trajectory  # stored states, actions, Q_t (true return-to-go)
+    optimization: TrajOptResult
+    raw_states: FloatArray  # the plant's [qpos, qvel] as replayed
+
+    @property
+    def expert_return(self) -> float:
+        return float(self.trajectory.values[0])
+
+
+def time_trajectories(
+    solve: Callable[[FloatArray], object], initial_states: Sequence[ArrayLike] | FloatArray
+) -> FloatArray:
+    """Seconds per request of ``solve(s0)`` (wall clock, one request at a time), for benchmarks."""
+    out = np.empty(len(initial_states))
+    for i, s0 in enumerate(initial_states):
+        tick = time.perf_counter()
+        solve(np.asarray(s0, dtype=np.float64))
+        out[i] = time.perf_counter() - tick
+    return out
