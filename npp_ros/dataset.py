@@ -25,6 +25,9 @@ class Trajectory:
     states: FloatArray  # (T, state_dim)
     actions: FloatArray  # (T, action_dim)
     values: FloatArray  # (T,)
+    # The trajectory's own return over its T steps under the task's reward, when the expert says
+    # (V^E(s_0) of the oracle certification mode). Not part of the dataset: stored values are Q.
+    expert_return: float | None = None
 
     def __len__(self) -> int:
         return int(self.values.shape[0])

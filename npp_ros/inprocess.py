@@ -8,13 +8,13 @@ so the same seed gives the same numbers either way.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import Condition
+from npp_ros.certification import CheckedQuantity, Condition, StoppingRule
 from npp_ros.dataset import FloatArray
 from npp_ros.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
 from npp_ros.loop import NPPLoop, Observer, RunConfig
@@ -29,6 +29,7 @@ from npp_ros.lqr import (
     sample_initial_state,
 )
 from npp_ros.storage import RunStore
+from npp_ros.values import ValueBasis
 
 LIPSCHITZ_CHOICES = ("analytic", "paper")
 
@@ -58,12 +59,14 @@ def build_config(
     delta: float = 0.1,
     horizon: int = 1000,
     gamma: float = 1.0,
+    certify: CheckedQuantity = "rollout",
+    rule: StoppingRule = "sequential",
 ) -> RunConfig:
     bodies, actuators = check_task(task)
     return RunConfig(
         task=task, seed=seed, state_dim=2 * bodies, action_dim=actuators, lipschitz=lipschitz,
         epsilon=epsilon, condition=condition, p=p, delta=delta, horizon=horizon, gamma=gamma,
-        diameter=initial_state_diameter(),
+        diameter=initial_state_diameter(), certify=certify, rule=rule,
     )  # fmt: skip
 
 
@@ -140,8 +143,10 @@ def build_loop(
     rollouts: bool = False,
     observers: Sequence[Observer] = (),
 ) -> NPPLoop:
+    """The loop for ``config`` with this expert; the sound modes always let the policy drive."""
     store = RunStore.open_or_create(store_path, config.metadata()) if store_path is not None else None
-    driver = PolicyRollouts(LQRPlant(config.task, config.seed), config.horizon) if rollouts else None
+    drive = rollouts or config.certify != "surrogate"
+    driver = PolicyRollouts(LQRPlant(config.task, config.seed), config.horizon) if drive else None
     return NPPLoop(
         config,
         expert,
@@ -150,7 +155,14 @@ def build_loop(
         driver=driver,
         observers=observers,
         expert_value=expert.value,
+        basis=value_basis(expert, config.lipschitz.value),
     )
+
+
+def value_basis(expert: LQRExpert, lipschitz: float) -> ValueBasis:
+    """The expert's value basis with Theorem 3.4's condition checked for its plant and this L."""
+    holds, text = expert.theorem_34_condition(lipschitz)
+    return replace(expert.value_basis(), theorem_34_holds=holds, theorem_34=text)
 
 
 def lipschitz_checks(loop: NPPLoop, expert: LQRExpert, rollout_slope: float = 0.0) -> list[LipschitzCheck]:

@@ -30,6 +30,7 @@ class LipschitzConstant:
     value: float
     source: str
     detail: str = ""
+    margin: float = 0.0  # relative margin already included in value (value = computed sup x (1 + margin))
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.value) or self.value <= 0:

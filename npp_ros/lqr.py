@@ -25,6 +25,7 @@ from scipy.linalg import solve_discrete_are, solve_discrete_lyapunov
 
 from npp_ros.dataset import DatasetError, FloatArray, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.values import ValueBasis, theorem_34_condition
 
 TASKS: dict[str, tuple[int, int]] = {"lqr_2_1": (2, 1), "lqr_6_2": (6, 2)}
 """Task name -> (bodies, actuators)."""
@@ -34,6 +35,11 @@ PAPER_EPSILON: dict[str, float] = {"lqr_2_1": 50.0, "lqr_6_2": 300.0}
 DEFAULT_HORIZON = 1000
 INITIAL_RADIUS = math.sqrt(2.0)
 MAX_HORIZON = 100_000
+# The analytic L is a supremum computed in floating point (relative error ~1e-15); it is used with
+# this relative margin so that rounding can never put a slope of V above it.
+ANALYTIC_MARGIN = 1e-6
+# Slack for the rounding of stored values, bounds and returns (absolute error ~1e-13 at H = 1000).
+ROUNDING_SLACK = 1e-9
 
 
 class UnknownTaskError(ValueError):
@@ -267,11 +273,65 @@ class LQRExpert:
         return float(out) if np.ndim(out) == 0 else out
 
     def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:
-        """Optimal trajectory from ``initial_state``, rolled out in MuJoCo, with Q_t = V*(s_t)."""
+        """Optimal trajectory from ``initial_state``, rolled out in MuJoCo, with Q_t = V*(s_t).
+
+        ``expert_return`` is the rollout's measured return: the expert's own H-step value at s0.
+        """
         x0 = self.plant.check_state(initial_state, "requested state")
         steps = self.horizon if horizon is None or horizon == 0 else check_horizon(horizon)
         run = rollout(self.plant, self.action, x0, steps)
-        return Trajectory(run.states, run.actions, np.asarray(self.value(run.states), dtype=np.float64))
+        values = np.asarray(self.value(run.states), dtype=np.float64)
+        return Trajectory(run.states, run.actions, values, expert_return=run.total_return)
+
+    def finite_horizon_cost(self, steps: int) -> FloatArray:
+        """P_H with J_H(x) = 0.5 x'P_H x the optimal cost of ``steps`` steps (no terminal cost).
+
+        The Riccati recursion of the same stage cost as the DARE; P_H increases to P as H grows, so
+        the optimal H-step return H - J_H(x) exceeds the stationary value H - J*(x) by
+        0.5 x'(P - P_H)x >= 0.
+        """
+        a, b = self.A, self.B
+        qc, r = self.plant.state_cost, self.plant.control_cost
+        qx, ru, cross = a.T @ qc @ a, r + b.T @ qc @ b, a.T @ qc @ b
+        p = np.zeros_like(self.P)
+        for _ in range(int(steps)):
+            gain = np.linalg.solve(ru + b.T @ p @ b, b.T @ p @ a + cross.T)
+            p = qx + a.T @ p @ a - (a.T @ p @ b + cross) @ gain
+            p = 0.5 * (p + p.T)
+        return p
+
+    def _slack(self, x: FloatArray) -> float:
+        return ROUNDING_SLACK * (self.offset + 0.5 * abs(float(x @ self.P @ x)))
+
+    def value_basis(self) -> ValueBasis:
+        """What the certificate's value is, and the bound tail(s0) >= V_H(s0) - V(s0) for it."""
+        if self.gamma != 1.0:
+            return ValueBasis(value=f"the discounted value (gamma = {self.gamma:g})", tail=None,
+                              tail_detail="no bound on the H-step return for gamma < 1")  # fmt: skip
+        gap = self.P - self.finite_horizon_cost(self.horizon)
+
+        def tail(s0: FloatArray) -> float:
+            x = np.asarray(s0, dtype=np.float64)
+            return max(0.0, 0.5 * float(x @ gap @ x)) + self._slack(x)
+
+        return ValueBasis(
+            value=f"the optimal H-step return V*_H (H = {self.horizon}, the best any controller achieves)",
+            tail=tail,
+            tail_detail=(
+                "tail(s0) = 0.5 s0'(P - P_H)s0, P_H from the H-step Riccati recursion: the exact excess of the "
+                "optimal H-step return over the stationary value H - J*(s0) that the data store"
+            ),
+        )
+
+    def theorem_34_condition(self, lipschitz: float) -> tuple[bool, str]:
+        """Theorem 3.4's condition for this plant: L_f = |A|, L_r = |A' Qc| sup |x'| over the expert's states."""
+        phi, x, radius = self.closed_loop, np.eye(self.plant.state_dim)[:, : self.plant.bodies], 0.0
+        for _ in range(self.horizon):
+            radius = max(radius, INITIAL_RADIUS * float(np.linalg.norm(x, 2)))
+            x = phi @ x
+        reward_slope = float(np.linalg.norm(self.A.T @ self.plant.state_cost, 2)) * radius
+        where = "L_r on the expert's states from S0"
+        return theorem_34_condition(lipschitz, self.gamma, float(np.linalg.norm(self.A, 2)), reward_slope, where)
 
     def analytic_lipschitz(self) -> LipschitzConstant:
         """sup |P x| over every state the expert visits from S0 within the horizon.
@@ -288,12 +348,12 @@ class LQRExpert:
             if sigma > best:
                 best, best_t = sigma, t
             x = phi @ x
-        value = INITIAL_RADIUS * best
+        value = INITIAL_RADIUS * best * (1 + ANALYTIC_MARGIN)
         detail = (
             f"sup |P x| over the expert's trajectories from S0 within H = {self.horizon} "
-            f"(largest at step {best_t}), {self.task} seed {self.seed}"
+            f"(largest at step {best_t}), x (1 + {ANALYTIC_MARGIN:g}) for rounding, {self.task} seed {self.seed}"
         )
-        return LipschitzConstant(value, "lqr-analytic", detail)
+        return LipschitzConstant(value, "lqr-analytic", detail, margin=ANALYTIC_MARGIN)
 
 
 class DetunedLQRExpert(LQRExpert):
@@ -333,4 +393,24 @@ class DetunedLQRExpert(LQRExpert):
     def analytic_lipschitz(self) -> LipschitzConstant:
         base = super().analytic_lipschitz()
         detail = f"{base.detail}; detuned expert (control cost x {self.control_weight:g}), its own P"
-        return LipschitzConstant(base.value, base.source, detail)
+        return LipschitzConstant(base.value, base.source, detail, margin=base.margin)
+
+    def value_basis(self) -> ValueBasis:
+        """The claim is relative to this expert: V^E_H(s0) = H - J~(s0) + J~(x_H), x_H = Phi~^H s0."""
+        if self.gamma != 1.0:
+            return super().value_basis()
+        reach = np.linalg.matrix_power(self.closed_loop, self.horizon)
+        end = reach.T @ self.P @ reach
+
+        def tail(s0: FloatArray) -> float:
+            x = np.asarray(s0, dtype=np.float64)
+            return 0.5 * float(x @ end @ x) + self._slack(x)
+
+        return ValueBasis(
+            value=(
+                f"the detuned expert's own H-step return V^E_H (H = {self.horizon}); the claim is relative to "
+                "this suboptimal expert, not to the optimum"
+            ),
+            tail=tail,
+            tail_detail="tail(s0) = J~(x_H) = 0.5 x_H' P~ x_H, x_H = Phi~^H s0: the expert's cost left after H steps",
+        )

@@ -34,7 +34,7 @@ import numpy as np
 from npp_ros.dataset import Dataset, DatasetError, FloatArray, Trajectory
 
 FORMAT_NAME = "npp_ros.run"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: certification mode, stopping rule, checked gap and test per episode
 
 
 class RunFileError(RuntimeError):
@@ -58,11 +58,13 @@ class RunMetadata:
     condition: str
     p: float
     delta: float
+    certify: str
+    rule: str
 
     # Fields a resumed run must match exactly; the rest is provenance.
     IDENTITY = (
         "task", "seed", "state_dim", "action_dim", "lipschitz", "lipschitz_source",
-        "gamma", "horizon", "epsilon", "condition", "p", "delta",
+        "gamma", "horizon", "epsilon", "condition", "p", "delta", "certify", "rule",
     )  # fmt: skip
 
     def mismatches(self, other: RunMetadata) -> list[str]:
@@ -93,6 +95,9 @@ class EpisodeRow:
     expert_value: float | None = None
     policy_return: float | None = None
     wall_time: float = 0.0
+    checked_gap: float = math.inf  # the quantity the certification checked (see certification.py)
+    test: int = 0  # the test this episode belongs to (0: no policy yet)
+    test_delta: float = 0.0  # the confidence that test may spend
 
 
 _EPISODE_COLUMNS = tuple(EpisodeRow.__dataclass_fields__)
@@ -146,7 +151,8 @@ class RunStore:
                 "v_lb REAL, v_ub REAL, gap REAL, oracle_called INTEGER NOT NULL, trajectory INTEGER, "
                 "dataset_size INTEGER NOT NULL, oracle_calls INTEGER NOT NULL, "
                 "quiet_episodes INTEGER NOT NULL, window INTEGER NOT NULL, required INTEGER NOT NULL, "
-                "certified INTEGER NOT NULL, expert_value REAL, policy_return REAL, wall_time REAL)"
+                "certified INTEGER NOT NULL, expert_value REAL, policy_return REAL, wall_time REAL, "
+                "checked_gap REAL, test INTEGER NOT NULL, test_delta REAL NOT NULL)"
             )
             rows = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "created": str(time.time())}
             rows.update({k: json.dumps(v) for k, v in asdict(metadata).items()})

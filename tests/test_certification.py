@@ -8,7 +8,9 @@ from npp_ros.certification import CertificationSpec, Certifier
 
 
 def spec(condition: str = "i", **kw) -> CertificationSpec:
+    """The paper's setting (surrogate gap, one-shot rule) unless a test asks for another."""
     base = {"epsilon": 50.0, "p": 0.9, "delta": 0.1, "lipschitz": 10.0, "diameter": 2.0}
+    base.update({"certify": "surrogate", "rule": "paper"})
     base.update(kw)
     return CertificationSpec(condition, **base)
 
@@ -27,12 +29,12 @@ def test_condition_i_is_the_smallest_integer_at_least_the_bound(p: float, delta:
 def test_streak_counts_consecutive_quiet_episodes_and_resets_on_new_data() -> None:
     cert = Certifier(spec())
     for _ in range(23):
-        status = cert.observe(10.0, oracle_called=False)
+        status = cert.observe(10.0, failed=False)
     assert (status.quiet_episodes, status.required, status.certified) == (23, 24, False)
-    status = cert.observe(80.0, oracle_called=True)
+    status = cert.observe(80.0, failed=True)
     assert status.quiet_episodes == 0 and not status.certified
     for _ in range(24):
-        status = cert.observe(10.0, oracle_called=False)
+        status = cert.observe(10.0, failed=False)
     assert status.certified and status.window == 24
 
 
@@ -42,19 +44,19 @@ def test_condition_ii_hoeffding_window() -> None:
     assert s.hoeffding_required(0.5) == pytest.approx(2 * math.log(10) / 0.25)
     cert = Certifier(s)
     for k in range(18):
-        status = cert.observe(0.5, oracle_called=(k == 0))
+        status = cert.observe(0.5, failed=(k == 0))
         assert not status.certified
-    status = cert.observe(0.5, oracle_called=False)
+    status = cert.observe(0.5, failed=False)
     assert status.certified and status.window == 19 and status.required == 19
     assert status.mean_gap == pytest.approx(0.5)
 
 
 def test_condition_ii_ignores_windows_whose_mean_exceeds_epsilon() -> None:
     cert = Certifier(spec("ii", lipschitz=1.0, diameter=1.0, epsilon=1.0))
-    status = cert.observe(math.inf, oracle_called=True)
+    status = cert.observe(math.inf, failed=True)
     assert not status.certified and status.required == 0
     for _ in range(40):
-        status = cert.observe(0.1, oracle_called=False)
+        status = cert.observe(0.1, failed=False)
     assert status.certified and status.window <= 40
 
 
@@ -78,6 +80,61 @@ def test_condition_ii_needs_a_diameter() -> None:
         spec("ii", diameter=None)
 
 
-def test_statement_names_the_guarantee_and_its_assumption() -> None:
-    text = spec().statement(24)
-    assert "0.9" in text and "<= 50" in text and "10-Lipschitz" in text and "24" in text
+def test_statement_names_the_guarantee_the_policy_and_the_rule() -> None:
+    text = spec().statement(24, "V*", 7, 3)
+    assert "0.9" in text and "<= 50" in text and "24" in text and "first 7 expert trajectories" in text
+    assert "one-shot" in text
+    sequential = spec(certify="rollout", rule="sequential").statement(93, "V*_H", 32, 32)
+    assert "test 32 of a sequentially valid rule" in sequential and "V_ub(s0) + tail(s0) - R^pi(s0)" in sequential
+
+
+def test_sequential_rule_spends_delta_over_tests_and_the_streak_grows() -> None:
+    s = spec(certify="rollout", rule="sequential")
+    spent = [s.test_delta(k) for k in range(1, 100_000)]
+    assert sum(spent) < s.delta and sum(spent) == pytest.approx(s.delta, rel=1e-4)
+    assert s.streak_required(1) == math.ceil(math.log(2 / 0.1) / 0.1)  # delta_1 = delta / 2: 30
+    needs = [s.streak_required(k) for k in range(1, 200)]
+    assert needs == sorted(needs) and needs[0] == 30
+    for k in (1, 7, 50):
+        n = s.streak_required(k)
+        assert 0.9**n <= s.test_delta(k) < 0.9 ** (n - 12)  # e^{-(1-p) n} <= delta_k, and n is not wasteful
+
+
+def test_sequential_streak_belongs_to_one_policy() -> None:
+    cert = Certifier(spec(certify="rollout", rule="sequential"))
+    status = cert.observe(math.inf, failed=True)  # episode 0: no policy; the first test starts
+    assert (status.test, status.required, status.certified) == (1, 30, False)
+    for _ in range(29):
+        status = cert.observe(10.0, failed=False)
+    assert (status.quiet_episodes, status.certified) == (29, False)
+    status = cert.observe(80.0, failed=True)  # a failed check changes the policy: test 2, longer streak
+    assert (status.test, status.quiet_episodes, status.required) == (2, 0, 41)
+    for _ in range(41):
+        status = cert.observe(10.0, failed=False)
+    assert status.certified and status.test == 2 and status.test_delta == pytest.approx(0.1 / 6)
+
+
+@pytest.mark.parametrize("certify", ["rollout", "oracle"])
+def test_condition_ii_is_refused_where_hoeffding_has_no_range(certify: str) -> None:
+    with pytest.raises(ValueError, match="known range"):
+        spec("ii", certify=certify, rule="sequential")
+
+
+def test_sequential_condition_ii_spends_per_look() -> None:
+    s = spec("ii", lipschitz=1.0, diameter=1.0, epsilon=1.0, delta=0.1, rule="sequential")
+    cert = Certifier(s)
+    cert.observe(math.inf, failed=True)
+    for n in range(1, 400):
+        status = cert.observe(0.5, failed=False)
+        need = 2 * math.log(n * (n + 1) / (s.delta / 2)) / 0.25
+        assert status.certified == (n >= need)
+        if status.certified:
+            break
+    assert status.certified and status.window > 19  # the paper's one-shot window would be 19
+
+
+def test_unknown_mode_and_rule_are_refused() -> None:
+    with pytest.raises(ValueError, match="certify must be one of rollout, oracle, surrogate"):
+        spec(certify="vibes")
+    with pytest.raises(ValueError, match="rule must be one of sequential, paper"):
+        spec(rule="sometimes")

@@ -44,13 +44,20 @@ def test_certifies_lqr_2_1_with_a_valid_lipschitz_constant(certified_run) -> Non
     cert = result.certificate
     assert cert is not None and recorder.certificates == [cert]
     assert cert.lipschitz_source == "lqr-analytic" and cert.lipschitz == config.lipschitz.value
-    assert cert.window == cert.required == 24
+    # The default: the rollout check under the sequentially valid rule; test k needs ln(1/delta_k) / (1 - p).
+    assert (cert.certify, cert.rule, cert.proven) == ("rollout", "sequential", True)
+    assert cert.window == cert.required == config.spec().streak_required(cert.test)
+    assert cert.delta_spent == pytest.approx(0.1 / (cert.test * (cert.test + 1)))
     assert cert.episodes == result.episodes == len(recorder.rows)
     assert cert.oracle_calls == sum(r.oracle_called for r in result.rows) == loop.dataset.num_trajectories
-    assert cert.dataset_size == 1000 * cert.oracle_calls
-    assert all(not r.oracle_called for r in result.rows[-24:])
-    # Algorithm 1: the oracle is called exactly when the gap exceeds epsilon.
-    assert all(r.oracle_called == (r.gap > 50.0) for r in result.rows)
+    assert cert.dataset_size == 1000 * cert.oracle_calls == 1000 * cert.policy_trajectories
+    assert all(not r.oracle_called for r in result.rows[-cert.window :])
+    # The oracle is called exactly when the check fails, and every check saw the policy's own return.
+    assert all(r.oracle_called == (r.checked_gap > 50.0) for r in result.rows)
+    assert all(r.policy_return is not None for r in result.rows[1:])
+    # The check is never below the surrogate bound's own quantity V_ub + tail - V^pi for this policy.
+    assert all(r.checked_gap >= r.v_ub - r.policy_return for r in result.rows[1:])
+    assert any("Riccati" in a for a in cert.assumptions) and "V*_H" in cert.value
 
 
 def test_every_oracle_call_is_stored_with_its_episode(certified_run) -> None:
@@ -73,8 +80,8 @@ def test_resume_after_interruption_gives_identical_numbers(tmp_path: Path, certi
     assert resumed.next_episode == 60
     result = resumed.run(max_episodes=1000)
     resumed.store.close()
-    strip = [(r.initial_state, r.gap, r.oracle_called, r.dataset_size) for r in result.rows]
-    assert strip == [(r.initial_state, r.gap, r.oracle_called, r.dataset_size) for r in full.rows]
+    strip = [(r.initial_state, r.gap, r.checked_gap, r.oracle_called, r.dataset_size) for r in result.rows]
+    assert strip == [(r.initial_state, r.gap, r.checked_gap, r.oracle_called, r.dataset_size) for r in full.rows]
     assert result.certificate == full.certificate
 
 

@@ -21,6 +21,7 @@ from npp_ros.storage import EpisodeRow, RunFileError, RunMetadata, RunStore
 META = RunMetadata(
     task="lqr_2_1", seed=0, state_dim=4, action_dim=1, lipschitz=263.0, lipschitz_source="lqr-analytic",
     lipschitz_detail="test", gamma=1.0, horizon=1000, epsilon=50.0, condition="i", p=0.9, delta=0.1,
+    certify="rollout", rule="sequential",
 )  # fmt: skip
 
 
@@ -70,7 +71,7 @@ def test_file_is_plain_sqlite_with_named_columns(tmp_path: Path) -> None:
     rows = conn.execute("SELECT s_0, s_3, a_0, q FROM points WHERE trajectory = 0 ORDER BY step").fetchall()
     np.testing.assert_array_equal(np.array(rows), np.column_stack([traj.states[:, [0, 3]], traj.actions, traj.values]))
     meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
-    assert meta["format"] == "npp_ros.run" and meta["format_version"] == "1" and meta["task"] == '"lqr_2_1"'
+    assert meta["format"] == "npp_ros.run" and meta["format_version"] == "2" and meta["task"] == '"lqr_2_1"'
 
 
 def test_resume_requires_the_same_run(tmp_path: Path) -> None:
@@ -88,10 +89,10 @@ def test_wrong_version_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "run.sqlite"
     RunStore.create(path, META).close()
     conn = sqlite3.connect(path)
-    conn.execute("UPDATE meta SET value = '2' WHERE key = 'format_version'")
+    conn.execute("UPDATE meta SET value = '1' WHERE key = 'format_version'")
     conn.commit()
     conn.close()
-    with pytest.raises(RunFileError, match="format version 2, this npp_ros reads version 1"):
+    with pytest.raises(RunFileError, match="format version 1, this npp_ros reads version 2"):
         RunStore.open(path)
 
 

@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_storage import META, fill
 
-from npp_ros.storage import RunFileError, RunStore
+from npp_ros.storage import FORMAT_VERSION, RunFileError, RunStore
 
 FILES = settings(max_examples=25, deadline=None, derandomize=True, database=None)
 tried: Counter[str] = Counter()
@@ -76,14 +76,14 @@ def test_truncated_files_are_refused_unchanged(good_file: Path, tmp_path_factory
 
 
 @FILES
-@given(version=st.text(st.characters(blacklist_categories=("Cs",)), max_size=12).filter(lambda v: v != "1"))
+@given(version=st.text(st.characters(blacklist_categories=("Cs",)), max_size=12).filter(lambda v: v != str(FORMAT_VERSION)))
 def test_other_versions_are_refused_unchanged(good_file: Path, tmp_path_factory, version: str) -> None:
     path = copy(good_file, tmp_path_factory)
     with sqlite3.connect(path) as conn:
         conn.execute("UPDATE meta SET value = ? WHERE key = 'format_version'", (version,))
     conn.close()
     before = digest(path)
-    expected = f"has format version {version}, this npp_ros reads version 1"
+    expected = f"has format version {version}, this npp_ros reads version {FORMAT_VERSION}"
     with pytest.raises(RunFileError, match=re.escape(expected)):
         open_and_load(path)
     assert_untouched(path, before)
