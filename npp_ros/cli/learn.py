@@ -81,6 +81,10 @@ def main(argv: list[str] | None = None) -> int:
         status.close()
         print(f"\nnpp-learn: interrupted; {loop.next_episode} episodes stored, resumed on restart", file=sys.stderr)
         return 130
+    except RunFileError as exc:  # e.g. disk full: the reason and the place, not a traceback
+        status.close()
+        print(f"\nnpp-learn: {exc}", file=sys.stderr)
+        return 2
     status.close()
     elapsed = time.perf_counter() - started
     write_episode_log(run_dir / "episodes.csv", result.rows)
