@@ -22,6 +22,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
     DETUNED_CONTROL_WEIGHT,
@@ -44,7 +45,9 @@ def parser() -> argparse.ArgumentParser:
         prog="npp-experiment", description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     ap.add_argument("--tasks", nargs="+", choices=sorted(TASKS), default=sorted(TASKS), help="lqr tasks")
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3], help="seeds (plant and s0 streams)")
+    ap.add_argument(
+        "--seeds", nargs="+", type=nonnegative_int, default=[0, 1, 2, 3], help="seeds (plant and s0 streams)"
+    )
     ap.add_argument(
         "--lipschitz",
         nargs="+",
@@ -60,23 +63,27 @@ def parser() -> argparse.ArgumentParser:
         help="data source: the optimal LQR, or a detuned LQR (Appendix B; run with the analytic L only)",
     )
     ap.add_argument(
-        "--max-episodes", type=int, default=1000, help="episode budget per run (stops earlier if certified)"
+        "--max-episodes", type=positive_int, default=1000, help="episode budget per run (stops earlier if certified)"
     )
-    ap.add_argument("--evaluate", type=int, default=100, metavar="N", help="rollouts from s0 ~ rho per checkpoint")
+    ap.add_argument(
+        "--evaluate", type=positive_int, default=100, metavar="N", help="rollouts from s0 ~ rho per checkpoint"
+    )
     ap.add_argument(
         "--checkpoints",
-        type=lambda text: tuple(int(x) for x in text.split(",")),
+        type=positive_ints,
         default=DEFAULT_CHECKPOINTS,
         help="episodes at which to evaluate (comma separated); the last episode is always evaluated",
     )
-    ap.add_argument("--horizon", type=int, default=1000, help="episode length H")
+    ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
     ap.add_argument("--p", type=float, default=0.9, help="condition (i): probability level p")
     ap.add_argument("--delta", type=float, default=0.1, help="condition (i): confidence delta")
     ap.add_argument(
         "--control-weight", type=float, default=DETUNED_CONTROL_WEIGHT, help="detuned expert: control cost x this"
     )
     ap.add_argument("--out", type=Path, default=Path("results/experiment"), help="output folder")
-    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="runs in parallel (processes)")
+    ap.add_argument(
+        "--jobs", type=positive_int, default=min(2, os.cpu_count() or 1), help="runs in parallel (processes)"
+    )
     return ap
 
 
@@ -124,9 +131,6 @@ class Status:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    if args.max_episodes < 1 or args.evaluate < 1 or args.jobs < 1:
-        print("npp-experiment: --max-episodes, --evaluate and --jobs must be >= 1", file=sys.stderr)
-        return 2
     if not 0 < args.p < 1 or not 0 < args.delta < 1:
         print("npp-experiment: p and delta must lie in (0, 1)", file=sys.stderr)
         return 2

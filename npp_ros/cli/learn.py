@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from npp_ros.cli.args import nonnegative_int, positive_int
 from npp_ros.inprocess import LIPSCHITZ_CHOICES, build_config, build_loop, evaluate, lipschitz_checks, resolve_lipschitz
 from npp_ros.lipschitz import LipschitzWarning
 from npp_ros.lqr import PAPER_EPSILON, TASKS, LQRExpert
@@ -31,7 +32,7 @@ def parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     ap.add_argument("--task", choices=sorted(TASKS), default="lqr_2_1", help="dm_control lqr task")
-    ap.add_argument("--seed", type=int, default=0, help="task seed (plant) and initial-state stream")
+    ap.add_argument("--seed", type=nonnegative_int, default=0, help="task seed (plant) and initial-state stream")
     ap.add_argument("--epsilon", type=float, default=None, help="target suboptimality; default: the paper's (50 / 300)")
     ap.add_argument(
         "--lipschitz",
@@ -42,14 +43,16 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
     ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
-    ap.add_argument("--horizon", type=int, default=1000, help="episode length H")
+    ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
     ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
-    ap.add_argument("--max-episodes", type=int, default=1000, help="stop uncertified after this many episodes")
+    ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/learn-TASK-seedSEED")
     ap.add_argument(
         "--rollouts", action="store_true", help="let the policy drive every episode (Algorithm 1 does not need it)"
     )
-    ap.add_argument("--evaluate", type=int, default=100, metavar="N", help="after the run, N fresh rollouts")
+    ap.add_argument(
+        "--evaluate", type=nonnegative_int, default=100, metavar="N", help="after the run, N fresh rollouts (0: none)"
+    )
     return ap
 
 

@@ -1,0 +1,37 @@
+"""Typed command-line values shared by the CLIs: a bad count is refused by argparse, naming the option.
+
+argparse turns the ArgumentTypeError into ``npp-learn: error: argument --max-episodes: must be
+an integer >= 1, got '0'`` and exit code 2, before any work or any file is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def _integer(text: str, least: int) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= {least}, got {text!r}") from None
+    if value < least:
+        raise argparse.ArgumentTypeError(f"must be an integer >= {least}, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """A count that must be at least 1 (episodes, rollouts, steps, processes)."""
+    return _integer(text, 1)
+
+
+def nonnegative_int(text: str) -> int:
+    """A seed, or a count where 0 means none."""
+    return _integer(text, 0)
+
+
+def positive_ints(text: str) -> tuple[int, ...]:
+    """A comma-separated list of counts, each at least 1 (e.g. checkpoints: 10,20,30)."""
+    try:
+        return tuple(positive_int(part) for part in text.split(","))
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"must be integers >= 1 separated by commas, got {text!r}") from None
