@@ -109,6 +109,8 @@ class MujocoDynamics:
                 f"the state [qpos, qvel] needs nq = nv and no activations; got nq={m.nq} nv={m.nv} na={m.na}"
             )
         self.data = mujoco.MjData(m)
+        # Views into data's buffers, kept: reading MjData attributes builds a new array each time.
+        self._qpos, self._qvel, self._ctrl = self.data.qpos, self.data.qvel, self.data.ctrl
         self.nq = int(m.nq)
         self.state_dim = 2 * self.nq
         self.action_dim = int(m.nu)
@@ -124,15 +126,14 @@ class MujocoDynamics:
         self.upper = np.where(limited, ranges[:, 1], np.inf)
 
     def _load(self, x: FloatArray, u: FloatArray) -> None:
-        d = self.data
-        d.qpos[:] = x[: self.nq]
-        d.qvel[:] = x[self.nq :]
-        d.ctrl[:] = u
+        self._qpos[:] = x[: self.nq]
+        self._qvel[:] = x[self.nq :]
+        self._ctrl[:] = u
 
     def step(self, x: FloatArray, u: FloatArray) -> FloatArray:
         self._load(x, u)
         self._mujoco.mj_step(self.model, self.data)
-        return np.concatenate([self.data.qpos, self.data.qvel])
+        return np.concatenate([self._qpos, self._qvel])
 
     def rollout(
         self,
@@ -145,11 +146,19 @@ class MujocoDynamics:
         states = np.empty((horizon + 1, self.state_dim))
         applied = np.empty((horizon, self.action_dim))
         states[0] = x0
+        self._load(x0, np.zeros(self.action_dim))
         for t in range(horizon):
             u = actions[t] if policy is None else np.asarray(policy(states[t]), dtype=np.float64).reshape(-1)
             applied[t] = np.minimum(np.maximum(u, self.lower), self.upper)
-            states[t + 1] = self.step(states[t], applied[t])
+            self._advance(applied[t], states[t + 1])
         return states, applied
+
+    def _advance(self, u: FloatArray, out: FloatArray) -> None:
+        """One step from the state already in ``data`` (the previous step's result, as on the plant)."""
+        self._ctrl[:] = u
+        self._mujoco.mj_step(self.model, self.data)
+        out[: self.nq] = self._qpos
+        out[self.nq :] = self._qvel
 
     def closed_loop(
         self, ref_states: FloatArray, ref_actions: FloatArray, k: FloatArray, gains: FloatArray, alpha: float
@@ -157,13 +166,15 @@ class MujocoDynamics:
         """The line search's rollout: u_t = clamp(ubar_t + alpha k_t + K_t (x_t - xbar_t))."""
         horizon = len(ref_actions)
         states = np.empty_like(ref_states)
-        actions = np.empty_like(ref_actions)
+        actions = ref_actions + alpha * k
         states[0] = ref_states[0]
+        self._load(ref_states[0], actions[0])
         lo, hi = self.lower, self.upper
+        advance = self._advance
         for t in range(horizon):
-            u = ref_actions[t] + alpha * k[t] + gains[t] @ (states[t] - ref_states[t])
+            u = actions[t] + gains[t] @ (states[t] - ref_states[t])
             actions[t] = np.minimum(np.maximum(u, lo), hi)
-            states[t + 1] = self.step(states[t], actions[t])
+            advance(actions[t], states[t + 1])
         return states, actions
 
     def jacobians(self, states: FloatArray, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -172,9 +183,13 @@ class MujocoDynamics:
         a = np.empty((horizon, self.state_dim, self.state_dim))
         b = np.empty((horizon, self.state_dim, self.action_dim))
         fd = self._mujoco.mjd_transitionFD
-        m, d, eps = self.model, self.data, self.fd_eps
+        m, d, eps, nq = self.model, self.data, self.fd_eps, self.nq
+        qpos, qvel, ctrl = self._qpos, self._qvel, self._ctrl
         for t in range(horizon):
-            self._load(states[t], actions[t])
+            x = states[t]
+            qpos[:] = x[:nq]
+            qvel[:] = x[nq:]
+            ctrl[:] = actions[t]
             fd(m, d, eps, True, a[t], b[t], None, None)
         return a, b
 
