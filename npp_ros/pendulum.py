@@ -34,7 +34,15 @@ from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are
 
 from npp_ros.dataset import DatasetError, FloatArray, Trajectory
-from npp_ros.trajopt import ILQR, ExpertSolution, TrajOptResult, check_time_budget, replay_return_to_go
+from npp_ros.trajopt import (
+    ILQR,
+    ExpertSolution,
+    TrajOptResult,
+    check_time_budget,
+    replay_rewards,
+    return_to_go,
+    window_values,
+)
 
 TASK = "pendulum_swingup"
 DEFAULT_HORIZON = 1000
@@ -43,6 +51,7 @@ PAPER_LIPSCHITZ = 4300.0
 PAPER_EPSILON = 130.0
 UPRIGHT_DEGREES = 8.0
 DEFAULT_TIME_BUDGET = 5.0
+VALUE_MODES = ("return-to-go", "window")
 
 
 def wrap_angle(angle: ArrayLike) -> FloatArray:
@@ -250,8 +259,15 @@ class PendulumExpert:
 
     Each request: roll the energy-shaping controller out from s0 (warm start), refine with
     box-constrained iLQR on :class:`SwingUpCost` within ``time_budget`` seconds, then replay
-    the actions on the plant for dm_control's true rewards: Q_t is the return-to-go from step t,
-    Q_0 the trajectory's return.
+    the actions on the plant for dm_control's true rewards. Q_0 is the trajectory's H-step return
+    in both value modes; they differ for t > 0:
+
+    - ``"return-to-go"``: Q_t = r_t + ... + r_{H-1}. Q depends on the time left, not only on the
+      state: the pole held upright at rest has Q = H - t, so one state carries values from 1 to
+      about H/2 and no finite L fits the data.
+    - ``"window"``: Q_t = r_t + ... + r_{t+H-1}, the H-step value of s_t, with the trajectory
+      continued past H by the warm-start controller (which holds the pole once it is up). This
+      is the stationary convention of the lqr expert (V*(s_t) = H - J*(s_t)).
     """
 
     def __init__(
@@ -261,7 +277,11 @@ class PendulumExpert:
         time_budget: float = DEFAULT_TIME_BUDGET,
         max_iterations: int = 50,
         cost: SwingUpCost | None = None,
+        values: str = "return-to-go",
     ) -> None:
+        if values not in VALUE_MODES:
+            raise ValueError(f"values must be one of {', '.join(VALUE_MODES)}; got {values!r}")
+        self.values = values
         if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
             raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
         self.horizon = int(horizon)
@@ -286,7 +306,12 @@ class PendulumExpert:
             initial_policy=self.warm_start,
             max_iterations=self.max_iterations,
         )
-        raw, values = replay_return_to_go(self.plant, x0, result.actions)
+        if self.values == "window":
+            raw, rewards = replay_rewards(self.plant, x0, result.actions, self.warm_start, steps - 1)
+            values = window_values(rewards, steps)
+        else:
+            raw, rewards = replay_rewards(self.plant, x0, result.actions)
+            values = return_to_go(rewards)
         self.max_slope_seen = max(self.max_slope_seen, result.max_value_slope)
         self.requests += 1
         trajectory = Trajectory(represent(raw), result.actions.copy(), values)

@@ -615,21 +615,52 @@ class SteppablePlant(Protocol):
     def state(self) -> FloatArray: ...
 
 
-def replay_return_to_go(plant: SteppablePlant, x0: ArrayLike, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Replay ``actions`` on the plant from x0: raw states x_0 .. x_{T-1} and Q_t = sum_{k>=t} r_k.
+def replay_rewards(
+    plant: SteppablePlant,
+    x0: ArrayLike,
+    actions: FloatArray,
+    continuation: Callable[[FloatArray], ArrayLike] | None = None,
+    extra_steps: int = 0,
+) -> tuple[FloatArray, FloatArray]:
+    """Replay ``actions`` on the plant from x0; then ``extra_steps`` more under ``continuation``.
 
-    The rewards are the task's own (``plant.step``), so Q_0 is the trajectory's true return.
-    The raw state is ``plant.raw_state()`` where the plant stores another representation.
+    Returns the raw states x_0 .. x_{T-1} of the replayed actions and every reward, the task's own
+    (``plant.step``). The raw state is ``plant.raw_state()`` where the plant stores another
+    representation.
     """
     read = getattr(plant, "raw_state", plant.state)
     horizon = len(actions)
     states = np.empty((horizon, len(np.asarray(x0))))
-    rewards = np.empty(horizon)
+    rewards = np.empty(horizon + extra_steps)
     plant.reset(x0)
     for t in range(horizon):
         states[t] = read()
         rewards[t] = plant.step(actions[t])
-    return states, np.cumsum(rewards[::-1])[::-1].copy()
+    if extra_steps and continuation is None:
+        raise ValueError("extra_steps needs a continuation policy")
+    for t in range(horizon, horizon + extra_steps):
+        rewards[t] = plant.step(continuation(read()))
+    return states, rewards
+
+
+def return_to_go(rewards: FloatArray) -> FloatArray:
+    """Q_t = sum_{k>=t} r_k."""
+    return np.cumsum(rewards[::-1])[::-1].copy()
+
+
+def window_values(rewards: FloatArray, window: int) -> FloatArray:
+    """Q_t = sum_{k=t}^{t+window-1} r_k, for every t with a full window (exact for 0/1 rewards)."""
+    sums = np.concatenate([[0.0], np.cumsum(rewards)])
+    return sums[window:] - sums[:-window]
+
+
+def replay_return_to_go(plant: SteppablePlant, x0: ArrayLike, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Replay ``actions`` on the plant from x0: raw states x_0 .. x_{T-1} and Q_t = sum_{k>=t} r_k.
+
+    Q_0 is the trajectory's true return.
+    """
+    states, rewards = replay_rewards(plant, x0, actions)
+    return states, return_to_go(rewards)
 
 
 @dataclass(frozen=True)

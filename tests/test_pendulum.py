@@ -144,3 +144,24 @@ def test_slope_report_and_paper_constant(expert: PendulumExpert, solutions: dict
     assert PAPER_LIPSCHITZ == 4300.0
     seen = max(sol.optimization.max_value_slope for _, sol in solutions.values())
     assert expert.slope_floor() >= seen > 0
+
+
+def test_window_values_are_h_step_returns_of_each_state() -> None:
+    """values="window": Q_t sums H rewards from s_t (continued past H by the hold controller)."""
+    horizon = 300
+    expert = PendulumExpert(time_budget=60.0, max_iterations=3, horizon=horizon, values="window")
+    s0 = np.array([0.5, 0.0])
+    solution = expert.solve(s0)
+    traj = solution.trajectory
+    plant = PendulumPlant()
+    plant.reset(s0)
+    rewards = [plant.step(u) for u in traj.actions]
+    for _ in range(horizon - 1):
+        rewards.append(plant.step(expert.warm_start(plant.raw_state())))
+    expected = [sum(rewards[t : t + horizon]) for t in range(horizon)]
+    np.testing.assert_array_equal(traj.values, expected)
+    assert traj.values[0] == solution.expert_return == sum(rewards[:horizon])
+    held = np.cos(solution.raw_states[:, 0]) >= COS_8
+    assert np.all(traj.values[-50:] == horizon) and held[-50:].all()  # upright states keep the full H-step value
+    with pytest.raises(ValueError, match=r"^values must be one of return-to-go, window; got 'tail'$"):
+        PendulumExpert(values="tail")
