@@ -569,6 +569,7 @@ class _WriterLock:
     def __init__(self, fd: int, path: Path) -> None:
         self._fd = fd
         self._path = path
+        self._owner = os.getpid()
 
     @classmethod
     def acquire(cls, run_path: Path) -> _WriterLock:
@@ -605,7 +606,7 @@ class _WriterLock:
         return cls(fd, lock_path)
 
     def release(self) -> None:
-        if self._fd >= 0:
+        if self._fd >= 0 and os.getpid() == self._owner:  # never from a forked child: the parent writes on
             with suppress(OSError):  # removed while still held: a newcomer never locks a stale file
                 self._path.unlink()
             os.close(self._fd)
