@@ -129,6 +129,22 @@ def test_a_reader_holding_a_transaction_never_stops_the_writer(tmp_path: Path, n
     print(f"\n{kind}: read transaction held {seconds:.2f} s while the writer committed 30 episodes (30,000 points)")
 
 
+def test_a_reader_inside_a_transaction_before_the_run_starts_gets_a_clear_refusal(
+    tmp_path: Path, no_waiting: None
+) -> None:
+    """Switching a closed file to WAL needs a moment without open transactions: the run says which."""
+    path = tmp_path / "run.sqlite"
+    RunStore.create(path, META).close()
+    reader = PythonReader(path)
+    assert reader.query("BEGIN; SELECT COUNT(*) FROM episodes;") == "0"
+    with pytest.raises(RunFileError, match=r"is held by a reader inside a transaction opened before this run"):
+        RunStore.open_or_create(path, META)
+    reader.query("COMMIT;")
+    with RunStore.open_or_create(path, META):  # nothing was changed, nothing is left locked
+        pass
+    reader.close()
+
+
 def test_a_closed_run_file_is_one_rollback_journal_file_and_resumes(tmp_path: Path) -> None:
     """WAL only while a writer runs: closed, the folder holds run.sqlite alone, journaled as before."""
     path = tmp_path / "run.sqlite"
