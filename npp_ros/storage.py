@@ -277,14 +277,18 @@ class RunStore:
             if _holds_nothing(path):  # absent, or empty (an older npp_ros died creating it)
                 return cls._create_locked(path, metadata, lock)
             store = cls.open(path)
+        except BaseException:
+            lock.release()
+            raise
+        try:
             problems = store.metadata.mismatches(metadata)
             if problems:
-                store.close()
                 raise RunFileError(f"{path} belongs to another run and was left untouched:\n  " + "\n  ".join(problems))
             store._lock = lock
             store._use_wal()
             return store
         except BaseException:
+            store.close()
             lock.release()
             raise
 
@@ -300,6 +304,7 @@ class RunStore:
                 raise
 
     def _use_wal(self) -> None:
+        """WAL while writing: readers then never make a commit wait (see the module docstring)."""
         try:
             mode = self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
         except sqlite3.Error as exc:
