@@ -125,6 +125,12 @@ class MujocoDynamics:
         self.lower = np.where(limited, ranges[:, 0], -np.inf)
         self.upper = np.where(limited, ranges[:, 1], np.inf)
 
+    def _start(self, x: FloatArray, u: FloatArray) -> None:
+        """Fresh data at (x, u), as the plant's reset leaves it: no solver warm start or time carried
+        over from an earlier request, so a request's numbers depend on the request alone."""
+        self._mujoco.mj_resetData(self.model, self.data)
+        self._load(x, u)
+
     def _load(self, x: FloatArray, u: FloatArray) -> None:
         self._qpos[:] = x[: self.nq]
         self._qvel[:] = x[self.nq :]
@@ -146,7 +152,7 @@ class MujocoDynamics:
         states = np.empty((horizon + 1, self.state_dim))
         applied = np.empty((horizon, self.action_dim))
         states[0] = x0
-        self._load(x0, np.zeros(self.action_dim))
+        self._start(x0, np.zeros(self.action_dim))
         for t in range(horizon):
             u = actions[t] if policy is None else np.asarray(policy(states[t]), dtype=np.float64).reshape(-1)
             applied[t] = np.minimum(np.maximum(u, self.lower), self.upper)
@@ -168,7 +174,7 @@ class MujocoDynamics:
         states = np.empty_like(ref_states)
         actions = ref_actions + alpha * k
         states[0] = ref_states[0]
-        self._load(ref_states[0], actions[0])
+        self._start(ref_states[0], actions[0])
         lo, hi = self.lower, self.upper
         advance = self._advance
         for t in range(horizon):
@@ -185,6 +191,7 @@ class MujocoDynamics:
         fd = self._mujoco.mjd_transitionFD
         m, d, eps, nq = self.model, self.data, self.fd_eps, self.nq
         qpos, qvel, ctrl = self._qpos, self._qvel, self._ctrl
+        self._mujoco.mj_resetData(m, d)
         for t in range(horizon):
             x = states[t]
             qpos[:] = x[:nq]
