@@ -214,7 +214,7 @@ def test_a_second_writer_is_refused_up_front_naming_the_first(tmp_path: Path) ->
     finally:
         first.send_signal(signal.SIGKILL)
         first.wait()
-    again = subprocess.run([*command[:-2], "--max-episodes", "1"], capture_output=True, text=True, timeout=300)
+    again = subprocess.run([*command, "--max-episodes", "1"], capture_output=True, text=True, timeout=300)
     assert "resuming" in again.stderr, again.stderr  # the lock died with its holder
     with RunStore.open(path) as reader:
         assert reader.load_dataset().num_trajectories >= stored
