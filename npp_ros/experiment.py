@@ -1,11 +1,14 @@
 """The paper's Section 5 experiments (and Appendix B with a detuned expert), run in process.
 
-One *arm* is a task, the expert that supplies data (optimal LQR or a detuned one) and a choice
-of L (the paper's, or one that bounds the expert's value slope). Each (arm, seed) runs the same
+One *arm* is a task, the expert that supplies data (optimal LQR or a detuned one), a choice
+of L (the paper's, or one that bounds the expert's value slope) and what certifies (the paper's
+surrogate gap and one-shot rule, or a sound mode under the sequential rule). Each (arm, seed) runs the same
 :class:`~npp_ros.loop.NPPLoop` as the supervisor node, stored in its own ``run.sqlite``, and is
 evaluated at checkpoints on a fixed set of N initial states s0 ~ rho: the policy's return, the
 data expert's and the optimal controller's returns from the same s0, and V_lb(s0). Everything is
-rebuilt from the files, so a resumed or repeated run gives the same numbers.
+rebuilt from the files, so a resumed or repeated run gives the same numbers. Every certificate is
+also checked on HELD_OUT fresh s0 (a stream of its own): the fraction whose gap, for the value the
+certificate speaks of, is within epsilon, and a one-sided binomial test of its claim.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import numpy as np
 from scipy.stats import binom
 
 from npp_ros.bounds import NonparametricPolicy
+from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES, Certificate
 from npp_ros.dataset import Dataset, FloatArray
 from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
 from npp_ros.lipschitz import LipschitzConstant
@@ -44,6 +48,9 @@ DETUNED_CONTROL_WEIGHT = 0.1
 EVALUATION_STREAM = 1 << 30  # rng stream for evaluation s0; the run's own s0 use [seed, episode]
 VIOLATION_TOLERANCE = 1e-9
 EVALUATION_CHUNK = 25  # rollouts stepped in lockstep (batched policy queries)
+HELD_OUT = 1000  # fresh s0 on which every certificate is checked
+HELD_OUT_STREAM = EVALUATION_STREAM + 1
+HELD_OUT_CHUNK = 100
 
 
 @dataclass(frozen=True)
@@ -53,8 +60,14 @@ class Arm:
     task: str
     expert: str  # "optimal" or "detuned"
     lipschitz: str  # "paper", "analytic" or a number
+    certify: str = "surrogate"  # the paper's checked quantity ...
+    rule: str = "paper"  # ... and its stopping rule, unless the arm says otherwise
 
     def __post_init__(self) -> None:
+        if self.certify not in CERTIFY_MODES:
+            raise ValueError(f"unknown certification mode {self.certify!r}; known: {', '.join(CERTIFY_MODES)}")
+        if self.rule not in STOPPING_RULES:
+            raise ValueError(f"unknown stopping rule {self.rule!r}; known: {', '.join(STOPPING_RULES)}")
         if self.task not in TASKS:
             raise ValueError(f"unknown task {self.task!r}; known: {', '.join(sorted(TASKS))}")
         if self.expert not in EXPERTS:
@@ -69,13 +82,19 @@ class Arm:
                 raise ValueError(f"L setting must be one of {known} or a number > 0, got {self.lipschitz!r}")
 
     @property
+    def paper_certification(self) -> bool:
+        return (self.certify, self.rule) == ("surrogate", "paper")
+
+    @property
     def name(self) -> str:
-        return f"{self.task}-{self.expert}-L{self.lipschitz}"
+        base = f"{self.task}-{self.expert}-L{self.lipschitz}"
+        return base if self.paper_certification else f"{base}-{self.certify}-{self.rule}"
 
     @property
     def label(self) -> str:
         expert = "optimal expert" if self.expert == "optimal" else "detuned expert"
-        return f"{self.task}, {expert}, {self.lipschitz} L"
+        how = "" if self.paper_certification else f", certify={self.certify} ({self.rule})"
+        return f"{self.task}, {expert}, {self.lipschitz} L{how}"
 
 
 @dataclass(frozen=True)
@@ -99,15 +118,25 @@ class ExperimentSettings:
         return sorted({c for c in self.checkpoints if 0 < c <= budget} | {budget})
 
 
-def default_arms(tasks: Sequence[str], lipschitz: Sequence[str], experts: Sequence[str]) -> list[Arm]:
-    """The detuned expert is not run with the paper's L: the paper gives none for it."""
+def default_arms(
+    tasks: Sequence[str], lipschitz: Sequence[str], experts: Sequence[str], certify: Sequence[str] = ("paper",)
+) -> list[Arm]:
+    """The detuned expert is not run with the paper's L: the paper gives none for it.
+
+    ``certify`` lists "paper" (the surrogate gap under the paper's one-shot rule) and sound modes
+    (rollout, oracle, surrogate) under the sequential rule.
+    """
     arms = []
     for task in tasks:
         for expert in experts:
             for setting in lipschitz:
                 if expert == "detuned" and setting == "paper":
                     continue
-                arms.append(Arm(task, expert, setting))
+                for mode in certify:
+                    if mode == "paper":
+                        arms.append(Arm(task, expert, setting))
+                    else:
+                        arms.append(Arm(task, expert, setting, mode, "sequential"))
     return arms
 
 
@@ -270,6 +299,7 @@ class RunRecord:
     evaluations: list[EvaluationRow]
     certified_episode: int | None
     wall_time: float
+    held_out: HeldOutCheck | None = None
 
 
 Progress = Callable[[str], None]
@@ -300,8 +330,9 @@ def run_arm_seed(
     lipschitz = resolve_lipschitz(arm.task, arm.lipschitz, expert)
     epsilon = settings.epsilon_for(arm.task)
     config = build_config(
-        arm.task, seed, lipschitz, epsilon, p=settings.p, delta=settings.delta, horizon=settings.horizon
-    )
+        arm.task, seed, lipschitz, epsilon, p=settings.p, delta=settings.delta, horizon=settings.horizon,
+        certify=arm.certify, rule=arm.rule,  # type: ignore[arg-type]  # Arm checks both
+    )  # fmt: skip
     budget = settings.max_episodes[arm.task]
     loop = build_loop(
         config, expert, store_path=run_dir / "run.sqlite", observers=[_EpisodeProgress(report, key, budget)]
@@ -319,8 +350,8 @@ def run_arm_seed(
             reached = min(checkpoint, loop.next_episode)
             if reached in done:
                 continue
-            calls = sum(row.oracle_called for row in loop.rows[:reached])
-            if calls == loop.dataset.num_trajectories:
+            calls = policy_trajectories_at(loop, reached)
+            if calls == loop.policy_data.num_trajectories:
                 policy = loop.policy  # its search index is already built
             else:  # resumed past an unevaluated checkpoint: rebuild the data as it was there
                 policy = NonparametricPolicy(dataset_prefix(loop.dataset, calls), lipschitz.value)
@@ -333,10 +364,96 @@ def run_arm_seed(
             done.add(reached)
             if loop.certificate is not None and reached >= loop.certificate.episodes:
                 break
+        if loop.certificate is not None and not (run_dir / "heldout.json").exists():
+            report(f"{key}: checking the certificate on {HELD_OUT} held-out s0")
+            check = check_certificate(loop.certificate, loop.dataset, arm, seed, settings, expert, HELD_OUT)
+            (run_dir / "heldout.json").write_text(json.dumps(asdict(check), indent=2) + "\n")
         return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)
     finally:
         if loop.store is not None:
             loop.store.close()
+
+
+def policy_trajectories_at(loop: NPPLoop, episodes: int) -> int:
+    """How many trajectories the policy acted on after ``episodes`` episodes (held-back data excluded)."""
+    if episodes == 0:
+        return 0
+    if loop.certificate is not None and episodes == loop.certificate.episodes:
+        return loop.certificate.policy_trajectories
+    calls = sum(row.oracle_called for row in loop.rows[:episodes])
+    if loop.config.certify != "oracle":
+        return calls
+    held = 0
+    for row in reversed(loop.rows[:episodes]):
+        if row.checked_gap > loop.config.epsilon:
+            break
+        held += int(row.oracle_called)
+    return calls - held
+
+
+@dataclass(frozen=True)
+class HeldOutCheck:
+    """A certificate against fresh s0 ~ rho: does its claim P(gap <= epsilon) >= p survive?"""
+
+    states: int
+    reference: str  # the value each gap is measured against (the certificate's)
+    within: int
+    fraction: float
+    p_value: float  # P[X <= within] for X ~ Binomial(states, p): small means the claim is contradicted
+    rejected: bool  # p_value < delta
+    below_v_lb: int  # returns below V_lb(s0) of the certified policy
+    gap_q50: float
+    gap_max: float
+    wall_time: float
+
+
+def check_certificate(
+    certificate: Certificate,
+    dataset: Dataset,
+    arm: Arm,
+    seed: int,
+    settings: ExperimentSettings,
+    expert: LQRExpert,
+    count: int,
+) -> HeldOutCheck:
+    """Rolls the certified policy out from ``count`` fresh s0 and measures the gap its claim is about.
+
+    The reference is the exact optimal H-step return H - 0.5 s0'P_H s0 where the claim is about V*
+    and the expert is optimal; otherwise (oracle mode, or the detuned expert) the expert's own
+    H-step return from the same s0, measured in MuJoCo.
+    """
+    started = time.perf_counter()
+    rng = np.random.default_rng([seed, HELD_OUT_STREAM])
+    states = np.array([sample_initial_state(arm.task, rng) for _ in range(count)])
+    policy = NonparametricPolicy(dataset_prefix(dataset, certificate.policy_trajectories), certificate.lipschitz)
+    plant = LQRPlant(arm.task, seed)
+    returns = np.empty(count)
+    for lo in range(0, count, HELD_OUT_CHUNK):
+        chunk = states[lo : lo + HELD_OUT_CHUNK]
+        for k, run in enumerate(rollout_batch(plant, policy.act, chunk, settings.horizon)):
+            returns[lo + k] = run.total_return
+    if certificate.certify == "oracle" or arm.expert == "detuned":
+        runs = rollout_batch(plant, lambda xs: np.array([expert.action(x) for x in xs]), states, settings.horizon)
+        reference, what = np.array([run.total_return for run in runs]), "the expert's H-step return"
+    else:
+        p_h = expert.finite_horizon_cost(settings.horizon)
+        reference = settings.horizon - 0.5 * np.einsum("bi,ij,bj->b", states, p_h, states)
+        what = "the optimal H-step return V*_H"
+    gaps = reference - returns
+    within = int(np.sum(gaps <= certificate.epsilon))
+    p_value = float(binom.cdf(within, count, certificate.p))
+    lower = np.asarray(policy.v_lb(states))
+    below = int(np.sum(returns < lower - VIOLATION_TOLERANCE * np.maximum(1.0, np.abs(lower))))
+    return HeldOutCheck(
+        states=count, reference=what, within=within, fraction=within / count, p_value=p_value,
+        rejected=p_value < certificate.delta, below_v_lb=below, gap_q50=float(np.median(gaps)),
+        gap_max=float(np.max(gaps)), wall_time=time.perf_counter() - started,
+    )  # fmt: skip
+
+
+def read_held_out(run_dir: Path) -> HeldOutCheck | None:
+    path = run_dir / "heldout.json"
+    return HeldOutCheck(**json.loads(path.read_text())) if path.exists() else None
 
 
 def read_record(
@@ -360,6 +477,7 @@ def read_record(
         evaluations=evaluations,
         certified_episode=loop.certificate.episodes if loop.certificate else None,
         wall_time=wall,
+        held_out=read_held_out(run_dir),
     )
 
 
@@ -371,6 +489,8 @@ class ResultRow:
     task: str
     expert: str
     lipschitz_setting: str
+    certify: str
+    rule: str
     seed: int
     lipschitz: float
     slope_needed: float
@@ -392,6 +512,22 @@ class ResultRow:
     max_visited_slope: float
     verdict: str
     wall_time_s: float
+    held_out_states: int  # fresh s0 the certificate was checked on (0: no certificate)
+    held_out_fraction: float  # of those, the share with gap <= epsilon for the certificate's value
+    held_out_p_value: float
+    held_out_below_v_lb: int
+    held_out_verdict: str
+
+
+def held_out_verdict(check: HeldOutCheck | None, p: float, delta: float) -> str:
+    """The certificate's claim against fresh s0: a one-sided binomial test at level delta."""
+    if check is None:
+        return "no certificate"
+    if check.rejected:
+        return f"FALSE: {check.fraction:.1%} within eps, claimed >= {p:.0%} (binomial p = {check.p_value:.2g})"
+    if check.fraction >= p:
+        return f"held ({check.fraction:.1%} within eps)"
+    return f"below p, not significant ({check.fraction:.1%} within eps)"
 
 
 def verdict(certified: bool, fraction: float, rollouts: int, violations: int, p: float, delta: float) -> str:
@@ -419,10 +555,13 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
     fraction = float(np.mean(gaps <= record.epsilon)) if rows else float("nan")
     violations = sum(row.violates_lower_bound for row in rows)
     last = record.episodes[-1] if record.episodes else None
+    check = record.held_out
     return ResultRow(
         task=record.arm.task,
         expert=record.arm.expert,
         lipschitz_setting=record.arm.lipschitz,
+        certify=record.arm.certify,
+        rule=record.arm.rule,
         seed=record.seed,
         lipschitz=record.lipschitz.value,
         slope_needed=record.slope_needed,
@@ -444,6 +583,11 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
         max_visited_slope=max((row.visited_slope for row in rows), default=float("nan")),
         verdict=verdict(record.certified_episode is not None, fraction, len(rows), violations, p, delta),
         wall_time_s=record.wall_time,
+        held_out_states=check.states if check else 0,
+        held_out_fraction=check.fraction if check else float("nan"),
+        held_out_p_value=check.p_value if check else float("nan"),
+        held_out_below_v_lb=check.below_v_lb if check else 0,
+        held_out_verdict=held_out_verdict(check, p, delta),
     )
 
 
@@ -461,7 +605,9 @@ def write_results(rows: Iterable[ResultRow], out_dir: Path) -> list[Path]:
             writer.writerow(["" if v is None else v for v in (getattr(row, n) for n in RESULT_FIELDS)])
     paths[1].write_text(json.dumps([asdict(row) for row in rows], indent=2) + "\n")
     paths[2].write_text(
-        "# npp-experiment results\n\n## Per arm (seeds pooled)\n\n"
+        "# npp-experiment results\n\n## Certificates, checked on held-out s0\n\n"
+        + certificate_table(rows)
+        + "\n## Per arm (seeds pooled)\n\n"
         + summary_table(rows)
         + "\n"
         + COLUMN_NOTES
@@ -472,6 +618,10 @@ def write_results(rows: Iterable[ResultRow], out_dir: Path) -> list[Path]:
 
 
 COLUMN_NOTES = """\
+- certificates table: each certificate's policy (the greedy policy over the trajectories it names) rolled out
+  from 1,000 fresh s0 ~ rho (a stream of their own), against the value the certificate speaks of: the exact
+  optimal H-step return when it claims V* and the expert is optimal, else the expert's own H-step return from
+  the same s0. "FALSE" when a one-sided binomial test rejects P(gap <= eps) >= p at level delta.
 - gap: V^expert(s0) - V^pi(s0), measured H-step returns from the same s0, at the last evaluation (the
   certificate's episode, or the budget). For the detuned expert this is the gap the certificate is about
   (its data bound V^expert, not V*); "gap to optimum" compares with the optimal LQR controller.
@@ -487,6 +637,46 @@ COLUMN_NOTES = """\
 """
 
 
+def certificate_table(rows: Sequence[ResultRow]) -> str:
+    """Per arm: what certified, after how much, and whether the claim survived fresh s0."""
+    head = (
+        "| task | expert | L | certify (rule) | certified | episodes (median, range) | oracle calls (median) "
+        "| held-out within eps (worst seed) | returns < V_lb (held-out) | verdicts |\n"
+        "|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for (task, expert, setting, certify, rule), group in _arms(rows).items():
+        certs = [r.certified_episode for r in group if r.certified_episode is not None]
+        episodes = [r.certified_episode if r.certified_episode is not None else r.episodes for r in group]
+        span = f"{int(np.median(episodes))} ({min(episodes)}-{max(episodes)})"
+        checked = [r for r in group if r.held_out_states]
+        worst = f"{min(r.held_out_fraction for r in checked):.1%}" if checked else "-"
+        below = f"{sum(r.held_out_below_v_lb for r in checked)}/{sum(r.held_out_states for r in checked)}"
+        verdicts: dict[str, int] = {}
+        for r in group:
+            key = r.held_out_verdict.split(" (")[0].split(":")[0]
+            verdicts[key] = verdicts.get(key, 0) + 1
+        said = ", ".join(f"{v} x {k}" for k, v in verdicts.items())
+        calls = int(np.median([r.oracle_calls for r in group]))
+        lines.append(
+            f"| {task} | {expert} | {setting} | {certify} ({rule}) | {len(certs)}/{len(group)} | {span} | {calls} "
+            f"| {worst} | {below if checked else '-'} | {said} |"
+        )
+    return head + "\n".join(lines) + "\n"
+
+
+def _arms(rows: Sequence[ResultRow]) -> dict[tuple[str, str, str, str, str], list[ResultRow]]:
+    groups: dict[tuple[str, str, str, str, str], list[ResultRow]] = {}
+    for row in rows:
+        groups.setdefault((row.task, row.expert, row.lipschitz_setting, row.certify, row.rule), []).append(row)
+    return groups
+
+
+def _expert_cell(row: ResultRow) -> str:
+    paper = (row.certify, row.rule) == ("surrogate", "paper")
+    return row.expert if paper else f"{row.expert}, {row.certify} ({row.rule})"
+
+
 def _slope_cell(row: ResultRow) -> str:
     above = row.max_visited_slope > row.lipschitz
     return f"**{row.max_visited_slope:.1f} > L**" if above else f"{row.max_visited_slope:.1f}"
@@ -500,11 +690,9 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
         "| verdicts | compute s |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
-    groups: dict[tuple[str, str, str], list[ResultRow]] = {}
-    for row in rows:
-        groups.setdefault((row.task, row.expert, row.lipschitz_setting), []).append(row)
     lines = []
-    for (task, expert, _), group in groups.items():
+    for (task, expert, _, certify, rule), group in _arms(rows).items():
+        expert = expert if (certify, rule) == ("surrogate", "paper") else f"{expert}, {certify} ({rule})"
         used = "/".join(f"{r.lipschitz:.0f}" for r in group)
         needed = "/".join(f"{r.slope_needed:.0f}" for r in group)
         bound = "" if all(r.l_is_bound for r in group) else " **not a bound**"
@@ -543,7 +731,7 @@ def markdown_table(rows: Sequence[ResultRow]) -> str:
         bound = "" if r.l_is_bound else " **not a bound**"
         cert = str(r.certified_episode) if r.certified_episode is not None else f"none ({r.episodes})"
         lines.append(
-            f"| {r.task} | {r.expert} | {r.lipschitz:.0f} ({r.slope_needed:.0f}){bound} | {r.seed} | {cert} "
+            f"| {r.task} | {_expert_cell(r)} | {r.lipschitz:.0f} ({r.slope_needed:.0f}){bound} | {r.seed} | {cert} "
             f"| {r.oracle_calls} | {r.dataset_size} | {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
             f"| {r.fraction_within_epsilon:.0%} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
             f"| {r.crossed_bounds} | {_slope_cell(r)} | {r.verdict} | {r.wall_time_s:.0f} |"

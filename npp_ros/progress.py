@@ -12,15 +12,16 @@ from npp_ros.storage import EpisodeRow
 
 
 def status_text(row: EpisodeRow, epsilon: float, status: CertificationStatus, condition: str) -> str:
-    gap = "inf" if row.gap == float("inf") else f"{row.gap:8.2f}"
+    """One line: the checked gap against epsilon, and the current test's streak against what it needs."""
+    checked = "inf" if row.checked_gap == float("inf") else f"{row.checked_gap:8.2f}"
     mark = "ORACLE" if row.oracle_called else "quiet "
     streak = (
-        f"quiet {status.quiet_episodes}/{status.required}"
+        f"test {status.test} streak {status.quiet_episodes}/{status.required}"
         if condition == "i"
-        else f"window {status.window} needs {status.required or '-'}"
+        else f"test {status.test} window {status.window} needs {status.required or '-'}"
     )
     return (
-        f"episode {row.episode + 1:5d} | gap {gap} / eps {epsilon:g} {mark} | "
+        f"episode {row.episode + 1:5d} | checked {checked} / eps {epsilon:g} {mark} | "
         f"|D| {row.dataset_size:8d} | oracle calls {row.oracle_calls:4d} | {streak}"
     )
 

@@ -13,7 +13,7 @@ LEARN = [sys.executable, "-m", "npp_ros.cli.learn"]
 
 def test_help_explains_the_options() -> None:
     out = subprocess.run([*LEARN, "--help"], capture_output=True, text=True, check=True).stdout
-    for option in ("--task", "--lipschitz", "--epsilon", "--condition", "--run-dir", "--evaluate"):
+    for option in ("--task", "--lipschitz", "--epsilon", "--certify", "--rule", "--condition", "--run-dir"):
         assert option in out
     assert "NOT a bound" in out
 
@@ -21,8 +21,9 @@ def test_help_explains_the_options() -> None:
 def test_runs_to_a_certificate_and_leaves_a_run_folder(tmp_path: Path) -> None:
     run = subprocess.run([*LEARN, "--run-dir", str(tmp_path), "--evaluate", "3"], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    assert "CERTIFICATE (lqr_2_1, Theorem 4.1 (i))" in run.stdout
-    assert "source: lqr-analytic" in run.stdout
+    assert "CERTIFICATE (lqr_2_1, condition (i), certify=rollout, rule=sequential)" in run.stdout
+    assert "(lqr-analytic, margin 1e-06)" in run.stdout and "proven          yes" in run.stdout
+    assert "test " in run.stdout and "spent delta" in run.stdout and "assumptions" in run.stdout
     assert "episode" in run.stderr and "oracle calls" in run.stderr  # live progress
     summary = json.loads((tmp_path / "summary.json").read_text())
     cert = summary["certificate"]

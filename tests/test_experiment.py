@@ -69,7 +69,9 @@ def test_writes_figures_and_tables(reduced_run: Path) -> None:
     with (reduced_run / "results.csv").open() as fh:
         assert len(list(csv.DictReader(fh))) == 3
     table = (reduced_run / "results.md").read_text()
-    per_arm, per_seed = table.split("## Per seed")
+    certificates, rest = table.split("## Per arm")
+    per_arm, per_seed = rest.split("## Per seed")
+    assert certificates.count("\n| lqr_2_1 |") == 3
     assert per_arm.count("\n| lqr_2_1 |") == 3 and per_seed.count("\n| lqr_2_1 |") == 3
     assert "**not a bound**" in per_arm and "**not a bound**" in per_seed
     history = json.loads((reduced_run / "experiment.json").read_text())["invocations"]
@@ -120,7 +122,8 @@ def test_resumed_run_matches_an_uninterrupted_one(reduced_run: Path, tmp_path: P
 def test_experiment_runs_the_same_loop_as_everyone_else(reduced_run: Path) -> None:
     """The same seed through build_loop (what npp-learn and the supervisor node use) gives the same gaps."""
     expert = LQRExpert("lqr_2_1", 0, horizon=200)
-    config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "analytic", expert), 50.0, horizon=200)
+    lipschitz = resolve_lipschitz("lqr_2_1", "analytic", expert)
+    config = build_config("lqr_2_1", 0, lipschitz, 50.0, horizon=200, certify="surrogate", rule="paper")
     direct = build_loop(config, expert).run(30)
     with RunStore.open(reduced_run / "runs" / "lqr_2_1-optimal-Lanalytic-seed0" / "run.sqlite") as store:
         stored = store.episodes()
@@ -162,3 +165,23 @@ def test_arms_and_settings_reject_unknown_names() -> None:
     assert Arm("lqr_2_1", "optimal", "300").name == "lqr_2_1-optimal-L300"
     settings = ExperimentSettings(max_episodes={"lqr_2_1": 150}, checkpoints=(10, 100, 200))
     assert settings.checkpoints_for("lqr_2_1") == [10, 100, 150]
+
+
+def test_sound_modes_are_arms_and_every_certificate_is_checked_on_held_out_states(tmp_path: Path) -> None:
+    run = run_experiment(
+        tmp_path, 60, "--lipschitz", "analytic", "--experts", "optimal", "--certify", "rollout", "oracle"
+    )
+    assert run.returncode == 0, run.stderr
+    rows = {r["certify"]: r for r in results(tmp_path)}
+    assert set(rows) == {"rollout", "oracle"} and all(r["rule"] == "sequential" for r in rows.values())
+    oracle = rows["oracle"]
+    assert oracle["certified_episode"] is not None  # one failed check, then a streak of 30
+    check = json.loads(
+        (tmp_path / "runs" / "lqr_2_1-optimal-Lanalytic-oracle-sequential-seed0" / "heldout.json").read_text()
+    )
+    assert check["states"] == oracle["held_out_states"] == 1000
+    assert check["fraction"] == oracle["held_out_fraction"] == check["within"] / 1000
+    assert check["reference"] == "the expert's H-step return" and not check["rejected"]
+    assert oracle["held_out_verdict"].startswith("held")
+    table = (tmp_path / "results.md").read_text()
+    assert "| lqr_2_1 | optimal | analytic | oracle (sequential) | 1/1 |" in table

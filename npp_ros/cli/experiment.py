@@ -22,6 +22,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from npp_ros.certification import CERTIFY_MODES
 from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
@@ -73,6 +74,21 @@ def parser() -> argparse.ArgumentParser:
         type=positive_ints,
         default=DEFAULT_CHECKPOINTS,
         help="episodes at which to evaluate (comma separated); the last episode is always evaluated",
+    )
+    ap.add_argument(
+        "--certify",
+        nargs="+",
+        choices=("paper", *CERTIFY_MODES),
+        default=["paper"],
+        help="what certifies, side by side: 'paper' (the surrogate gap V_ub - V_lb under the paper's one-shot "
+        "rule, to reproduce it) or a mode under the sequentially valid rule: rollout (V_ub + tail - the "
+        "policy's return), oracle (the expert's return - the policy's), surrogate",
+    )
+    ap.add_argument(
+        "--epsilon",
+        type=float,
+        default=None,
+        help="epsilon for every task (default: the paper's, 50 for lqr_2_1 and 300 for lqr_6_2)",
     )
     ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
     ap.add_argument("--p", type=float, default=0.9, help="condition (i): probability level p")
@@ -142,9 +158,10 @@ def main(argv: list[str] | None = None) -> int:
         p=args.p,
         delta=args.delta,
         control_weight=args.control_weight,
+        epsilon={task: args.epsilon for task in args.tasks} if args.epsilon is not None else None,
     )
     try:
-        arms = default_arms(args.tasks, args.lipschitz, args.experts)
+        arms = default_arms(args.tasks, args.lipschitz, args.experts, args.certify)
     except ValueError as exc:
         print(f"npp-experiment: {exc}", file=sys.stderr)
         return 2

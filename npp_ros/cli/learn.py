@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
 from npp_ros.cli.args import nonnegative_int, positive_int
 from npp_ros.inprocess import LIPSCHITZ_CHOICES, build_config, build_loop, evaluate, lipschitz_checks, resolve_lipschitz
 from npp_ros.lipschitz import LipschitzWarning
@@ -40,6 +41,21 @@ def parser() -> argparse.ArgumentParser:
         help=f"L: one of {', '.join(LIPSCHITZ_CHOICES)} or a number. 'analytic' bounds the expert's value slope "
         "(the guarantee holds); 'paper' is 50 / 200, which is NOT a bound on these tasks",
     )
+    ap.add_argument(
+        "--certify",
+        choices=CERTIFY_MODES,
+        default="rollout",
+        help="what each episode checks: rollout (V_ub + tail - the policy's own return; sound when L bounds the "
+        "value's slope), oracle (the expert's return - the policy's; needs no L, relative to the expert) or "
+        "surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4)",
+    )
+    ap.add_argument(
+        "--rule",
+        choices=STOPPING_RULES,
+        default="sequential",
+        help="when to stop: sequential (valid however often it is checked) or paper (the one-shot test of "
+        "Theorem 4.1, to reproduce the paper)",
+    )
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
     ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
@@ -48,7 +64,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/learn-TASK-seedSEED")
     ap.add_argument(
-        "--rollouts", action="store_true", help="let the policy drive every episode (Algorithm 1 does not need it)"
+        "--rollouts", action="store_true", help="with --certify surrogate, let the policy drive every episode too"
     )
     ap.add_argument(
         "--evaluate", type=nonnegative_int, default=100, metavar="N", help="after the run, N fresh rollouts (0: none)"
@@ -66,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         config = build_config(
             args.task, args.seed, lipschitz, epsilon,
             condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
+            certify=args.certify, rule=args.rule,
         )  # fmt: skip
         config.spec()  # validates epsilon, p, delta, L before any work
         status = StatusLine(epsilon, args.condition)
