@@ -36,9 +36,9 @@ def solutions(expert: PendulumExpert) -> dict[float, object]:
 
 
 def test_plant_matches_dm_control_task() -> None:
+    plant = PendulumPlant()  # sets MUJOCO_GL before dm_control is first imported
     from dm_control import suite
 
-    plant = PendulumPlant()
     env = suite.load("pendulum", "swingup")
     assert plant.dt == env.control_timestep() == pytest.approx(0.02)
     assert (plant.state_dim, plant.action_dim) == (2, 1)
