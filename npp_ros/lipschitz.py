@@ -13,10 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from npp_ros.bounds import pairwise_distances
 from npp_ros.dataset import Dataset, FloatArray
 
-SOURCES = ("user", "paper", "lqr-analytic", "estimate-global", "estimate-knn", "dataset-file")
+SOURCES = ("user", "paper", "lqr-analytic")
 
 
 class LipschitzWarning(UserWarning):
@@ -97,18 +96,3 @@ def estimate_global(dataset: Dataset, *, max_points: int = 2000, seed: int = 0) 
     same_traj = np.searchsorted(offsets, starts, side="right") == np.searchsorted(offsets, starts + 1, side="right")
     slopes.append(_pair_slopes(states, values, starts[same_traj], starts[same_traj] + 1))
     return float(max(float(s.max(initial=0.0)) for s in slopes))
-
-
-def estimate_local(dataset: Dataset, queries: FloatArray, *, k: int = 16) -> FloatArray:
-    """Local slope at each query: the largest slope among its k nearest data points."""
-    if len(dataset) < 2:
-        raise ValueError("estimating L needs at least two data points")
-    queries = np.atleast_2d(np.asarray(queries, dtype=np.float64))
-    k = min(k, len(dataset))
-    out = np.empty(len(queries))
-    a, b = np.triu_indices(k, k=1)
-    for row, query in enumerate(queries):
-        dist = pairwise_distances(dataset.states, query[None, :])[0]
-        near = np.argpartition(dist, k - 1)[:k]
-        out[row] = _pair_slopes(dataset.states, dataset.values, near[a], near[b]).max(initial=0.0)
-    return out

@@ -97,7 +97,6 @@ class LQRPlant:
         self.joint_names = [model.id2name(i, "joint") for i in range(model.njnt)]
         self.actuated_joint_names = [model.id2name(int(model.actuator_trnid[i, 0]), "joint") for i in range(model.nu)]
         self.control_cost_coef = float(self._task.control_cost_coef)
-        self.steps = 0
 
     # -------------------------------------------------------------- description
     @property
@@ -134,7 +133,6 @@ class LQRPlant:
         """Another plant on the same compiled model with its own MuJoCo data (cheap, for batches)."""
         twin = copy.copy(self)
         twin.physics = self.physics.copy(share_model=True)
-        twin.steps = 0
         return twin
 
     # -------------------------------------------------------------- stepping
@@ -163,7 +161,6 @@ class LQRPlant:
         with self.physics.reset_context():
             self.physics.data.qpos[:] = x[: self.bodies]
             self.physics.data.qvel[:] = x[self.bodies :]
-        self.steps = 0
         return x
 
     def state(self) -> FloatArray:
@@ -174,7 +171,6 @@ class LQRPlant:
         u = self.check_action(action)
         self.physics.set_control(u)
         self.physics.step()
-        self.steps += 1
         return float(self._task.get_reward(self.physics))
 
 

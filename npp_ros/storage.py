@@ -349,11 +349,6 @@ class RunStore:
             marks = ", ".join("?" * len(values))
             self._conn.execute(f"INSERT INTO episodes ({', '.join(_EPISODE_COLUMNS)}) VALUES ({marks})", values)
 
-    def add_trajectory(self, index: int, trajectory: Trajectory, episode: int | None = None) -> None:
-        self._writable()
-        with _transaction(self._conn, self.path):
-            self._insert_trajectory(index, episode, trajectory)
-
     def _insert_trajectory(self, index: int | None, episode: int | None, trajectory: Trajectory) -> None:
         meta = self.metadata
         Trajectory.validated(
