@@ -32,6 +32,9 @@ def test_importing_every_core_module_loads_no_ros() -> None:
 
 def test_importing_the_plant_loads_no_compiled_index() -> None:
     """npp_ros.lqr and the loop's records are light: numba and the kd-tree load only with the policy."""
-    code = "import sys, npp_ros.lqr\nprint(','.join(sorted(m for m in sys.modules if m.startswith(('numba', 'npp_ros.kdtree')))))"
+    code = (
+        "import sys, npp_ros.lqr\n"
+        "print(','.join(sorted(m for m in sys.modules if m.startswith(('numba', 'npp_ros.kdtree')))))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
