@@ -27,23 +27,14 @@ import copy
 import hashlib
 import math
 import os
-import time
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are
 
-from npp_ros.dataset import DatasetError, FloatArray, Trajectory
-from npp_ros.trajopt import (
-    ILQR,
-    ExpertSolution,
-    TrajOptResult,
-    check_time_budget,
-    replay_rewards,
-    return_to_go,
-    window_values,
-)
+from npp_ros.dataset import DatasetError, FloatArray
+from npp_ros.trajopt import OptimizingExpert
 
 TASK = "pendulum_swingup"
 DEFAULT_HORIZON = 1000
@@ -52,7 +43,6 @@ PAPER_LIPSCHITZ = 4300.0
 PAPER_EPSILON = 130.0
 UPRIGHT_DEGREES = 8.0
 DEFAULT_TIME_BUDGET = 5.0
-VALUE_MODES = ("return-to-go", "window")
 
 
 def wrap_angle(angle: ArrayLike) -> FloatArray:
@@ -255,21 +245,13 @@ class EnergyShapingController:
 
 
 # ----------------------------------------------------------------------------- the expert
-class PendulumExpert:
+class PendulumExpert(OptimizingExpert):
     """The TrajectoryOptimizer of Algorithm 1 for the swing-up: iLQR on the plant's own model.
 
     Each request: roll the energy-shaping controller out from s0 (warm start), refine with
     box-constrained iLQR on :class:`SwingUpCost` within ``time_budget`` seconds (less the
-    slowest replay seen, so the whole request fits the budget), then replay
-    the actions on the plant for dm_control's true rewards. Q_0 is the trajectory's H-step return
-    in both value modes; they differ for t > 0:
-
-    - ``"return-to-go"``: Q_t = r_t + ... + r_{H-1}. Q depends on the time left, not only on the
-      state: the pole held upright at rest has Q = H - t, so one state carries values from 1 to
-      about H/2 and no finite L fits the data.
-    - ``"window"``: Q_t = r_t + ... + r_{t+H-1}, the H-step value of s_t, with the trajectory
-      continued past H by the warm-start controller (which holds the pole once it is up). This
-      is the stationary convention of the lqr expert (V*(s_t) = H - J*(s_t)).
+    slowest replay seen, so the whole request fits the budget), then replay the actions on the
+    plant for dm_control's true rewards (see :class:`OptimizingExpert` for the value modes).
     """
 
     def __init__(
@@ -281,50 +263,16 @@ class PendulumExpert:
         cost: SwingUpCost | None = None,
         values: str = "return-to-go",
     ) -> None:
-        if values not in VALUE_MODES:
-            raise ValueError(f"values must be one of {', '.join(VALUE_MODES)}; got {values!r}")
-        self.values = values
-        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
-            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
-        self.horizon = int(horizon)
-        self.time_budget = check_time_budget(time_budget)
-        self.max_iterations = int(max_iterations)
+        plant = PendulumPlant(seed)  # its own instance: replays never disturb the caller's plant
+        super().__init__(
+            plant,
+            cost if cost is not None else SwingUpCost(),
+            EnergyShapingController(plant),
+            represent,
+            horizon=horizon,
+            time_budget=time_budget,
+            max_iterations=max_iterations,
+            values=values,
+        )
         self.seed = int(seed)
         self.task = TASK
-        self.plant = PendulumPlant(seed)  # its own instance: replays never disturb the caller's plant
-        self.cost = cost if cost is not None else SwingUpCost()
-        self.optimizer = ILQR(self.plant, self.cost)
-        self.warm_start = EnergyShapingController(self.plant)
-        self.max_slope_seen = 0.0
-        self.requests = 0
-        self._replay_seconds = 0.1  # grows to the slowest replay seen; kept out of the optimizer's budget
-
-    def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
-        x0 = self.plant.check_state(initial_state, "requested state")
-        steps = self.horizon if horizon is None or horizon == 0 else int(horizon)
-        result: TrajOptResult = self.optimizer.solve(
-            x0,
-            steps,
-            time_budget=max(self.time_budget - self._replay_seconds, 0.05 * self.time_budget),
-            initial_policy=self.warm_start,
-            max_iterations=self.max_iterations,
-        )
-        tick = time.perf_counter()
-        if self.values == "window":
-            raw, rewards = replay_rewards(self.plant, x0, result.actions, self.warm_start, steps - 1)
-            values = window_values(rewards, steps)
-        else:
-            raw, rewards = replay_rewards(self.plant, x0, result.actions)
-            values = return_to_go(rewards)
-        self._replay_seconds = max(self._replay_seconds, time.perf_counter() - tick)
-        self.max_slope_seen = max(self.max_slope_seen, result.max_value_slope)
-        self.requests += 1
-        trajectory = Trajectory(represent(raw), result.actions.copy(), values)
-        return ExpertSolution(trajectory, result, raw)
-
-    def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:
-        return self.solve(initial_state, horizon).trajectory
-
-    def slope_floor(self) -> float:
-        """max |W_x| over every request so far (surrogate cost-to-go; see TrajOptResult)."""
-        return self.max_slope_seen

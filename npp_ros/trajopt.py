@@ -124,6 +124,11 @@ class MujocoDynamics:
         ranges = np.asarray(m.actuator_ctrlrange, dtype=np.float64).reshape(-1, 2)
         self.lower = np.where(limited, ranges[:, 0], -np.inf)
         self.upper = np.where(limited, ranges[:, 1], np.inf)
+        # mjd_transitionFD does not support RK4 (dm_control's cartpole); the same centred
+        # differences are then taken by batched one-step rollouts in MuJoCo's C rollout.
+        self.batched_fd = int(m.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_RK4)
+        self._spec = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        self._qpos_at = int(mujoco.mj_stateSize(m, int(mujoco.mjtState.mjSTATE_TIME)))
 
     def _start(self, x: FloatArray, u: FloatArray) -> None:
         """Fresh data at (x, u), as the plant's reset leaves it: no solver warm start or time carried
@@ -185,6 +190,8 @@ class MujocoDynamics:
 
     def jacobians(self, states: FloatArray, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
         """A_t = d x_{t+1} / d x_t, B_t = d x_{t+1} / d u_t by centred differences, per step."""
+        if self.batched_fd:
+            return self._batched_jacobians(states, actions)
         horizon = len(actions)
         a = np.empty((horizon, self.state_dim, self.state_dim))
         b = np.empty((horizon, self.state_dim, self.action_dim))
@@ -198,6 +205,52 @@ class MujocoDynamics:
             qvel[:] = x[nq:]
             ctrl[:] = actions[t]
             fd(m, d, eps, True, a[t], b[t], None, None)
+        return a, b
+
+    def _batched_jacobians(self, states: FloatArray, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Centred differences from 2 (n + m) one-step rollouts per step, all in one C call.
+
+        A control at its bound is differenced one-sidedly (MuJoCo clamps ctrl, so a step past the
+        bound would halve the slope), as mjd_transitionFD does.
+        """
+        from mujoco import rollout as mj_rollout
+
+        horizon, n, m, eps = len(actions), self.state_dim, self.action_dim, self.fd_eps
+        x, u = states[:horizon], actions
+        width = 2 * (n + m)
+        xs = np.repeat(x[:, None, :], width, axis=1)
+        us = np.repeat(u[:, None, :], width, axis=1)
+        for i in range(n):
+            xs[:, 2 * i, i] += eps
+            xs[:, 2 * i + 1, i] -= eps
+        up = np.minimum(u + eps, self.upper)
+        down = np.maximum(u - eps, self.lower)
+        for j in range(m):
+            us[:, 2 * (n + j), j] = up[:, j]
+            us[:, 2 * (n + j) + 1, j] = down[:, j]
+        self._mujoco.mj_resetData(self.model, self.data)
+        size = self._mujoco.mj_stateSize(self.model, self._spec)
+        template = np.empty(size)
+        self._mujoco.mj_getState(self.model, self.data, template, self._spec)
+        initial = np.repeat(template[None, :], horizon * width, axis=0)
+        lo = self._qpos_at
+        initial[:, lo : lo + n] = xs.reshape(-1, n)
+        out, _ = mj_rollout.rollout(
+            self.model,
+            self.data,
+            initial,
+            us.reshape(-1, 1, m),
+            control_spec=int(self._mujoco.mjtState.mjSTATE_CTRL),
+            nstep=1,
+        )
+        nxt = out[:, 0, lo : lo + n].reshape(horizon, width, n)
+        a = np.empty((horizon, n, n))
+        b = np.empty((horizon, n, m))
+        for i in range(n):
+            a[:, :, i] = (nxt[:, 2 * i] - nxt[:, 2 * i + 1]) / (2 * eps)
+        for j in range(m):
+            span = (up[:, j] - down[:, j])[:, None]
+            b[:, :, j] = (nxt[:, 2 * (n + j)] - nxt[:, 2 * (n + j) + 1]) / span
         return a, b
 
 
@@ -681,6 +734,87 @@ class ExpertSolution:
     @property
     def expert_return(self) -> float:
         return float(self.trajectory.values[0])
+
+
+VALUE_MODES = ("return-to-go", "window")
+
+
+class OptimizingExpert:
+    """An expert oracle from a plant, a smooth cost, a warm-start controller and a state map.
+
+    Each request: roll the warm-start controller out from s0, refine with :class:`ILQR` within
+    ``time_budget`` seconds (less the slowest replay seen, so the whole request fits), then
+    replay the actions on the plant for the task's true rewards. Q_0 is the trajectory's H-step
+    return in both value modes; they differ for t > 0:
+
+    - ``"return-to-go"``: Q_t = r_t + ... + r_{H-1}. Q then depends on the time left, not only
+      on the state: a state held to the end (the pendulum upright) has Q = H - t, so one state
+      carries many values and no finite L fits the data.
+    - ``"window"``: Q_t = r_t + ... + r_{t+H-1}, the H-step value of s_t, the trajectory
+      continued past H by the warm-start controller. This is the stationary convention of the
+      lqr expert (V*(s_t) = H - J*(s_t)).
+
+    Stored states are ``represent(raw state)``.
+    """
+
+    def __init__(
+        self,
+        plant: PhysicsPlant,
+        cost: StageCost,
+        warm_start: Callable[[FloatArray], ArrayLike],
+        represent: Callable[[FloatArray], FloatArray],
+        *,
+        horizon: int,
+        time_budget: float,
+        max_iterations: int = 50,
+        values: str = "return-to-go",
+    ) -> None:
+        if values not in VALUE_MODES:
+            raise ValueError(f"values must be one of {', '.join(VALUE_MODES)}; got {values!r}")
+        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
+            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+        self.values = values
+        self.horizon = int(horizon)
+        self.time_budget = check_time_budget(time_budget)
+        self.max_iterations = int(max_iterations)
+        self.plant = plant
+        self.cost = cost
+        self.optimizer = ILQR(plant, cost)
+        self.warm_start = warm_start
+        self.represent = represent
+        self.max_slope_seen = 0.0
+        self.requests = 0
+        self._replay_seconds = 0.1  # grows to the slowest replay seen; kept out of the optimizer's budget
+
+    def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
+        x0 = self.plant.check_state(initial_state, "requested state")
+        steps = self.horizon if horizon is None or horizon == 0 else int(horizon)
+        result = self.optimizer.solve(
+            x0,
+            steps,
+            time_budget=max(self.time_budget - self._replay_seconds, 0.05 * self.time_budget),
+            initial_policy=self.warm_start,
+            max_iterations=self.max_iterations,
+        )
+        tick = time.perf_counter()
+        if self.values == "window":
+            raw, rewards = replay_rewards(self.plant, x0, result.actions, self.warm_start, steps - 1)
+            values = window_values(rewards, steps)
+        else:
+            raw, rewards = replay_rewards(self.plant, x0, result.actions)
+            values = return_to_go(rewards)
+        self._replay_seconds = max(self._replay_seconds, time.perf_counter() - tick)
+        self.max_slope_seen = max(self.max_slope_seen, result.max_value_slope)
+        self.requests += 1
+        trajectory = Trajectory(self.represent(raw), result.actions.copy(), values)
+        return ExpertSolution(trajectory, result, raw)
+
+    def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:
+        return self.solve(initial_state, horizon).trajectory
+
+    def slope_floor(self) -> float:
+        """max |W_x| over every request so far (the surrogate cost-to-go's slope; see TrajOptResult)."""
+        return self.max_slope_seen
 
 
 def time_trajectories(
