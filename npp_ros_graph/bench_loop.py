@@ -30,7 +30,6 @@ import numpy as np
 import rclpy
 from domain_coordinator import domain_id
 from npp_interfaces.msg import PlantDescription
-from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from npp_interfaces.srv import GetTrajectories
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -48,8 +47,15 @@ from npp_ros_graph.common import (
     POLICY_STATUS,
     SERVICE_QOS,
     STATE,
-    float64_array,
     run_node,
+)
+from npp_ros_graph.convert import (
+    action_to_joint_state,
+    plant_description,
+    stamp,
+    stamp_ns,
+    state_to_joint_state,
+    trajectory_to_msg,
 )
 
 CASES = (("lqr_2_1", 100), ("lqr_6_2", 1000))  # (task, trajectories): 10^5 points in 4-D, 10^6 in 12-D
@@ -65,13 +71,10 @@ class EchoNode(Node):
         self.create_subscription(JointState, STATE, self.on_state, CONTROL_QOS)
         self.action_dim = int(os.environ.get("NPP_BENCH_ACTION_DIM", "1"))
         self.names = [f"actuator{i}" for i in range(self.action_dim)]
+        self.zero = np.zeros(self.action_dim)
 
     def on_state(self, msg: JointState) -> None:
-        out = JointState()
-        out.header.stamp = msg.header.stamp
-        out.name = self.names
-        out.effort = [0.0] * self.action_dim
-        self.pub.publish(out)
+        self.pub.publish(action_to_joint_state(self.zero, self.names, msg.header.stamp))
 
 
 class Driver(Node):
@@ -81,17 +84,13 @@ class Driver(Node):
         super().__init__("npp_bench_driver", namespace=namespace)
         self.expert, self.data, self.task = expert, data, task
         plant = expert.plant
-        self.bodies = plant.bodies
+        self.joint_names = list(plant.joint_names)
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
         self.plant_pub = self.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
         self.create_subscription(JointState, ACTION, self.on_action, CONTROL_QOS)
         self.create_subscription(UInt32, POLICY_STATUS, self.on_status, LATCHED_QOS)
         self.create_service(GetTrajectories, DATASET_SERVICE, self.on_dataset, qos_profile=SERVICE_QOS)
-        self.plant_pub.publish(PlantDescription(
-            task=task, seed=seed, horizon=expert.horizon, timestep=plant.dt, state_dim=plant.state_dim,
-            action_dim=plant.action_dim, joint_names=list(plant.joint_names),
-            actuated_joint_names=list(plant.actuated_joint_names), model_sha256=plant.model_sha256(),
-        ))  # fmt: skip
+        self.plant_pub.publish(plant_description(plant, seed, expert.horizon))
         self.held = 0
         self.answer: JointState | None = None
         self.sent_ns = 0
@@ -106,24 +105,15 @@ class Driver(Node):
         response.lipschitz, response.lipschitz_source = lip.value, lip.source
         stop = min(total, request.start + (request.max_count or 50))
         for k in range(request.start, stop):
-            traj = self.data.trajectory(k)
-            response.trajectories.append(TrajectoryMsg(
-                index=k, state_dim=self.data.state_dim, action_dim=self.data.action_dim,
-                states=float64_array(traj.states.ravel()), actions=float64_array(traj.actions.ravel()),
-                values=float64_array(traj.values),
-            ))  # fmt: skip
+            response.trajectories.append(trajectory_to_msg(k, self.data.trajectory(k)))
         return response
 
     def on_action(self, msg: JointState) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        if stamp == self.sent_ns:
+        if stamp_ns(msg.header.stamp) == self.sent_ns:
             self.answer = msg
 
     def send(self, state: np.ndarray, step_ns: int) -> None:
-        msg = JointState()
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(step_ns, 1_000_000_000)
-        msg.position = float64_array(state[: self.bodies])
-        msg.velocity = float64_array(state[self.bodies :])
+        msg = state_to_joint_state(state, self.joint_names, stamp(step_ns))
         self.sent_ns = step_ns
         self.answer = None
         self.state_pub.publish(msg)

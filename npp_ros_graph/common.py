@@ -1,25 +1,23 @@
-"""What every npp_ros node shares: QoS, topic names, parameter declaration, conversions, main().
+"""What every npp_ros node shares: QoS, topic names, main() (parameters: parameters.py).
 
-Nodes convert messages to core types, call the core, and publish; nothing here does math.
+Nodes convert messages to core types (convert.py), call the core, and publish; nothing here does math.
 """
 
 from __future__ import annotations
 
+import itertools
 import sys
 import time
-from array import array
 from collections.abc import Callable, Sequence
-from typing import Any
 
-import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.exceptions import ParameterException
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
 
-from npp_ros.dataset import DatasetError, Trajectory
+from npp_ros_graph.parameters import StartupError
 
 # Topic and service names, relative so that the usual namespacing and remapping apply.
 STATE = "npp/state"
@@ -57,47 +55,29 @@ LATCHED_QOS = QoSProfile(
 )
 
 
-def declare(node: Node, name: str, default: Any, description: str, *, read_only: bool = True) -> Any:
-    """Declare a parameter with its descriptor and return its value."""
-    descriptor = ParameterDescriptor(description=description, read_only=read_only)
-    return node.declare_parameter(name, default, descriptor).value
+def _empty_parameter(args: Sequence[str]) -> str | None:
+    """The name in a `-p name:=` without a value, which rcl refuses with a traceback instead of a reason."""
+    for flag, rule in itertools.pairwise(args):
+        if flag in ("-p", "--param") and rule.endswith(":=") and rule[:-2]:
+            return rule[:-2]
+    return None
 
 
-def declare_all(node: Node, params: Sequence[tuple[str, Any, str]]) -> dict[str, Any]:
-    """Declare every parameter; a value of the wrong type (gamma:=1 for a float) is a StartupError."""
+def _init(args: list[str]) -> None:
+    """rclpy.init, with a one-line reason for arguments that are not ours or that rcl cannot read."""
+    empty = _empty_parameter(args[args.index("--ros-args") :] if "--ros-args" in args else [])
+    if empty is not None:
+        raise StartupError(f"parameter {empty} has no value; give one (-p {empty}:=VALUE) or leave it out")
     try:
-        return {name: declare(node, name, default, description) for name, default, description in params}
-    except ParameterException as exc:
+        rclpy.init(args=args)
+    except RCLError as exc:
+        raise StartupError(f"cannot read the ROS arguments: {str(exc).splitlines()[0]}") from None
+    stray = remove_ros_args(args)[1:]
+    if stray:
+        rclpy.try_shutdown()
         raise StartupError(
-            f"{exc} (types follow the defaults: {', '.join(f'{n}={d!r}' for n, d, _ in params)})"
-        ) from None
-
-
-def float64_array(values: Any) -> array[float]:
-    """A float64 array.array: the fast path of rosidl's sequence setters."""
-    out = array("d")
-    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
-    return out
-
-
-def parameter_help(params: Sequence[tuple[str, Any, str]]) -> str:
-    lines = ["parameters (--ros-args -p name:=value):"]
-    lines += [f"  {name:<18} {description} (default: {default!r})" for name, default, description in params]
-    return "\n".join(lines)
-
-
-def trajectory_arrays(states: Sequence[float], actions: Sequence[float], values: Sequence[float],
-                      state_dim: int, action_dim: int) -> Trajectory:  # fmt: skip
-    """Row-major message arrays -> a validated core Trajectory (raises DatasetError)."""
-    steps = len(values)
-    s = np.asarray(states, dtype=np.float64)
-    a = np.asarray(actions, dtype=np.float64)
-    if state_dim <= 0 or action_dim <= 0 or s.size != steps * state_dim or a.size != steps * action_dim:
-        raise DatasetError(
-            f"trajectory arrays do not fit: {steps} values, {s.size} state entries (state_dim {state_dim}), "
-            f"{a.size} action entries (action_dim {action_dim})"
+            f"unexpected argument {stray[0]!r}: parameters go after --ros-args as -p name:=value (see --help)"
         )
-    return Trajectory.validated(s.reshape(steps, state_dim), a.reshape(steps, action_dim), values)
 
 
 def run_node(factory: Callable[[], Node], argv: Sequence[str] | None = None, usage: str = "") -> int:
@@ -106,10 +86,10 @@ def run_node(factory: Callable[[], Node], argv: Sequence[str] | None = None, usa
     if any(a in ("-h", "--help") for a in args[1:]) and "--ros-args" not in args:
         print(usage)
         return 0
-    rclpy.init(args=args)
     node: Node | None = None
-    executor = SingleThreadedExecutor()
     try:
+        _init(args)
+        executor = SingleThreadedExecutor()
         node = factory()
         executor.add_node(node)
         executor.spin()
@@ -147,7 +127,3 @@ class ThrottledWarnings:
         extra = f" ({suppressed} more like it suppressed)" if suppressed else ""
         self.node.get_logger().warning(message + extra)
         self._last[kind] = (now, 0)
-
-
-class StartupError(RuntimeError):
-    """A node refuses to start; the message says why."""

@@ -16,7 +16,7 @@ import queue
 import sys
 import threading
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 from npp_interfaces.msg import PlantDescription
@@ -25,8 +25,10 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 
+from npp_ros.choices import check_gamma
 from npp_ros.dataset import Trajectory
 from npp_ros.lqr import MAX_HORIZON, LQRExpert
+from npp_ros.vectors import finite_vector
 from npp_ros_graph.common import (
     BUSY,
     EXPERT_SERVICE,
@@ -34,18 +36,29 @@ from npp_ros_graph.common import (
     NOT_READY,
     PLANT,
     SERVICE_QOS,
-    StartupError,
-    declare_all,
-    float64_array,
-    parameter_help,
     run_node,
 )
+from npp_ros_graph.convert import state_layout, trajectory_to_response
+from npp_ros_graph.parameters import Param, declare_settings, parameter_help
 
-PARAMETERS: list[tuple[str, Any, str]] = [
-    ("gamma", 1.0, "discount in (0, 1]; 1 = undiscounted H-step values V* = H - J*"),
-    ("max_horizon", 10000, f"largest horizon a request may ask for, in [1, {MAX_HORIZON}]"),
-    ("max_queue", 100, "requests that may wait for the worker; more are refused at once with 'busy:' (>= 1)"),
-]
+PARAMETERS = (
+    Param("gamma", 1.0, "discount, in (0, 1]; 1 = undiscounted H-step values V* = H - J*", 0.0, 1.0),
+    Param("max_horizon", 10000, "largest horizon a request may ask for", 1, MAX_HORIZON),
+    Param("max_queue", 100, "requests that may wait for the worker; more are refused at once with 'busy:'", 1),
+)
+
+
+@dataclass(frozen=True)
+class ExpertSettings:
+    """The expert's parameters; the core checks the discount."""
+
+    gamma: float
+    max_horizon: int
+    max_queue: int
+
+    def __post_init__(self) -> None:
+        check_gamma(self.gamma)
+
 
 USAGE = f"""npp-expert: the LQR expert oracle as a ROS 2 service (node "npp_expert").
 
@@ -64,8 +77,8 @@ serves      /{EXPERT_SERVICE} (npp_interfaces/srv/ExpertTrajectory)
 class ExpertNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_expert")
-        params = declare_all(self, PARAMETERS)
-        self.gamma, self.max_horizon, self.max_queue = self._validated(params)
+        settings = declare_settings(self, PARAMETERS, ExpertSettings)
+        self.gamma, self.max_horizon, self.max_queue = settings.gamma, settings.max_horizon, settings.max_queue
         self.waiting = 0  # accepted requests not yet answered (executor thread only)
         self.busy_refusals = 0
         self._jobs: queue.SimpleQueue[tuple[LQRExpert, np.ndarray, int, Future] | None] = queue.SimpleQueue()
@@ -89,18 +102,6 @@ class ExpertNode(Node):
             f"serving {self.resolve_service_name(EXPERT_SERVICE)} (gamma {self.gamma}, max_horizon {self.max_horizon}, "
             f"max_queue {self.max_queue})"
         )
-
-    @staticmethod
-    def _validated(params: dict[str, Any]) -> tuple[float, int, int]:
-        """All parameter checks in one place, so a bad launch fails at once with the reason."""
-        gamma, max_horizon, max_queue = params["gamma"], params["max_horizon"], params["max_queue"]
-        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 < float(gamma) <= 1.0:
-            raise StartupError(f"parameter gamma must be a number in (0, 1], got {gamma!r}")
-        if isinstance(max_horizon, bool) or not isinstance(max_horizon, int) or not 1 <= max_horizon <= MAX_HORIZON:
-            raise StartupError(f"parameter max_horizon must be an integer in [1, {MAX_HORIZON}], got {max_horizon!r}")
-        if isinstance(max_queue, bool) or not isinstance(max_queue, int) or max_queue < 1:
-            raise StartupError(f"parameter max_queue must be an integer >= 1, got {max_queue!r}")
-        return float(gamma), int(max_horizon), int(max_queue)
 
     # ------------------------------------------------------------------ plant
     def on_plant(self, desc: PlantDescription) -> None:
@@ -172,12 +173,7 @@ class ExpertNode(Node):
             self.waiting -= 1
         response.success = True
         response.message = f"{len(traj)} steps of {expert.task} seed {expert.seed}"
-        response.state_dim = expert.plant.state_dim
-        response.action_dim = expert.plant.action_dim
-        response.states = float64_array(traj.states.ravel())
-        response.actions = float64_array(traj.actions.ravel())
-        response.values = float64_array(traj.values)
-        return response
+        return trajectory_to_response(traj, response)
 
     def _work(self) -> None:
         """Worker thread: one trajectory at a time, in arrival order; wakes the executor when one is done."""
@@ -202,18 +198,11 @@ class ExpertNode(Node):
             return self.refusal
         if self.expert is None:
             return f"{NOT_READY} no plant description received yet from the sim on {self._plant_sub.topic_name}"
-        plant = self.expert.plant
-        n = plant.state_dim
-        layout = f"qpos then qvel of {plant.bodies} joints of {plant.task}"
-        if len(state) == 0:
-            return f"state is empty; expected {n} entries ({layout})"
-        if len(state) != n:
-            return f"state has {len(state)} entries, expected {n} ({layout})"
-        x = np.asarray(state, dtype=np.float64)
-        bad = np.flatnonzero(~np.isfinite(x))
-        if bad.size:
-            which = ", ".join(f"state[{i}] = {x[i]}" for i in bad[:5])
-            return f"state must be finite: {which}"
+        assert self.description is not None
+        try:
+            finite_vector(state, self.expert.plant.state_dim, "state", state_layout(self.description))
+        except ValueError as exc:
+            return str(exc)
         effective = horizon or self.expert.horizon
         if effective > self.max_horizon:
             what = f"horizon {horizon}" if horizon else f"the default horizon {effective} (the plant's)"

@@ -16,8 +16,10 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from npp_interfaces.srv import GetTrajectories
@@ -40,8 +42,9 @@ from npp_ros_graph.common import (
     STATE,
     ThrottledWarnings,
     run_node,
-    trajectory_arrays,
 )
+from npp_ros_graph.convert import action_to_joint_state, state_from_joint_state, trajectory_from_msg
+from npp_ros_graph.parameters import declare_settings
 
 CATCH_UP_TIMEOUT_S = 5.0  # a catch-up request unanswered this long is withdrawn and sent again
 REPORT_EVERY_S = 1.0
@@ -60,19 +63,24 @@ A state with wrong joint names or counts, or non-finite values, is refused with 
 """
 
 
+@dataclass(frozen=True)
+class PolicySettings:
+    """None: L and the data come from the supervisor, the plant from the sim (a stray -p is refused)."""
+
+
 class PolicyNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_policy")
+        declare_settings(self, (), PolicySettings)
         self.plant: PlantDescription | None = None
         self.dataset: Dataset | None = None
         self.policy: NonparametricPolicy | None = None
-        self.lipschitz: float | None = None
         self._catch_up_future = None
         self._catch_up_sent = 0.0
         self._catch_up_needed = True
         # The answer thread reads the dataset while the executor appends to it: one lock for both.
         self._data_lock = threading.Lock()
-        self._mailbox: JointState | None = None
+        self._mailbox: tuple[np.ndarray, Time] | None = None
         self._mail = threading.Condition()
         self._closing = False
         self.dropped = 0  # states overtaken by a newer one before they were answered
@@ -116,7 +124,7 @@ class PolicyNode(Node):
     def _append(self, msg: TrajectoryMsg) -> bool:
         assert self.dataset is not None
         try:
-            traj = trajectory_arrays(msg.states, msg.actions, msg.values, msg.state_dim, msg.action_dim)
+            _, traj = trajectory_from_msg(msg)
             with self._data_lock:
                 self.dataset.append(traj)
         except DatasetError as exc:
@@ -154,7 +162,6 @@ class PolicyNode(Node):
             self.get_logger().warning(f"catch-up failed: {getattr(response, 'message', 'no response')}")
             return
         if self.policy is None:
-            self.lipschitz = response.lipschitz
             assert self.dataset is not None
             with self._data_lock:
                 self.policy = NonparametricPolicy(self.dataset, response.lipschitz)
@@ -170,36 +177,26 @@ class PolicyNode(Node):
     # ---------------------------------------------------------------- acting
     def on_state(self, msg: JointState) -> None:
         """Executor side: validate and leave the state in the mailbox; an unanswered older one is dropped."""
-        problem = self._problem(msg)
-        if problem is not None:
+        try:
+            state = self._state(msg)
+        except ValueError as exc:
+            problem = str(exc)
             self._warn(problem.split(":")[0], f"state refused: {problem}")
             return
         with self._mail:
             if self._mailbox is not None:
                 self.dropped += 1
-            self._mailbox = msg
+            self._mailbox = (state, msg.header.stamp)
             self._mail.notify()
 
-    def _problem(self, msg: JointState) -> str | None:
-        """What is wrong with a state message, in words, or None if it can be answered."""
+    def _state(self, msg: JointState) -> np.ndarray:
+        """The state a message carries, if the policy can answer it; else a ValueError saying why not."""
         plant = self.plant
         if plant is None:
-            return "no plant description yet: cannot read states"
+            raise ValueError("no plant description yet: cannot read states")
         if self.policy is None or self.dataset is None or len(self.dataset) == 0:
-            return "no data yet: the policy has no action to give"
-        joints = list(plant.joint_names)
-        if len(msg.name) and list(msg.name) != joints:
-            return f"wrong joint names: {list(msg.name)}, expected {joints} (or none)"
-        if len(msg.position) != len(joints) or len(msg.velocity) != len(joints):
-            return (
-                f"wrong joint count: {len(msg.position)} positions and {len(msg.velocity)} velocities, "
-                f"expected {len(joints)} each for {plant.task}"
-            )
-        values = np.concatenate([np.asarray(msg.position, dtype=np.float64), np.asarray(msg.velocity)])
-        bad = np.flatnonzero(~np.isfinite(values))
-        if bad.size:
-            return "non-finite state: " + ", ".join(f"state[{i}] = {values[i]}" for i in bad[:5])
-        return None
+            raise ValueError("no data yet: the policy has no action to give")
+        return state_from_joint_state(msg, plant.joint_names)
 
     def _answer_loop(self) -> None:
         """Answer thread: always the newest state; whatever arrived meanwhile replaced it.
@@ -221,7 +218,7 @@ class PolicyNode(Node):
                 self._warm_index()
                 continue
             try:
-                self._answer(msg)
+                self._answer(*msg)
             except Exception as exc:  # the answer thread must outlive any single bad state
                 self.get_logger().error(f"could not answer a state: {type(exc).__name__}: {exc}")
 
@@ -232,16 +229,11 @@ class PolicyNode(Node):
         with self._data_lock:
             policy.index.sync()
 
-    def _answer(self, msg: JointState) -> None:
+    def _answer(self, state: np.ndarray, stamp: Time) -> None:
         assert self.policy is not None and self.plant is not None
-        state = np.concatenate([np.asarray(msg.position, dtype=np.float64), np.asarray(msg.velocity)])
         with self._data_lock:
             action = self.policy.act(state)
-        out = JointState()
-        out.header.stamp = msg.header.stamp
-        out.name = list(self.plant.actuated_joint_names)
-        out.effort = action.tolist()
-        self.action_pub.publish(out)
+        self.action_pub.publish(action_to_joint_state(action, self.plant.actuated_joint_names, stamp))
         self.answered += 1
 
     def report_dropped(self) -> None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -20,7 +20,8 @@ from npp_interfaces.srv import ResetEpisode
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from npp_ros.lqr import MAX_HORIZON, TASKS, LQRPlant, UnknownTaskError, check_task, episode_rng, sample_initial_state
+from npp_ros.lqr import MAX_HORIZON, TASKS, LQRPlant, check_horizon, check_task, episode_rng, sample_initial_state
+from npp_ros.vectors import finite_vector
 from npp_ros_graph.common import (
     ACTION,
     CONTROL_QOS,
@@ -31,20 +32,40 @@ from npp_ros_graph.common import (
     ROLLOUT_DONE,
     SERVICE_QOS,
     STATE,
-    StartupError,
     ThrottledWarnings,
-    declare_all,
-    float64_array,
-    parameter_help,
     run_node,
 )
+from npp_ros_graph.convert import (
+    action_from_joint_state,
+    float64_array,
+    plant_description,
+    rollout_result,
+    stamp,
+    state_to_joint_state,
+)
+from npp_ros_graph.parameters import Param, StartupError, declare_settings, parameter_help
 
-PARAMETERS: list[tuple[str, Any, str]] = [
-    ("task", "lqr_2_1", f"dm_control lqr task, one of {', '.join(sorted(TASKS))}"),
-    ("seed", 0, "task seed: the plant's stiffnesses depend on it; also seeds s0 ~ rho per episode"),
-    ("horizon", 1000, f"control steps per episode, in [1, {MAX_HORIZON}]"),
-    ("resend_after", 1.0, "seconds without an answer before the current state is sent again (0 = never)"),
-]
+PARAMETERS = (
+    Param("task", "lqr_2_1", "dm_control lqr task", choices=tuple(sorted(TASKS))),
+    Param("seed", 0, "task seed: the plant's stiffnesses depend on it; also seeds s0 ~ rho per episode", 0, 2**32 - 1),
+    Param("horizon", 1000, "control steps per episode", 1, MAX_HORIZON),
+    Param("resend_after", 1.0, "seconds without an answer before the current state is sent again (0 = never)", 0.0),
+)
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """The sim's parameters; the core checks the task's name and the horizon."""
+
+    task: str
+    seed: int
+    horizon: int
+    resend_after: float
+
+    def __post_init__(self) -> None:
+        check_task(self.task)
+        check_horizon(self.horizon)
+
 
 USAGE = f"""npp-sim: the lqr plant in lockstep (node "npp_sim").
 
@@ -65,23 +86,24 @@ serves      /{RESET_SERVICE} (npp_interfaces/srv/ResetEpisode: empty state = sam
 """
 
 
-def _stamp(nanoseconds: int) -> Time:
-    return Time(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
-
-
 class SimNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_sim")
-        params = declare_all(self, PARAMETERS)
-        self.task, self.seed, self.horizon, self.resend_after = self._validated(params)
+        settings = declare_settings(self, PARAMETERS, SimSettings)
+        self.task, self.seed, self.horizon, self.resend_after = (
+            settings.task,
+            settings.seed,
+            settings.horizon,
+            settings.resend_after,
+        )
         self.plant: LQRPlant | None = None
         self.dt_ns = 0
-        # The running episode; `stamp` is the last published state's time, None when no episode runs.
+        # The running episode; `state_stamp` is the last published state's time, None when no episode runs.
         self.episode = 0
         self.steps = 0
         self.episode_return = 0.0
         self.initial_state = np.zeros(0)
-        self.stamp: Time | None = None
+        self.state_stamp: Time | None = None
         self._last_state: JointState | None = None
         self._last_sent = 0.0
         self.ignored_actions = 0
@@ -95,23 +117,6 @@ class SimNode(Node):
         if self.resend_after > 0:
             self.create_timer(min(self.resend_after, 0.25), self._resend_if_unanswered)
 
-    @staticmethod
-    def _validated(params: dict[str, Any]) -> tuple[str, int, int, float]:
-        """All parameter checks in one place, so a bad launch fails at once with the reason."""
-        task, seed, horizon = params["task"], params["seed"], params["horizon"]
-        try:
-            check_task(str(task))
-        except UnknownTaskError as exc:
-            raise StartupError(f"parameter task: {exc}") from None
-        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:
-            raise StartupError(f"parameter seed must be an integer in [0, 2^32), got {seed!r}")
-        if isinstance(horizon, bool) or not isinstance(horizon, int) or not 1 <= horizon <= MAX_HORIZON:
-            raise StartupError(f"parameter horizon must be an integer in [1, {MAX_HORIZON}], got {horizon!r}")
-        resend_after = params["resend_after"]
-        if not 0 <= resend_after < float("inf"):
-            raise StartupError(f"parameter resend_after must be >= 0 seconds, got {resend_after!r}")
-        return str(task), int(seed), int(horizon), float(resend_after)
-
     def _build(self) -> None:
         self._build_timer.cancel()
         self.destroy_timer(self._build_timer)
@@ -121,18 +126,7 @@ class SimNode(Node):
             raise StartupError(f"cannot build the plant {self.task} seed {self.seed}: {exc}") from exc
         self.plant = plant
         self.dt_ns = round(plant.dt * 1e9)
-        desc = PlantDescription(
-            task=self.task,
-            seed=self.seed,
-            horizon=self.horizon,
-            timestep=plant.dt,
-            state_dim=plant.state_dim,
-            action_dim=plant.action_dim,
-            joint_names=list(plant.joint_names),
-            actuated_joint_names=list(plant.actuated_joint_names),
-            model_sha256=plant.model_sha256(),
-        )
-        self.plant_pub.publish(desc)
+        self.plant_pub.publish(plant_description(plant, self.seed, self.horizon))
         self.get_logger().info(
             f"plant {self.task} seed {self.seed} ready: joints {plant.joint_names}, "
             f"actuated {plant.actuated_joint_names}, dt {plant.dt} s, horizon {self.horizon}"
@@ -158,20 +152,15 @@ class SimNode(Node):
         plant = self.plant
         if plant is None:
             return f"the plant {self.task} seed {self.seed} is still being built; retry shortly"
-        n = plant.state_dim
         if len(request.state) == 0:
             s0 = sample_initial_state(self.task, episode_rng(self.seed, request.episode))
         else:
-            s0 = np.asarray(request.state, dtype=np.float64)
-            if s0.shape != (n,):
-                return (
-                    f"state has {s0.size} entries, expected {n} (qpos then qvel of {plant.bodies} joints of "
-                    f"{self.task}), or none to sample s0"
-                )
-            bad = np.flatnonzero(~np.isfinite(s0))
-            if bad.size:
-                return "state must be finite: " + ", ".join(f"state[{i}] = {s0[i]}" for i in bad[:5])
-        if self.stamp is not None:
+            layout = f"qpos then qvel of {plant.bodies} joints of {self.task}, or none to sample s0"
+            try:
+                s0 = finite_vector(request.state, plant.state_dim, "state", layout)
+            except ValueError as exc:
+                return str(exc)
+        if self.state_stamp is not None:
             self.get_logger().info(f"episode {self.episode} abandoned after {self.steps} steps by a reset")
         self.initial_state = plant.reset(s0)
         self.episode = int(request.episode)
@@ -194,22 +183,18 @@ class SimNode(Node):
     def _step(self, msg: JointState) -> str | None:
         """Apply the action if it answers the current state; else say why not."""
         plant = self.plant
-        if plant is None or self.stamp is None:
+        if plant is None or self.state_stamp is None:
             return "no episode is running (reset the sim first)"
         got = (msg.header.stamp.sec, msg.header.stamp.nanosec)
-        want = (self.stamp.sec, self.stamp.nanosec)
+        want = (self.state_stamp.sec, self.state_stamp.nanosec)
         if got != want:
             return (
                 f"stale: it answers the state stamped {got[0]}.{got[1]:09d}, the current one is {want[0]}.{want[1]:09d}"
             )
-        if len(msg.name) and list(msg.name) != plant.actuated_joint_names:
-            return f"wrong joint names: {list(msg.name)}, expected {plant.actuated_joint_names} (or none)"
-        u = np.asarray(msg.effort, dtype=np.float64)
-        if u.shape != (plant.action_dim,):
-            return f"wrong effort length: {u.size} entries, expected {plant.action_dim} for {self.task}"
-        bad = np.flatnonzero(~np.isfinite(u))
-        if bad.size:
-            return "non-finite effort: " + ", ".join(f"effort[{i}] = {u[i]}" for i in bad[:5])
+        try:
+            u = action_from_joint_state(msg, plant.actuated_joint_names)
+        except ValueError as exc:
+            return str(exc)
         self.episode_return += plant.step(u)
         self.steps += 1
         if self.steps >= self.horizon:
@@ -220,15 +205,8 @@ class SimNode(Node):
 
     def _publish_state(self) -> None:
         assert self.plant is not None
-        x = self.plant.state()
-        b = self.plant.bodies
-        self.stamp = _stamp(self.steps * self.dt_ns)
-        msg = JointState()
-        msg.header.stamp = self.stamp
-        msg.name = list(self.plant.joint_names)
-        msg.position = float64_array(x[:b])
-        msg.velocity = float64_array(x[b:])
-        self._send(msg)
+        self.state_stamp = stamp(self.steps * self.dt_ns)
+        self._send(state_to_joint_state(self.plant.state(), self.plant.joint_names, self.state_stamp))
 
     def _send(self, msg: JointState) -> None:
         self._last_state, self._last_sent = msg, time.monotonic()
@@ -236,7 +214,7 @@ class SimNode(Node):
 
     def _resend_if_unanswered(self) -> None:
         """Lockstep watchdog: a policy that (re)joins mid-episode never saw the pending state."""
-        if self.stamp is None or self._last_state is None:
+        if self.state_stamp is None or self._last_state is None:
             return
         if time.monotonic() - self._last_sent >= self.resend_after:
             self.get_logger().info(
@@ -246,17 +224,10 @@ class SimNode(Node):
             self._send(self._last_state)
 
     def _finish(self) -> None:
-        result = EpisodeResult(
-            episode=self.episode,
-            policy_return=self.episode_return,
-            steps=self.steps,
-            initial_state=float64_array(self.initial_state),
-            expert_value_known=False,
-            expert_value=0.0,
-            v_lb=0.0,
+        result = rollout_result(
+            self.episode, self.episode_return, self.steps, self.initial_state, stamp(self.steps * self.dt_ns)
         )
-        result.header.stamp = _stamp(self.steps * self.dt_ns)
-        self.stamp = None  # no more states until the next reset
+        self.state_stamp = None  # no more states until the next reset
         self.done_pub.publish(result)
         self.get_logger().info(
             f"episode {self.episode} done: {self.steps} steps, return {self.episode_return:.3f}"

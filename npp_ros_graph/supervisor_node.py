@@ -10,11 +10,10 @@ certificate latched. Restarted on the same run folder, it resumes where the file
 from __future__ import annotations
 
 import csv
-import math
 import sys
 import threading
 import time
-from dataclasses import asdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import rclpy
@@ -27,11 +26,23 @@ from rclpy.node import Node
 from std_msgs.msg import UInt32
 
 from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import Certificate, CertificationStatus
+from npp_ros.certification import (
+    CERTIFY_MODES,
+    CONDITIONS,
+    STOPPING_RULES,
+    Certificate,
+    CertificationSpec,
+    CertificationStatus,
+    CheckedQuantity,
+    Condition,
+    StoppingRule,
+)
+from npp_ros.choices import LIPSCHITZ_NAMED, parse_lipschitz
 from npp_ros.dataset import FloatArray, Trajectory
-from npp_ros.inprocess import build_config, initial_state_fn, resolve_lipschitz
-from npp_ros.loop import NPPLoop, Observer
-from npp_ros.lqr import PAPER_EPSILON, LQRExpert
+from npp_ros.inprocess import build_config, initial_state_fn, resolve_lipschitz, value_basis
+from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.loop import NPPLoop, Observer, RunConfig
+from npp_ros.lqr import PAPER_EPSILON, LQRExpert, initial_state_diameter
 from npp_ros.storage import EpisodeRow, RunStore
 from npp_ros_graph.common import (
     BUSY,
@@ -49,26 +60,71 @@ from npp_ros_graph.common import (
     RESET_SERVICE,
     ROLLOUT_DONE,
     SERVICE_QOS,
-    StartupError,
-    declare_all,
-    parameter_help,
     run_node,
-    trajectory_arrays,
 )
+from npp_ros_graph.convert import (
+    certificate_to_msg,
+    episode_result,
+    float64_array,
+    gap_report,
+    trajectory_from_response,
+    trajectory_to_msg,
+)
+from npp_ros_graph.parameters import Param, declare_settings, parameter_help
 
-PARAMS: list[tuple[str, object, str]] = [
-    ("epsilon", 0.0, "target suboptimality > 0; 0 means the paper's value for the task (50 / 300)"),
-    ("lipschitz", "analytic", "L: 'analytic' (a true bound), 'paper' (50 / 200, not a bound) or a number"),
-    ("condition", "i", "Theorem 4.1 condition: i or ii"),
-    ("p", 0.9, "probability level of condition (i)"),
-    ("delta", 0.1, "confidence"),
-    ("max_episodes", 1000, "stop uncertified after this many episodes"),
-    ("run_dir", "runs/graph", "run folder: run.sqlite, gaps.csv, episodes.csv"),
-    ("expert_timeout", 30.0, "seconds one expert attempt may take (a busy or not-ready expert is asked again)"),
-    ("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops with an error"),
-    ("rollouts", True, "let the policy drive each episode through the sim"),
-    ("rollout_timeout", 120.0, "seconds to wait for the policy's episode before skipping its return"),
-]
+PARAMETERS = (
+    Param("epsilon", 0.0, "target gap; 0 = the paper's value for the task (50 for lqr_2_1, 300 for lqr_6_2)", 0.0),
+    Param("lipschitz", "analytic", "L: analytic (bounds V*'s slope on the expert's states), paper (50 / 200, not a "
+          "bound) or a number > 0", choices=(*LIPSCHITZ_NAMED, "a number > 0")),
+    Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
+    Param("certify", "rollout", "the checked quantity (surrogate is the paper's)", choices=CERTIFY_MODES),
+    Param("rule", "sequential", "stopping rule: sequential (valid however often it looks) or the paper's",
+          choices=STOPPING_RULES),
+    Param("p", 0.9, "condition (i): share of initial states within epsilon, in (0, 1)", 0.0, 1.0),
+    Param("delta", 0.1, "the claim holds with probability >= 1 - delta, in (0, 1)", 0.0, 1.0),
+    Param("max_episodes", 1000, "stop uncertified after this many episodes", 1),
+    Param("run_dir", "runs/graph", "run folder: run.sqlite, gaps.csv, episodes.csv"),
+    Param("expert_timeout", 30.0, "seconds one expert attempt may take (a busy or not-ready expert is asked again)",
+          1e-3),
+    Param("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops", 1),
+    Param("rollouts", True, "let the policy drive each episode through the sim (the sound checks need it)"),
+    Param("rollout_timeout", 120.0, "seconds to wait for the policy's episode before skipping its return", 1e-3),
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SupervisorSettings:
+    """The supervisor's parameters, checked at start by the constructors the run uses.
+
+    CertificationSpec checks condition, certify, rule, p, delta and epsilon (a stand-in for 0, the
+    paper's value, which depends on the task the sim will name); parse_lipschitz reads L once.
+    """
+
+    epsilon: float
+    lipschitz: str | LipschitzConstant
+    condition: Condition
+    certify: CheckedQuantity
+    rule: StoppingRule
+    p: float
+    delta: float
+    max_episodes: int
+    run_dir: str
+    expert_timeout: float
+    expert_retries: int
+    rollouts: bool
+    rollout_timeout: float
+
+    def __post_init__(self) -> None:
+        if not self.run_dir.strip():
+            raise ValueError("run_dir must name a folder")
+        lipschitz = parse_lipschitz(self.lipschitz) if isinstance(self.lipschitz, str) else self.lipschitz
+        object.__setattr__(self, "lipschitz", lipschitz)
+        CertificationSpec(
+            self.condition, self.epsilon or min(PAPER_EPSILON.values()), self.p, self.delta,
+            lipschitz.value if isinstance(lipschitz, LipschitzConstant) else 1.0,
+            initial_state_diameter(), certify=self.certify, rule=self.rule,
+        )  # fmt: skip
+
 
 USAGE = f"""npp-supervisor: Algorithm 1 over the ROS graph (ROS 2 node "npp_supervisor").
 
@@ -76,7 +132,7 @@ subscribes  /{PLANT} (latched), /{ROLLOUT_DONE}, /{POLICY_STATUS}
 publishes   /{GAP} (GapReport), /{EPISODE} (EpisodeResult), /{CERTIFICATE} (latched), /{DATASET_TOPIC}
 calls       /{EXPERT_SERVICE}, /{RESET_SERVICE}
 serves      /{DATASET_SERVICE}
-{parameter_help(PARAMS)}
+{parameter_help(PARAMETERS)}
 """
 
 
@@ -90,8 +146,7 @@ class ExpertUnavailable(RuntimeError):
 class SupervisorNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_supervisor")
-        values = declare_all(self, PARAMS)
-        self.settings = self._validated(values)
+        self.settings = declare_settings(self, PARAMETERS, SupervisorSettings)
         self.loop: NPPLoop | None = None
         self.plant: PlantDescription | None = None
         self.stop = threading.Event()
@@ -111,33 +166,6 @@ class SupervisorNode(Node):
         self.worker: threading.Thread | None = None
         self.exit_code = 0
         self.get_logger().info("waiting for the sim's plant description")
-
-    @staticmethod
-    def _validated(values: dict) -> dict:
-        """All parameter checks in one place; a bad value refuses to start with the reason."""
-        if values["condition"] not in ("i", "ii"):
-            raise StartupError(f"parameter condition must be 'i' or 'ii', got {values['condition']!r}")
-        for name in ("p", "delta"):
-            if not 0 < float(values[name]) < 1:
-                raise StartupError(f"parameter {name} must lie in (0, 1), got {values[name]!r}")
-        if not 0 <= float(values["epsilon"]) < math.inf:
-            raise StartupError(f"parameter epsilon must be > 0 (or 0 for the paper's value), got {values['epsilon']!r}")
-        for name in ("max_episodes", "expert_retries"):
-            if int(values[name]) < 1:
-                raise StartupError(f"parameter {name} must be >= 1, got {values[name]!r}")
-        for name in ("expert_timeout", "rollout_timeout"):
-            if not 0 < float(values[name]) < math.inf:
-                raise StartupError(f"parameter {name} must be a number of seconds > 0, got {values[name]!r}")
-        lipschitz = str(values["lipschitz"])
-        if lipschitz not in ("analytic", "paper"):
-            try:
-                if not 0 < float(lipschitz) < math.inf:
-                    raise ValueError
-            except ValueError:
-                raise StartupError(
-                    f"parameter lipschitz must be 'analytic', 'paper' or a finite number > 0, got {lipschitz!r}"
-                ) from None
-        return values
 
     # ---------------------------------------------------------------- graph inputs
     def on_plant(self, msg: PlantDescription) -> None:
@@ -171,7 +199,7 @@ class SupervisorNode(Node):
         response.lipschitz = loop.config.lipschitz.value
         response.lipschitz_source = loop.config.lipschitz.source
         response.trajectories = [
-            trajectory_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
+            trajectory_to_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
         ]
         return response
 
@@ -191,24 +219,27 @@ class SupervisorNode(Node):
         expert = LQRExpert(task, plant.seed, horizon=plant.horizon)  # for L's analytic bound and V*(s0)
         if expert.plant.model_sha256() != plant.model_sha256:
             raise RuntimeError("the sim's plant differs from the task's model: refusing to certify")
-        epsilon = float(s["epsilon"]) if float(s["epsilon"]) > 0 else PAPER_EPSILON[task]
-        lipschitz = resolve_lipschitz(task, str(s["lipschitz"]), expert)
+        epsilon = s.epsilon or PAPER_EPSILON[task]
+        lipschitz = (
+            s.lipschitz if isinstance(s.lipschitz, LipschitzConstant) else resolve_lipschitz(task, s.lipschitz, expert)
+        )
         config = build_config(
             task, plant.seed, lipschitz, epsilon,
-            condition=s["condition"], p=float(s["p"]), delta=float(s["delta"]), horizon=plant.horizon,
+            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=s.certify, rule=s.rule,
         )  # fmt: skip
-        run_dir = Path(str(s["run_dir"]))
+        run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         store = RunStore.open_or_create(run_dir / "run.sqlite", config.metadata())  # RunFileError: refuse
-        reporter = GraphReporter(self, run_dir, config.spec().quiet_episodes_required())
+        reporter = GraphReporter(self, config, run_dir)
         self.loop = NPPLoop(
             config,
-            RosExpert(self, plant, float(s["expert_timeout"]), int(s["expert_retries"])),
+            RosExpert(self, plant, s.expert_timeout, s.expert_retries),
             initial_state_fn(task, plant.seed),
             store=store,
-            driver=RosRollouts(self, float(s["rollout_timeout"])) if s["rollouts"] else None,
+            driver=RosRollouts(self, s.rollout_timeout) if s.rollouts else None,
             observers=[reporter],
             expert_value=expert.value,
+            basis=value_basis(expert, lipschitz.value),
         )
         loop = self.loop
         self.get_logger().info(
@@ -216,10 +247,10 @@ class SupervisorNode(Node):
             f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
         )
         for k in range(loop.dataset.num_trajectories):  # a restarted policy may also listen here
-            self.trajectory_pub.publish(trajectory_msg(k, loop.dataset.trajectory(k)))
+            self.trajectory_pub.publish(trajectory_to_msg(k, loop.dataset.trajectory(k)))
         if loop.certificate is not None:
             reporter.on_certificate(loop.certificate)
-        while not self.stop.is_set() and loop.certificate is None and loop.next_episode < int(s["max_episodes"]):
+        while not self.stop.is_set() and loop.certificate is None and loop.next_episode < s.max_episodes:
             loop.run_episode()
         if loop.certificate is None:
             self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
@@ -237,16 +268,6 @@ class SupervisorNode(Node):
         return future.result()
 
 
-def trajectory_msg(index: int, traj: Trajectory) -> TrajectoryMsg:
-    msg = TrajectoryMsg()
-    msg.index = index
-    msg.state_dim, msg.action_dim = traj.states.shape[1], traj.actions.shape[1]
-    msg.states = traj.states.ravel().tolist()
-    msg.actions = traj.actions.ravel().tolist()
-    msg.values = traj.values.tolist()
-    return msg
-
-
 class RosExpert:
     """The oracle over /npp/expert/trajectory: a deadline per call, retries, clear failure."""
 
@@ -259,9 +280,7 @@ class RosExpert:
         for attempt in range(1, self.retries + 1):
             response, last = self._attempt(initial_state)
             if response is not None:
-                return trajectory_arrays(
-                    response.states, response.actions, response.values, response.state_dim, response.action_dim
-                )
+                return trajectory_from_response(response)
             log.warning(f"expert call {attempt}/{self.retries} failed: {last}")
             if attempt < self.retries:
                 self.node.stop.wait(min(self.timeout, RETRY_PAUSE_S * 2 ** (attempt - 1)))
@@ -275,7 +294,7 @@ class RosExpert:
         """
         deadline = time.monotonic() + self.timeout
         pause = RETRY_PAUSE_S
-        request = ExpertTrajectory.Request(state=initial_state.tolist(), horizon=0)
+        request = ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0)
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not self.node.expert.wait_for_service(timeout_sec=remaining):
@@ -313,7 +332,7 @@ class RosRollouts:
         if not node.reset.wait_for_service(timeout_sec=self.timeout):
             log.warning(f"episode {episode}: sim reset service unavailable; no rollout this episode")
             return None
-        request = ResetEpisode.Request(state=initial_state.tolist(), episode=episode)
+        request = ResetEpisode.Request(state=float64_array(initial_state), episode=episode)
         response = node.call(node.reset, request, self.timeout)
         if response is None or not response.success:
             log.warning(f"episode {episode}: sim reset failed: {getattr(response, 'message', 'no answer')}")
@@ -334,9 +353,8 @@ class RosRollouts:
 class GraphReporter(Observer):
     """Publishes gap reports, episode results and the certificate; appends the CSV logs."""
 
-    def __init__(self, node: SupervisorNode, run_dir: Path, quiet_required: int) -> None:
-        self.node = node
-        self.quiet_required = quiet_required
+    def __init__(self, node: SupervisorNode, config: RunConfig, run_dir: Path) -> None:
+        self.node, self.config = node, config
         self.gap_log = run_dir / "gaps.csv"
         self.episode_log = run_dir / "episodes.csv"
 
@@ -352,29 +370,9 @@ class GraphReporter(Observer):
     def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
         node = self.node
         stamp = node.get_clock().now().to_msg()
-        gap = GapReport()
-        gap.header.stamp = stamp
-        gap.episode = row.episode
-        gap.initial_state = list(row.initial_state)
-        gap.v_lb, gap.v_ub, gap.gap = row.v_lb, row.v_ub, row.gap
-        gap.epsilon = node.loop.config.epsilon if node.loop else float("nan")
-        gap.oracle_called = row.oracle_called
-        gap.dataset_size = row.dataset_size
-        gap.oracle_calls = row.oracle_calls
-        gap.quiet_episodes = row.quiet_episodes
-        gap.quiet_required = status.required
-        gap.condition = node.loop.config.condition if node.loop else ""
+        gap = gap_report(row, self.config, stamp)
         node.gap_pub.publish(gap)
-        result = EpisodeResult()
-        result.header.stamp = stamp
-        result.episode = row.episode
-        result.policy_return = row.policy_return if row.policy_return is not None else float("nan")
-        result.steps = node.plant.horizon if row.policy_return is not None and node.plant else 0
-        result.initial_state = list(row.initial_state)
-        result.expert_value_known = row.expert_value is not None
-        result.expert_value = row.expert_value if row.expert_value is not None else 0.0
-        result.v_lb = row.v_lb
-        node.episode_pub.publish(result)
+        node.episode_pub.publish(episode_result(row, self.config.horizon, stamp))
         self._append(
             self.gap_log,
             ["episode", "gap", "v_lb", "v_ub", "epsilon", "oracle_called", "dataset_size", "oracle_calls", "quiet"],
@@ -389,18 +387,10 @@ class GraphReporter(Observer):
         )  # fmt: skip
 
     def on_trajectory(self, index: int, trajectory: Trajectory) -> None:
-        self.node.trajectory_pub.publish(trajectory_msg(index, trajectory))
+        self.node.trajectory_pub.publish(trajectory_to_msg(index, trajectory))
 
     def on_certificate(self, certificate: Certificate) -> None:
-        msg = CertificateMsg()
-        msg.header.stamp = self.node.get_clock().now().to_msg()
-        for name, value in asdict(certificate).items():
-            if name in ("task", "window", "required"):
-                continue
-            setattr(msg, name, value)
-        msg.quiet_episodes = certificate.window
-        msg.episodes_required = certificate.required
-        self.node.certificate_pub.publish(msg)
+        self.node.certificate_pub.publish(certificate_to_msg(certificate, self.node.get_clock().now().to_msg()))
         self.node.get_logger().info("\n" + certificate.summary())
 
 

@@ -22,6 +22,7 @@ import hashlib
 import math
 import string
 import subprocess
+import sys
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -111,7 +112,8 @@ def graph(launch_module: Launcher, ros_client_module: Callable[..., RosClient], 
         "sim": {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON},
         "expert": {},
         "policy": {},
-        "supervisor": {"run_dir": str(run_dir), "max_episodes": 400},
+        # The paper's check and rule certify this short-horizon graph quickly; the inputs below are what is tested.
+        "supervisor": {"run_dir": str(run_dir), "max_episodes": 400, "certify": "surrogate", "rule": "paper"},
     }
     for name, values in params.items():
         g.procs[name] = launch_module(f"npp_ros_graph.{name}_node", values, namespace=ns)
@@ -221,7 +223,7 @@ def test_policy_logged_each_kind_and_still_drives_an_episode(
     graph: Graph, policy_io: tuple[Publisher, list[JointState]]
 ) -> None:
     log = graph.launch.log(graph.procs["policy"])
-    for kind in ("wrong joint names", "wrong joint count", "non-finite state"):
+    for kind in ("wrong joint names", "wrong joint count", "state must be finite"):
         assert f"state refused: {kind}" in log
     results = graph.client.collect(EpisodeResult, ROLLOUT_DONE, REPORT_QOS)
     reset = graph.client.client(ResetEpisode, RESET_SERVICE, TIMEOUT)
@@ -306,8 +308,8 @@ def test_sim_ignores_malformed_actions_and_the_plant_does_not_move(
 
 def test_sim_logged_each_kind_and_is_alive(sim_alone: SimAlone, launch_module: Launcher) -> None:
     log = launch_module.log(sim_alone.proc)
-    for kind in ("stale", "wrong joint names", "wrong effort length", "non-finite effort"):
-        assert f"ignored an action: {kind}" in log
+    for kinds in (["stale"], ["wrong joint names"], ["effort has", "effort is empty"], ["effort must be finite"]):
+        assert any(f"ignored an action: {kind}" in log for kind in kinds), kinds
     launch_module.assert_alive(sim_alone.proc)
 
 
@@ -320,21 +322,21 @@ def quoted(text: str) -> str:
 NEGATIVE = st.floats(max_value=-1e-3, min_value=-1e9)
 OUTSIDE_UNIT = st.one_of(NEGATIVE, st.just(0.0), st.floats(min_value=1.0, max_value=1e6))
 BAD_SIM_PARAMS = st.one_of(
-    NAMES.filter(lambda t: t not in ("lqr_2_1", "lqr_6_2")).map(lambda t: ({"task": quoted(t)}, "parameter task")),
+    NAMES.filter(lambda t: t not in ("lqr_2_1", "lqr_6_2")).map(lambda t: ({"task": quoted(t)}, "unknown task")),
     st.integers(-(2**31), 0).map(lambda h: ({"horizon": h}, "parameter horizon must be an integer")),
     st.integers(100_001, 2**31).map(lambda h: ({"horizon": h}, "parameter horizon must be an integer")),
 )  # fmt: skip
 BAD_EXPERT_PARAMS = st.one_of(
-    OUTSIDE_UNIT.filter(lambda g: g != 1.0).map(lambda g: ({"gamma": g}, "parameter gamma must be a number in (0, 1]")),
+    OUTSIDE_UNIT.filter(lambda g: g != 1.0).map(lambda g: ({"gamma": g}, "gamma must")),
     st.integers(-1000, 0).map(lambda h: ({"max_horizon": h}, "parameter max_horizon must be an integer")),
-    st.integers(-1000, 0).map(lambda q: ({"max_queue": q}, "parameter max_queue must be an integer >= 1")),
+    st.integers(-1000, 0).map(lambda q: ({"max_queue": q}, "parameter max_queue must be an integer in [1, inf]")),
 )
 BAD_SUPERVISOR_PARAMS = st.one_of(
-    NEGATIVE.map(lambda e: ({"epsilon": e}, "parameter epsilon must be > 0")),
-    st.one_of(NEGATIVE, st.just(0.0)).map(lambda v: ({"lipschitz": quoted(repr(v))}, "parameter lipschitz must be")),
-    OUTSIDE_UNIT.map(lambda v: ({"p": v}, "parameter p must lie in (0, 1)")),
-    OUTSIDE_UNIT.map(lambda v: ({"delta": v}, "parameter delta must lie in (0, 1)")),
-    NAMES.filter(lambda c: c not in ("i", "ii")).map(lambda c: ({"condition": quoted(c)}, "parameter condition")),
+    NEGATIVE.map(lambda e: ({"epsilon": e}, "parameter epsilon must be a number in [0, inf]")),
+    st.one_of(NEGATIVE, st.just(0.0)).map(lambda v: ({"lipschitz": quoted(repr(v))}, "lipschitz must be")),
+    OUTSIDE_UNIT.map(lambda v: ({"p": v}, "p must")),
+    OUTSIDE_UNIT.map(lambda v: ({"delta": v}, "delta must")),
+    NAMES.filter(lambda c: c not in ("i", "ii")).map(lambda c: ({"condition": quoted(c)}, "condition must be")),
 )
 
 
@@ -361,6 +363,38 @@ def test_bad_parameters_refuse_to_start_with_the_reason(
         tried[f"parameters: {name}"] += 1
     assert sha256(graph.run_file) == graph.run_hash
     graph.all_alive()
+
+
+@pytest.mark.parametrize(
+    ("node", "extra", "parameter", "reason"),
+    [
+        ("sim", [], "horizn:=50", "unknown parameter 'horizn'; did you mean 'horizon'?"),
+        ("policy", [], "lipschitz:=3.0", "unknown parameter 'lipschitz'; known: none"),
+        ("supervisor", [], "run_dir:=", "parameter run_dir has no value"),
+        ("expert", ["stray"], "gamma:=0.5", "unexpected argument 'stray'"),
+    ],
+)
+def test_unknown_empty_and_stray_arguments_are_refused_in_one_line(
+    node: str, extra: list[str], parameter: str, reason: str
+) -> None:
+    cmd = [sys.executable, "-m", f"npp_ros_graph.{node}_node", *extra, "--ros-args", "-r", "__ns:=/refused"]
+    done = subprocess.run([*cmd, "-p", parameter], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert reason in done.stderr and "Traceback" not in done.stderr, done.stderr
+    tried["parameters: refused names and arguments"] += 1
+
+
+def test_whole_numbers_are_accepted_for_float_and_number_parameters(launch_module: Launcher, tmp_path: Path) -> None:
+    """`-p lipschitz:=300 -p epsilon:=30` (integers on the command line) start a supervisor; it waits for a sim."""
+    params = {"lipschitz": 300, "epsilon": 30, "run_dir": str(tmp_path / "run")}
+    proc = launch_module("npp_ros_graph.supervisor_node", params, namespace="/accepts")
+    deadline = time.monotonic() + 120
+    while "waiting for the sim's plant description" not in launch_module.log(proc):
+        launch_module.assert_alive(proc)
+        assert time.monotonic() < deadline, launch_module.log(proc)
+        time.sleep(0.2)
+    launch_module.assert_alive(proc)
+    assert launch_module.stop(proc) == 0, launch_module.log(proc)
 
 
 # ----------------------------------------------------------------------------- run file for other dims

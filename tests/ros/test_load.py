@@ -40,7 +40,7 @@ from npp_ros_graph.common import (
     REPORT_QOS,
     STATE,
 )
-from npp_ros_graph.supervisor_node import trajectory_msg
+from npp_ros_graph.convert import trajectory_to_msg
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -136,7 +136,7 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
         res.success, res.total = True, data.num_trajectories
         res.lipschitz, res.lipschitz_source = lipschitz, "lqr-analytic"
         stop = min(req.start + (req.max_count or 50), data.num_trajectories)
-        res.trajectories = [trajectory_msg(k, data.trajectory(k)) for k in range(req.start, stop)]
+        res.trajectories = [trajectory_to_msg(k, data.trajectory(k)) for k in range(req.start, stop)]
         return res
 
     node.create_service(GetTrajectories, DATASET_SERVICE, serve)

@@ -1,0 +1,125 @@
+"""Node parameters: one table per node, declared with ROS descriptors, read into one frozen settings object.
+
+The table is the only place a parameter is named: its descriptor (description, range, choices) is what
+`ros2 param describe` shows and what `--help` prints. Ranges are checked by rclpy when the parameter is
+declared; everything else (a task's name, p and delta, the choice of L) by the core constructors the
+settings feed, in the settings' ``__post_init__``. Any refusal becomes a StartupError with the reason.
+
+Overrides are read before they are declared, so that an unknown name is refused with the closest known
+one, and a whole number given for a float (``-p epsilon:=30``) or for a text-or-number choice
+(``-p lipschitz:=300``) is taken for what it means instead of being refused as the wrong type.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import Any, TypeVar
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+Value = bool | int | float | str
+Settings = TypeVar("Settings")
+
+# Declared by rclpy itself on every node; never ours to refuse.
+RCLPY_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+class StartupError(RuntimeError):
+    """A node refuses to start; the message says why."""
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: name, default (its type is the parameter's), what it means, and its allowed values."""
+
+    name: str
+    default: Value
+    description: str
+    low: float | None = None  # inclusive bounds, as ROS ranges are
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+
+    def allowed(self) -> str:
+        """The allowed values in words ("an integer in [1, 100000]", "one of: i, ii")."""
+        if self.choices:
+            return "one of: " + ", ".join(self.choices)
+        kind = {bool: "true or false", int: "an integer", float: "a number", str: "text"}[type(self.default)]
+        if self.low is None and self.high is None:
+            return kind
+        low = "-inf" if self.low is None else f"{self.low:g}"
+        high = "inf" if self.high is None else f"{self.high:g}"
+        return f"{kind} in [{low}, {high}]"
+
+    def descriptor(self) -> ParameterDescriptor:
+        descriptor = ParameterDescriptor(name=self.name, description=self.description, read_only=True)
+        if self.choices:
+            descriptor.additional_constraints = self.allowed()
+        if self.low is not None or self.high is not None:
+            low = -math.inf if self.low is None else self.low
+            high = math.inf if self.high is None else self.high
+            if isinstance(self.default, float):
+                descriptor.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
+            elif isinstance(self.default, int) and not isinstance(self.default, bool):
+                lo = int(low) if math.isfinite(low) else -(2**63)
+                hi = int(high) if math.isfinite(high) else 2**63 - 1
+                descriptor.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
+        return descriptor
+
+
+def parameter_help(params: Sequence[Param]) -> str:
+    if not params:
+        return "parameters  none"
+    lines = ["parameters (--ros-args -p name:=value):"]
+    lines += [f"  {p.name:<18} {p.description}; {p.allowed()} (default: {p.default!r})" for p in params]
+    return "\n".join(lines)
+
+
+def _accepted_override(param: Param, given: Parameter) -> Parameter:
+    """A whole number for a float, or a number for a text-or-number choice, as the declared type."""
+    Type = Parameter.Type
+    if isinstance(param.default, float) and given.type_ == Type.INTEGER:
+        return Parameter(param.name, Type.DOUBLE, float(given.value))
+    if isinstance(param.default, str) and given.type_ in (Type.INTEGER, Type.DOUBLE):
+        return Parameter(param.name, Type.STRING, str(given.value))
+    return given
+
+
+def _refuse_unknown(node: Node, params: Sequence[Param]) -> None:
+    known = [p.name for p in params]
+    for name in node._parameter_overrides:
+        if name in known or name in RCLPY_PARAMETERS or name.startswith("qos_overrides."):
+            continue
+        close = difflib.get_close_matches(name, known, n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else f"; known: {', '.join(known) or 'none'}"
+        raise StartupError(f"unknown parameter '{name}'{hint}")
+
+
+def declare_settings(node: Node, params: Sequence[Param], settings: type[Settings]) -> Settings:
+    """Declare every parameter of the table and build the node's settings from their values.
+
+    ``settings`` is a frozen dataclass whose fields are the table's names; its construction (the core
+    checks in its ``__post_init__``) is where values are validated.
+    """
+    names = {f.name for f in fields(settings)}  # type: ignore[arg-type]
+    assert names == {p.name for p in params}, f"{settings.__name__} and its parameter table disagree"
+    _refuse_unknown(node, params)
+    overrides = node._parameter_overrides
+    values: dict[str, Any] = {}
+    for param in params:
+        if param.name in overrides:
+            overrides[param.name] = _accepted_override(param, overrides[param.name])
+        try:
+            values[param.name] = node.declare_parameter(param.name, param.default, param.descriptor()).value
+        except ParameterException:
+            given = overrides[param.name].value if param.name in overrides else param.default
+            raise StartupError(f"parameter {param.name} must be {param.allowed()}, got {given!r}") from None
+    try:
+        return settings(**values)
+    except ValueError as exc:
+        raise StartupError(f"bad parameter: {exc}") from None

@@ -1,0 +1,194 @@
+"""Message <-> core conversions on their own, without DDS: round trips, and bad input refused with the reason."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields
+
+import numpy as np
+import pytest
+from npp_interfaces.msg import Certificate as CertificateMsg
+from npp_interfaces.srv import ExpertTrajectory
+from sensor_msgs.msg import JointState
+
+from npp_ros.certification import Certificate
+from npp_ros.dataset import DatasetError, Trajectory
+from npp_ros.inprocess import build_config
+from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.lqr import LQRExpert
+from npp_ros.storage import EpisodeRow
+from npp_ros_graph.convert import (
+    MessageError,
+    action_from_joint_state,
+    action_to_joint_state,
+    certificate_to_msg,
+    episode_result,
+    gap_report,
+    plant_description,
+    stamp,
+    stamp_ns,
+    state_from_joint_state,
+    state_to_joint_state,
+    trajectory_from_msg,
+    trajectory_from_response,
+    trajectory_to_msg,
+    trajectory_to_response,
+)
+
+JOINTS = ["joint_0", "joint_1"]
+ACTUATED = ["joint_0"]
+
+
+@pytest.fixture(scope="module")
+def trajectory() -> Trajectory:
+    return LQRExpert("lqr_2_1", 0, horizon=20).trajectory(np.array([0.3, -0.2, 0.1, 0.0]))
+
+
+def assert_same(a: Trajectory, b: Trajectory) -> None:
+    for name in ("states", "actions", "values"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_trajectory_round_trips_through_the_topic_message(trajectory: Trajectory) -> None:
+    index, back = trajectory_from_msg(trajectory_to_msg(7, trajectory))
+    assert index == 7
+    assert_same(back, trajectory)
+
+
+def test_trajectory_round_trips_through_the_expert_response(trajectory: Trajectory) -> None:
+    response = trajectory_to_response(trajectory, ExpertTrajectory.Response())
+    back = trajectory_from_response(response)
+    assert_same(back, trajectory)
+    assert trajectory.expert_return is not None and back.expert_return == trajectory.expert_return
+    assert response.state_dim == 4 and response.action_dim == 1
+
+
+def test_an_unknown_expert_return_travels_as_nan(trajectory: Trajectory) -> None:
+    unknown = Trajectory(trajectory.states, trajectory.actions, trajectory.values)
+    response = trajectory_to_response(unknown, ExpertTrajectory.Response())
+    assert math.isnan(response.expert_return)
+    assert trajectory_from_response(response).expert_return is None
+
+
+@pytest.mark.parametrize(
+    ("change", "fragment"),
+    [
+        ({"state_dim": 3}, "do not fit"),
+        ({"action_dim": 0}, "do not fit"),
+        ({"values": [1.0]}, "do not fit"),
+        ({"states": [math.nan] + [0.0] * 79}, "must be finite"),
+    ],
+)
+def test_a_trajectory_message_that_does_not_fit_is_refused(
+    trajectory: Trajectory, change: dict[str, object], fragment: str
+) -> None:
+    msg = trajectory_to_msg(0, trajectory)
+    for name, value in change.items():
+        setattr(msg, name, value)
+    with pytest.raises(DatasetError, match=fragment):
+        trajectory_from_msg(msg)
+
+
+def test_state_round_trips_through_joint_state() -> None:
+    x = np.array([0.1, -0.2, 0.3, -0.4])
+    msg = state_to_joint_state(x, JOINTS, stamp(1_500_000_000))
+    assert list(msg.position) == [0.1, -0.2] and list(msg.velocity) == [0.3, -0.4] and list(msg.name) == JOINTS
+    assert stamp_ns(msg.header.stamp) == 1_500_000_000
+    np.testing.assert_array_equal(state_from_joint_state(msg, JOINTS), x)
+    msg.name = []  # names are optional
+    np.testing.assert_array_equal(state_from_joint_state(msg, JOINTS), x)
+
+
+@pytest.mark.parametrize(
+    ("msg", "error", "fragment"),
+    [
+        (JointState(name=["a", "b"], position=[0.0, 0.0], velocity=[0.0, 0.0]), MessageError, "wrong joint names"),
+        (JointState(position=[0.0], velocity=[0.0, 0.0]), MessageError, "wrong joint count"),
+        (JointState(position=[0.0, math.nan], velocity=[0.0, 0.0]), ValueError, r"state\[1\] = nan"),
+        (JointState(position=[0.0, 0.0], velocity=[math.inf, 0.0]), ValueError, r"state\[2\] = inf"),
+    ],
+)
+def test_a_bad_state_message_is_refused_with_the_reason(msg: JointState, error: type, fragment: str) -> None:
+    with pytest.raises(error, match=fragment):
+        state_from_joint_state(msg, JOINTS)
+
+
+def test_action_round_trips_through_joint_state() -> None:
+    msg = action_to_joint_state(np.array([0.25]), ACTUATED, stamp(30_000_000))
+    assert list(msg.effort) == [0.25] and list(msg.name) == ACTUATED and msg.header.stamp.nanosec == 30_000_000
+    np.testing.assert_array_equal(action_from_joint_state(msg, ACTUATED), [0.25])
+
+
+@pytest.mark.parametrize(
+    ("msg", "fragment"),
+    [
+        (JointState(name=["joint_1"], effort=[0.1]), "wrong joint names"),
+        (JointState(effort=[0.1, 0.2]), "effort has 2 entries, expected 1"),
+        (JointState(effort=[]), "effort is empty"),
+        (JointState(effort=[-math.inf]), r"effort must be finite: effort\[0\] = -inf"),
+    ],
+)
+def test_a_bad_action_message_is_refused_with_the_reason(msg: JointState, fragment: str) -> None:
+    with pytest.raises(ValueError, match=fragment):
+        action_from_joint_state(msg, ACTUATED)
+
+
+def test_plant_description_names_the_plant() -> None:
+    plant = LQRExpert("lqr_2_1", 3).plant
+    desc = plant_description(plant, 3, 200)
+    assert (desc.task, desc.seed, desc.horizon, desc.state_dim, desc.action_dim) == ("lqr_2_1", 3, 200, 4, 1)
+    assert list(desc.joint_names) == plant.joint_names and desc.model_sha256 == plant.model_sha256()
+
+
+def row(**changes: object) -> EpisodeRow:
+    base = dict(
+        episode=4, initial_state=(0.1, 0.2, 0.3, 0.4), v_lb=900.0, v_ub=950.0, gap=50.0, oracle_called=True,
+        trajectory=2, dataset_size=3000, oracle_calls=3, quiet_episodes=0, window=0, required=22, certified=False,
+    )  # fmt: skip
+    return EpisodeRow(**{**base, **changes})  # type: ignore[arg-type]
+
+
+def test_gap_report_and_episode_result_carry_the_row() -> None:
+    r = row(expert_value=970.0, policy_return=960.5, checked_gap=12.5, test=2, test_delta=0.1 / 6)
+    config = build_config("lqr_2_1", 0, LipschitzConstant(263.3, "user"), 50.0, certify="oracle")
+    gap = gap_report(r, config, stamp(0))
+    assert (gap.episode, gap.v_lb, gap.v_ub, gap.gap, gap.epsilon) == (4, 900.0, 950.0, 50.0, 50.0)
+    assert (gap.oracle_called, gap.dataset_size, gap.oracle_calls, gap.quiet_required, gap.condition) == (
+        True, 3000, 3, 22, "i",
+    )  # fmt: skip
+    assert (gap.certify, gap.checked_gap, gap.test, gap.test_delta) == ("oracle", 12.5, 2, 0.1 / 6)
+    assert list(gap.initial_state) == [0.1, 0.2, 0.3, 0.4]
+    result = episode_result(r, 1000, stamp(0))
+    assert (result.policy_return, result.steps, result.expert_value_known, result.expert_value) == (
+        960.5, 1000, True, 970.0,
+    )  # fmt: skip
+
+
+def test_an_episode_the_policy_did_not_drive_reports_nan_and_no_steps() -> None:
+    result = episode_result(row(), 1000, stamp(0))
+    assert math.isnan(result.policy_return) and result.steps == 0 and not result.expert_value_known
+
+
+def test_every_certificate_field_reaches_the_message() -> None:
+    """A field the core certificate gains must be mapped (or named here as not carried)."""
+    not_carried = {"task", "rule"}  # the message is per run and names no task; the rule shows in the statement
+    renamed = {"window": "quiet_episodes", "required": "episodes_required"}
+    cert = Certificate(
+        task="lqr_2_1", condition="i", epsilon=50.0, p=0.9, delta=0.1, lipschitz=263.3,
+        lipschitz_source="lqr-analytic", episodes=178, oracle_calls=52, dataset_size=52000, window=22, required=22,
+        statement="claim", certify="oracle", rule="sequential", quantity="V^E(s0) - R^pi(s0)", value="the return",
+        test=3, delta_spent=0.1 / 12, lipschitz_margin=0.01, policy_trajectories=40, proven=True,
+        assumptions=("one", "two"),
+    )  # fmt: skip
+    msg = certificate_to_msg(cert, stamp(0))
+    message_fields = set(CertificateMsg.get_fields_and_field_types())
+    for f in fields(Certificate):
+        if f.name in not_carried:
+            continue
+        target = renamed.get(f.name, f.name)
+        assert target in message_fields, f"Certificate.{f.name} has no message field"
+        sent = getattr(msg, target)
+        expected = getattr(cert, f.name)
+        assert (list(sent) if isinstance(expected, tuple) else sent) == (
+            list(expected) if isinstance(expected, tuple) else expected
+        ), f.name
