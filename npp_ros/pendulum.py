@@ -214,7 +214,9 @@ class EnergyShapingController:
             d.qvel[:] = 0.0
             mujoco.mj_forward(m, d)
             energies.append(float(d.energy[0]))
-        self.inertia = float(d.M[0]) if hasattr(d, "M") else float(d.qM[0])
+        mass = np.zeros((1, 1))
+        mujoco.mj_fullM(m, d, mass)
+        self.inertia = float(mass[0, 0])
         self.mgl = 0.5 * (energies[0] - energies[1])
         self.damping = float(m.dof_damping[0])
         self.umax = float(m.actuator_ctrlrange[0, 1])

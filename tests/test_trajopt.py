@@ -162,3 +162,16 @@ def test_time_trajectories_reports_seconds_per_request(optimizer: ILQR) -> None:
     starts = [sample_initial_state(TASK, episode_rng(SEED, e)) for e in range(2)]
     seconds = time_trajectories(lambda s0: optimizer.solve(s0, 50, time_budget=30.0), starts)
     assert seconds.shape == (2,) and np.all(seconds > 0)
+
+
+def test_batched_fd_equals_mjd_transition_fd() -> None:
+    """The RK4 path (one-step rollouts in C) takes the same centred differences as mjd_transitionFD."""
+    from npp_ros.pendulum import PendulumPlant
+
+    dyn = MujocoDynamics(PendulumPlant())
+    rng = np.random.default_rng(0)
+    states, actions = rng.uniform(-3, 3, (60, 2)), rng.uniform(-1.5, 1.5, (60, 1))  # some beyond the bounds
+    a, b = dyn.jacobians(states, actions)
+    a2, b2 = dyn._batched_jacobians(states, actions)
+    np.testing.assert_allclose(a2, a, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(b2, b, rtol=0, atol=1e-9)

@@ -1,0 +1,258 @@
+"""dm_control cartpole swing-up as a plant, and its expert: iLQR from an energy-pumping warm start.
+
+Task (``suite.load("cartpole", "swingup")``): a cart on a rail (slide joint, limited to +-1.8 m)
+carrying a pole (hinge, angle 0 = upright), force 10 u with u in [-1, 1]. One control step is one
+MuJoCo step of 0.01 s with the RK4 integrator (``n_sub_steps`` = 1); H = 1000 steps is
+dm_control's 10 s episode. The reward is dm_control's own smooth one, from the physics after the
+step and the applied control: upright x centred x small control x small angular velocity, in
+[0, 1].
+
+State representation (stored, compared by the policy): [cart position, pole angle wrapped to
+(-pi, pi], cart velocity, pole angular velocity]. As for the pendulum, Euclidean distance on it
+is never below the geodesic distance on the cylinder of the pole angle, so a value Lipschitz on
+the true state space is Lipschitz with the same L for the stored metric.
+
+The derivatives are MuJoCo's centred finite differences of the RK4 step, taken by batched
+one-step rollouts (``mujoco.rollout``): ``mjd_transitionFD`` refuses RK4.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.linalg import solve_discrete_are
+
+from npp_ros.dataset import DatasetError, FloatArray
+from npp_ros.pendulum import wrap_angle
+from npp_ros.trajopt import MujocoDynamics, OptimizingExpert
+
+TASK = "cartpole_swingup"
+DEFAULT_HORIZON = 1000
+DEFAULT_TIME_BUDGET = 5.0
+
+
+def represent(raw: ArrayLike) -> FloatArray:
+    """Raw [qpos, qvel] (one state or rows) -> stored [x, wrapped angle, xdot, angle rate]."""
+    x = np.array(raw, dtype=np.float64, copy=True)
+    x[..., 1] = wrap_angle(x[..., 1])
+    return x
+
+
+def sample_initial_state(rng: np.random.Generator) -> FloatArray:
+    """s0 ~ rho as dm_control's swing-up: cart 0.01 N(0, 1), pole pi + 0.01 N(0, 1), velocities 0.01 N(0, 1)."""
+    noise = rng.standard_normal(4)
+    return np.array([0.01 * noise[0], math.pi + 0.01 * noise[1], 0.01 * noise[2], 0.01 * noise[3]])
+
+
+class CartpolePlant:
+    """The swing-up task driven step by step, with an explicit horizon and no termination."""
+
+    def __init__(self, seed: int = 0) -> None:
+        os.environ.setdefault("MUJOCO_GL", "disable")
+        from dm_control import suite
+
+        env = suite.load("cartpole", "swingup", task_kwargs={"random": int(seed)})
+        n_sub = round(env.control_timestep() / env.physics.model.opt.timestep)
+        if n_sub != 1:
+            raise RuntimeError(f"cartpole control step is {n_sub} physics steps; this plant assumes 1")
+        self.task = TASK
+        self.seed = int(seed)
+        self.physics = env.physics
+        self._task = env.task
+        model = self.physics.model
+        self.dt = float(env.control_timestep())
+        self.state_dim = 4
+        self.action_dim = 1
+        self.joint_names = [model.id2name(i, "joint") for i in range(model.njnt)]
+        self.actuated_joint_names = [model.id2name(int(model.actuator_trnid[i, 0]), "joint") for i in range(model.nu)]
+        self.action_low = model.actuator_ctrlrange[:, 0].astype(np.float64)
+        self.action_high = model.actuator_ctrlrange[:, 1].astype(np.float64)
+        self.steps = 0
+
+    def model_sha256(self) -> str:
+        m = self.physics.model
+        parts = [
+            m.opt.timestep,
+            m.opt.gravity,
+            m.opt.integrator,
+            m.dof_damping,
+            m.jnt_range,
+            m.body_mass,
+            m.body_inertia,
+            m.body_ipos,
+            m.body_pos,
+            m.actuator_gear,
+            m.actuator_ctrlrange,
+        ]
+        blob = b"".join(np.ascontiguousarray(np.asarray(x, dtype=np.float64)).tobytes() for x in parts)
+        return hashlib.sha256(blob).hexdigest()
+
+    def clone(self) -> CartpolePlant:
+        twin = copy.copy(self)
+        twin.physics = self.physics.copy(share_model=True)
+        twin.steps = 0
+        return twin
+
+    def check_state(self, state: ArrayLike, what: str = "state") -> FloatArray:
+        arr = np.asarray(state, dtype=np.float64)
+        if arr.shape != (self.state_dim,):
+            raise DatasetError(
+                f"{what} must have {self.state_dim} entries for {self.task} (cart position, pole angle, "
+                f"cart velocity, pole angular velocity), got shape {arr.shape}"
+            )
+        if not np.isfinite(arr).all():
+            bad = int(np.argwhere(~np.isfinite(arr))[0, 0])
+            raise DatasetError(f"{what}[{bad}] is {float(arr[bad])}; states must be finite")
+        return arr
+
+    def check_action(self, action: ArrayLike) -> FloatArray:
+        arr = np.asarray(action, dtype=np.float64).reshape(-1)
+        if arr.shape != (self.action_dim,):
+            raise DatasetError(f"action must have {self.action_dim} entries for {self.task}, got {arr.shape[0]}")
+        if not np.isfinite(arr).all():
+            raise DatasetError("action entries must be finite")
+        return arr
+
+    def reset(self, state: ArrayLike) -> FloatArray:
+        x = self.check_state(state)
+        with self.physics.reset_context():
+            self.physics.data.qpos[:] = x[:2]
+            self.physics.data.qvel[:] = x[2:]
+        self.steps = 0
+        return represent(x)
+
+    def raw_state(self) -> FloatArray:
+        return np.concatenate([self.physics.data.qpos, self.physics.data.qvel]).astype(np.float64)
+
+    def state(self) -> FloatArray:
+        return represent(self.raw_state())
+
+    def step(self, action: ArrayLike) -> float:
+        """Apply u (clamped to ctrlrange; the reward's control term sees the applied u) for one step."""
+        u = np.clip(self.check_action(action), self.action_low, self.action_high)
+        self.physics.set_control(u)
+        self.physics.step()
+        self.steps += 1
+        return float(self._task.get_reward(self.physics))
+
+
+_LN10 = math.log(10.0)
+
+
+@dataclass(frozen=True)
+class CartpoleCost:
+    """Separable quadratic-in-features surrogate of 1 - r, matched to dm_control's reward near upright.
+
+    r = (1 + cos q)/2 * (1 + g(x, 2))/2 * (1 - u^2/5) * (1 + g(qdot, 5))/2 with the Gaussian
+    tolerance g(z, w) = exp(-ln10 z^2 / w^2). To second order in each factor's deviation,
+    1 - r = (1 - cos q)/2 + ln10/8 x^2 + u^2/5 + ln10/50 qdot^2, which gives the angle, position
+    and control weights below (s = a (1 - cos q) + (p x^2 + v_c xdot^2 + v_p qdot^2)/2,
+    c = w u^2/2). The velocity weights are smaller than that match (ln10/25 for qdot): the
+    reward's Gaussian saturates at the swing's high velocities where a quadratic keeps growing,
+    and 0.01 measured better true returns (881-882 against 823-876 on three s0, 15 iterations).
+    """
+
+    angle_weight: float = 0.5
+    position_weight: float = _LN10 / 4
+    cart_velocity_weight: float = 0.01
+    pole_velocity_weight: float = 0.01
+    control_weight: float = 0.4
+
+    def state_terms(self, states: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        x, q, xd, qd = states.T
+        c, s = np.cos(q), np.sin(q)
+        wp, wc, wv = self.position_weight, self.cart_velocity_weight, self.pole_velocity_weight
+        value = self.angle_weight * (1.0 - c) + 0.5 * (wp * x * x + wc * xd * xd + wv * qd * qd)
+        grad = np.stack([wp * x, self.angle_weight * s, wc * xd, wv * qd], axis=1)
+        hess = np.zeros((len(states), 4, 4))
+        hess[:, 0, 0] = wp
+        hess[:, 1, 1] = self.angle_weight * np.maximum(c, 0.0)  # PSD floor far from upright
+        hess[:, 2, 2] = wc
+        hess[:, 3, 3] = wv
+        return value, grad, hess
+
+    def control_terms(self, actions: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        m = actions.shape[1]
+        value = 0.5 * self.control_weight * np.sum(actions * actions, axis=1)
+        hess = np.broadcast_to(self.control_weight * np.eye(m), (len(actions), m, m))
+        return value, self.control_weight * actions, hess
+
+
+class EnergyPumpingController:
+    """Astrom-Furuta energy pumping with cart centring, then LQR near the top. A warm start only.
+
+    E = J qdot^2 / 2 + mgl (cos q - 1) is zero upright at rest (J, mgl from the compiled model);
+    u = k E qdot cos q - k_x x - k_v xdot drives E to zero. Within ``catch_degrees`` of upright an
+    LQR designed on the plant's own linearisation (centred differences of the RK4 step) takes over.
+    """
+
+    def __init__(
+        self,
+        plant: CartpolePlant,
+        gain: float = 5.0,
+        centring: float = 1.0,
+        catch_degrees: float = 25.0,
+    ) -> None:
+        import mujoco
+
+        m = plant.physics.model.ptr
+        d = mujoco.MjData(m)
+        energies = []
+        for q in (0.0, math.pi):
+            d.qpos[:] = [0.0, q]
+            d.qvel[:] = 0.0
+            mujoco.mj_forward(m, d)
+            energies.append(float(d.energy[0]))
+        mass = np.zeros((2, 2))
+        mujoco.mj_fullM(m, d, mass)
+        self.inertia = float(mass[1, 1])
+        self.mgl = 0.5 * (energies[0] - energies[1])
+        self.gain, self.centring = float(gain), float(centring)
+        self.catch_cos = math.cos(math.radians(catch_degrees))
+        self.umax = float(m.actuator_ctrlrange[0, 1])
+        a, b = MujocoDynamics(plant).jacobians(np.zeros((2, 4)), np.zeros((1, 1)))
+        q, r = np.diag([1.0, 10.0, 0.1, 0.1]), np.array([[0.1]])
+        p = solve_discrete_are(a[0], b[0], q, r)
+        self.K = np.linalg.solve(r + b[0].T @ p @ b[0], b[0].T @ p @ a[0])
+
+    def __call__(self, x: FloatArray) -> FloatArray:
+        angle = float(wrap_angle(x[1]))
+        if math.cos(angle) > self.catch_cos:
+            u = -float(self.K[0] @ np.array([x[0], angle, x[2], x[3]]))
+        else:
+            energy = 0.5 * self.inertia * x[3] * x[3] + self.mgl * (math.cos(angle) - 1.0)
+            u = self.gain * energy * x[3] * math.cos(angle) - self.centring * (x[0] + x[2])
+        return np.array([min(max(u, -self.umax), self.umax)])
+
+
+class CartpoleExpert(OptimizingExpert):
+    """iLQR expert for the cartpole swing-up, warm-started by :class:`EnergyPumpingController`."""
+
+    def __init__(
+        self,
+        seed: int = 0,
+        horizon: int = DEFAULT_HORIZON,
+        time_budget: float = DEFAULT_TIME_BUDGET,
+        max_iterations: int = 15,
+        cost: CartpoleCost | None = None,
+        values: str = "return-to-go",
+    ) -> None:
+        plant = CartpolePlant(seed)
+        super().__init__(
+            plant,
+            cost if cost is not None else CartpoleCost(),
+            EnergyPumpingController(plant),
+            represent,
+            horizon=horizon,
+            time_budget=time_budget,
+            max_iterations=max_iterations,
+            values=values,
+        )
+        self.seed = int(seed)
+        self.task = TASK
