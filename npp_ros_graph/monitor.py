@@ -1,10 +1,12 @@
-"""npp-monitor: prints the gap, episode and certificate topics live (there is no ros2 CLI here)."""
+"""npp-monitor: prints the gap, episode and certificate topics live (there is no ros2 CLI here), or those of a
+bag recorded by npp-record (--bag), in the same lines."""
 
 from __future__ import annotations
 
 import argparse
 import math
 import sys
+from pathlib import Path
 
 import rclpy
 from npp_interfaces.msg import Certificate, EpisodeResult, GapReport
@@ -61,6 +63,22 @@ class MonitorNode(Node):
         self.certified = True
 
 
+def print_bag(bag: str, topics: set[str]) -> int:
+    """A recorded run, line for line as it was printed live (the bag's own message definitions decode it)."""
+    from npp_ros_graph.bag import BagError, read_messages
+
+    lines = {GAP: gap_line, EPISODE: episode_line, CERTIFICATE: certificate_line}
+    shown = [name for name in lines if name == CERTIFICATE or name.rsplit("/", 1)[-1] in topics]
+    try:
+        for message in read_messages(Path(bag), shown):
+            name = next(n for n in shown if message.topic.endswith("/" + n))
+            print(lines[name](message.msg), flush=True)
+    except BagError as exc:
+        print(f"npp-monitor: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args_in = list(sys.argv[1:] if argv is None else argv)
     ros_args = args_in[args_in.index("--ros-args") :] if "--ros-args" in args_in else []
@@ -70,7 +88,10 @@ def main(argv: list[str] | None = None) -> int:
         "--topics", default="gap,episode", help="comma-separated: gap, episode (certificate is always shown)"
     )
     ap.add_argument("--exit-on-certificate", action="store_true", help="exit once a certificate has been printed")
+    ap.add_argument("--bag", metavar="PATH", help="print a bag recorded by npp-record instead of the live topics")
     args = ap.parse_args(own)
+    if args.bag:
+        return print_bag(args.bag, set(args.topics.split(",")))
     rclpy.init(args=["npp-monitor", *ros_args])
     node = MonitorNode(set(args.topics.split(",")), args.exit_on_certificate)
     executor = SingleThreadedExecutor()

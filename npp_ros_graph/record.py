@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import signal
+import subprocess
 import sys
 import time
 from datetime import datetime
@@ -132,6 +133,23 @@ def next_bag_dir(run_dir: Path) -> Path:
         k += 1
         candidate = run_dir / f"bag-{k}"
     return candidate
+
+
+def start_recorder(run_dir: Path, env: dict[str, str], timeout: float = 60.0) -> subprocess.Popen[bytes]:
+    """npp-run --record: npp-record as a process writing RUN_DIR/bag (log in RUN_DIR/logs/record.log),
+    returned once its bag exists, so that the nodes started next are recorded from their first message."""
+    bag = next_bag_dir(run_dir)
+    log = (run_dir / "logs" / "record.log").open("ab")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "npp_ros_graph.record", "--output", str(bag)],
+        stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    deadline = time.monotonic() + timeout
+    while not (bag / "metadata.yaml").exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)  # the node itself starts right after the bag
+    print(f"npp-run: recording into {bag}", file=sys.stderr)
+    return proc
 
 
 class RecorderNode(Node):

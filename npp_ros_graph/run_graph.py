@@ -24,6 +24,7 @@ from rclpy.node import Node
 
 from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
 from npp_ros_graph.monitor import certificate_line, gap_line
+from npp_ros_graph.record import start_recorder
 
 
 def parser() -> argparse.ArgumentParser:
@@ -39,6 +40,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")
     ap.add_argument("--no-rollouts", action="store_true", help="skip the policy's episodes (gap checks only)")
     ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the four nodes (default: inherited)")
+    ap.add_argument("--record", action="store_true", help="also record every /npp topic into RUN_DIR/bag (npp-record)")
     return ap
 
 
@@ -105,6 +107,9 @@ def main(argv: list[str] | None = None) -> int:
         },
     }  # fmt: skip
     procs: dict[str, subprocess.Popen] = {}
+    extras: dict[str, subprocess.Popen] = {}  # started first and stopped last, so that they see the whole run
+    if args.record:
+        extras["record"] = procs["record"] = start_recorder(run_dir, env)
     for name, values in params.items():
         cmd = [sys.executable, "-m", f"npp_ros_graph.{name}_node", "--ros-args"]
         for key, value in values.items():
@@ -151,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"run folder: {run_dir}")
         follower.destroy_node()
         rclpy.try_shutdown()
-        stop_all(procs)
+        stop_all({name: proc for name, proc in procs.items() if name not in extras})
+        stop_all(extras)
     return code
 
 
