@@ -278,3 +278,5 @@ class PendulumExpert(OptimizingExpert):
         )
         self.seed = int(seed)
         self.task = TASK
+        self.reward_lipschitz = math.inf
+        self.reward_lipschitz_detail = "is infinite: the reward is 1 within 8 degrees of upright, else 0"

@@ -35,6 +35,7 @@ from numba import njit
 from numpy.typing import ArrayLike
 
 from npp_ros.dataset import FloatArray, Trajectory
+from npp_ros.values import ValueBasis, theorem_34_condition
 
 DEFAULT_FD_EPS = 1e-6
 MU_MIN = 1e-8
@@ -475,6 +476,7 @@ class TrajOptResult:
     wall_time: float
     cost_history: tuple[float, ...]
     timings: dict[str, float] = field(default_factory=dict)
+    max_transition_norm: float = math.nan  # max_t |A_t|_2 along the returned trajectory (L_f seen)
 
     @property
     def timed_out(self) -> bool:
@@ -663,6 +665,7 @@ class ILQR:
             wall_time=time.perf_counter() - start,
             cost_history=tuple(history),
             timings=timings,
+            max_transition_norm=float(np.max(np.linalg.norm(a, 2, axis=(1, 2)))),
         )
 
 
@@ -783,8 +786,12 @@ class OptimizingExpert:
         self.warm_start = warm_start
         self.represent = represent
         self.max_slope_seen = 0.0
+        self.max_transition_norm = 0.0
         self.requests = 0
         self._replay_seconds = 0.1  # grows to the slowest replay seen; kept out of the optimizer's budget
+        self.task = "mujoco"
+        self.reward_lipschitz = math.inf  # a task that knows its reward's slope says so
+        self.reward_lipschitz_detail = "not known for this task"
 
     def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
         x0 = self.plant.check_state(initial_state, "requested state")
@@ -805,6 +812,7 @@ class OptimizingExpert:
             values = return_to_go(rewards)
         self._replay_seconds = max(self._replay_seconds, time.perf_counter() - tick)
         self.max_slope_seen = max(self.max_slope_seen, result.max_value_slope)
+        self.max_transition_norm = max(self.max_transition_norm, result.max_transition_norm)
         self.requests += 1
         trajectory = Trajectory(self.represent(raw), result.actions.copy(), values)
         return ExpertSolution(trajectory, result, raw)
@@ -815,6 +823,28 @@ class OptimizingExpert:
     def slope_floor(self) -> float:
         """max |W_x| over every request so far (the surrogate cost-to-go's slope; see TrajOptResult)."""
         return self.max_slope_seen
+
+    def value_basis(self) -> ValueBasis:
+        """What the stored values are; a tail bound only where they are a function of the state.
+
+        ``window``: Q at a requested s0 is the replayed H-step return of the expert's actions, so a
+        claim about the expert's H-step return from s0 needs no tail (0). ``return-to-go``: the
+        stored values depend on the time left, so no tail is offered and rollout mode refuses.
+        """
+        what = (
+            f"the {self.task} iLQR expert's own H-step return (H = {self.horizon}): a local optimum of a "
+            "smooth surrogate, not V*_H (Appendix B's setting)"
+        )
+        if self.values == "window":
+            return ValueBasis(what, lambda s0: 0.0, "Q_0 is the expert's replayed H-step return from s0")
+        return ValueBasis(what, None, "return-to-go values depend on the time left, not only on the state")
+
+    def theorem_34_condition(self, lipschitz: float) -> tuple[bool, str]:
+        """Theorem 3.4's condition with L_f = the largest |A_t| seen on the expert's trajectories."""
+        if self.requests == 0:
+            return False, "Theorem 3.4's condition is unchecked: no expert trajectory yet gives L_f"
+        where = f"L_f seen on {self.requests} expert trajectories; L_r {self.reward_lipschitz_detail}"
+        return theorem_34_condition(lipschitz, 1.0, self.max_transition_norm, self.reward_lipschitz, where)
 
 
 def time_trajectories(

@@ -165,3 +165,14 @@ def test_window_values_are_h_step_returns_of_each_state() -> None:
     assert np.all(traj.values[-50:] == horizon) and held[-50:].all()  # upright states keep the full H-step value
     with pytest.raises(ValueError, match=r"^values must be one of return-to-go, window; got 'tail'$"):
         PendulumExpert(values="tail")
+
+
+def test_value_basis_and_theorem_34_condition(expert: PendulumExpert, solutions: dict) -> None:
+    """The pendulum's step map expands (|A_t| > 1), so with gamma = 1 no L meets Theorem 3.4's condition."""
+    holds, text = expert.theorem_34_condition(PAPER_LIPSCHITZ)
+    assert not holds and "no L satisfies it" in text
+    assert expert.max_transition_norm > 1.0
+    basis = expert.value_basis()
+    assert basis.tail is None and "time left" in basis.tail_detail
+    window = PendulumExpert(values="window").value_basis()
+    assert window.tail is not None and window.tail(HANGING) == 0.0
