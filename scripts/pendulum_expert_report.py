@@ -1,6 +1,7 @@
 """Measure the pendulum iLQR expert: seconds per request, where they go, and the slope of its value.
 
 Usage: .venv/bin/python scripts/pendulum_expert_report.py [--requests 12] [--grid 64] [--bisect 12]
+(``--grid 0`` skips part 3.)
 
 1. ``--requests`` 1000-step requests from s0 ~ rho (seeded), timed one at a time with
    :func:`npp_ros.trajopt.time_trajectories` at the expert's default budget.
@@ -60,6 +61,8 @@ def main() -> None:
     for name, d in (("return-to-go", data), ("window", windowed)):
         print(f"data slope of the true Q ({name} values) over {len(d)} points: {estimate_global(d):.4g}")
     print(f"paper L = {PAPER_LIPSCHITZ:g}")
+    if args.grid < 2:
+        return
 
     grid = np.linspace(-math.pi, math.pi, args.grid, endpoint=False)
     returns = np.array([expert.solve([a, 0.0]).expert_return for a in grid])
