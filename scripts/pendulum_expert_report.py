@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import time
 
 import numpy as np
 
@@ -38,11 +40,20 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     starts = [sample_initial_state(rng) for _ in range(args.requests)]
     solutions: list[ExpertSolution] = []
-    seconds = time_trajectories(lambda s0: solutions.append(expert.solve(s0)), starts)
+    cpu: list[float] = []
+
+    def solve(s0: np.ndarray) -> None:
+        tick = time.process_time()
+        solutions.append(expert.solve(s0))
+        cpu.append(time.process_time() - tick)
+
+    seconds = time_trajectories(solve, starts)
     print(f"time budget {expert.time_budget} s, max_iterations {expert.max_iterations}, H = {expert.horizon}")
     print("seconds per request:", " ".join(f"{s:.2f}" for s in seconds))
     q25, q50, q75 = np.percentile(seconds, [25, 50, 75])
     print(f"median {q50:.2f} s, IQR {q25:.2f}-{q75:.2f} s, min {seconds.min():.2f} s, max {seconds.max():.2f} s")
+    print(f"CPU seconds per request (this process only): median {np.median(cpu):.2f}, max {max(cpu):.2f}")
+    print(f"load average at the end: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     phases = {k: sum(s.optimization.timings[k] for s in solutions) for k in solutions[0].optimization.timings}
     total = sum(seconds)
     share = ", ".join(f"{k} {v:.2f} s ({100 * v / total:.0f}%)" for k, v in phases.items())
