@@ -39,7 +39,9 @@ from npp_ros.trajopt import OptimizingExpert
 TASK = "pendulum_swingup"
 DEFAULT_HORIZON = 1000
 PAPER_LIPSCHITZ = 4300.0
-"""The paper's L for this task (Appendix B), with a PPO expert; not a measured bound here."""
+"""The paper's L for this task (Appendix B, with a PPO expert). Not a bound: with 0/1 rewards every
+H-step return is an integer, so a value is a staircase in s0 and no finite L bounds its slope
+(``scripts/pendulum_expert_report.py`` bisects a step of the expert's Q_0)."""
 PAPER_EPSILON = 130.0
 UPRIGHT_DEGREES = 8.0
 DEFAULT_TIME_BUDGET = 5.0
