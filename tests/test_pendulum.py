@@ -176,3 +176,13 @@ def test_value_basis_and_theorem_34_condition(expert: PendulumExpert, solutions:
     assert basis.tail is None and "time left" in basis.tail_detail
     window = PendulumExpert(values="window").value_basis()
     assert window.tail is not None and window.tail(HANGING) == 0.0
+
+
+def test_importing_the_plants_loads_no_numba() -> None:
+    """A sim node imports a plant; numba loads only with the optimizer."""
+    import subprocess
+    import sys
+
+    code = "import sys, npp_ros.pendulum, npp_ros.cartpole; print(any(m.startswith('numba') for m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "False"
