@@ -538,6 +538,7 @@ class ExpertSolution:
     trajectory: Trajectory  # stored states, actions, Q_t (true return-to-go)
     optimization: TrajOptResult
     raw_states: FloatArray  # the plant's [qpos, qvel] as replayed
+    kept_warm_start: bool = False  # the warm start's true return beat the optimised one
 
     @property
     def expert_return(self) -> float:
@@ -552,7 +553,8 @@ class OptimizingExpert:
 
     Each request: roll the warm-start controller out from s0, refine with :class:`ILQR` within
     ``time_budget`` seconds (less the slowest replay seen, so the whole request fits), then
-    replay the actions on the plant for the task's true rewards. Q_0 is the trajectory's H-step
+    replay the actions on the plant for the task's true rewards, keeping the warm start's actions
+    if they score better. Q_0 is the trajectory's H-step
     return in both value modes; they differ for t > 0:
 
     - ``"return-to-go"``: Q_t = r_t + ... + r_{H-1}. Q then depends on the time left, not only
@@ -599,16 +601,26 @@ class OptimizingExpert:
         self.reward_lipschitz_detail = "not known for this task"
 
     def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
+        """One request. The answer is never worse than the warm start under the true reward: when
+        the surrogate's optimum replays to a lower H-step return, the warm start's actions are
+        kept (with W_x from a backward pass at them) and ``kept_warm_start`` says so."""
         x0 = self.plant.check_state(initial_state, "requested state")
         steps = self.horizon if horizon is None or horizon == 0 else int(horizon)
+        start = time.perf_counter()
+        _, warm = self.optimizer.dynamics.rollout(x0, steps, policy=self.warm_start)
         result = self.optimizer.solve(
             x0,
             steps,
-            time_budget=max(self.time_budget - self._replay_seconds, 0.05 * self.time_budget),
-            initial_policy=self.warm_start,
+            time_budget=max(self.time_budget - self._replay_seconds - (time.perf_counter() - start), 1e-3),
+            initial_actions=warm,
             max_iterations=self.max_iterations,
         )
         tick = time.perf_counter()
+        _, rewards = replay_rewards(self.plant, x0, result.actions)
+        _, warm_rewards = replay_rewards(self.plant, x0, warm)
+        kept_warm_start = float(warm_rewards.sum()) > float(rewards.sum())
+        if kept_warm_start:
+            result = self.optimizer.solve(x0, steps, time_budget=60.0, initial_actions=warm, max_iterations=0)
         if self.values == "window":
             raw, rewards = replay_rewards(self.plant, x0, result.actions, self.warm_start, steps - 1)
             values = window_values(rewards, steps)
@@ -620,7 +632,7 @@ class OptimizingExpert:
         self.max_transition_norm = max(self.max_transition_norm, result.max_transition_norm)
         self.requests += 1
         trajectory = Trajectory(self.represent(raw), result.actions.copy(), values)
-        return ExpertSolution(trajectory, result, raw)
+        return ExpertSolution(trajectory, result, raw, kept_warm_start)
 
     def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:
         return self.solve(initial_state, horizon).trajectory

@@ -104,6 +104,16 @@ def test_expert_swings_up_and_holds_within_8_degrees(solutions: dict) -> None:
         assert solution.optimization.max_value_slope > 0
 
 
+def test_never_worse_than_the_warm_start(expert: PendulumExpert, solutions: dict) -> None:
+    for s0, solution in solutions.values():
+        _, warm = expert.optimizer.dynamics.rollout(s0, 1000, policy=expert.warm_start)
+        _, warm_values = replay_return_to_go(PendulumPlant(), s0, warm)
+        assert solution.expert_return >= warm_values[0]
+        if solution.kept_warm_start:
+            np.testing.assert_array_equal(solution.trajectory.actions, warm)
+            assert solution.optimization.iterations == 0
+
+
 def test_values_are_the_replayed_true_return_to_go(solutions: dict) -> None:
     plant = PendulumPlant()
     for s0, solution in solutions.values():
