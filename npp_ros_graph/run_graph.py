@@ -23,6 +23,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.dashboard import start_dashboard
 from npp_ros_graph.monitor import certificate_line, gap_line
 from npp_ros_graph.record import start_recorder
 
@@ -41,6 +42,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-rollouts", action="store_true", help="skip the policy's episodes (gap checks only)")
     ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the four nodes (default: inherited)")
     ap.add_argument("--record", action="store_true", help="also record every /npp topic into RUN_DIR/bag (npp-record)")
+    ap.add_argument(
+        "--dashboard", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+        help="also serve the live dashboard on 127.0.0.1:PORT (npp-dashboard; default port 8765)",
+    )  # fmt: skip
     return ap
 
 
@@ -108,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     }  # fmt: skip
     procs: dict[str, subprocess.Popen] = {}
     extras: dict[str, subprocess.Popen] = {}  # started first and stopped last, so that they see the whole run
+    if args.dashboard is not None:  # first: a port in use stops npp-run before anything else started
+        extras["dashboard"] = procs["dashboard"] = start_dashboard(run_dir, env, args.dashboard)
     if args.record:
         extras["record"] = procs["record"] = start_recorder(run_dir, env)
     for name, values in params.items():

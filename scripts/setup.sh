@@ -22,5 +22,12 @@ if [ -d "$repo/msgs_py/npp_interfaces" ]; then
   echo "setup: building the ROS interfaces (msgs_py/npp_interfaces)" >&2
   bash "$repo/scripts/build_interfaces.sh" "$venv"
 fi
+# The dashboard's browser test (tests/ros/test_dashboard.py) needs a headless Chromium: Debian's, where apt is
+# available and we may use it; elsewhere the test is skipped outside CI and says why.
+if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+  echo "setup: installing chromium (apt) for the dashboard's browser test" >&2
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+    || echo "setup: could not install chromium, which tests/ros/test_dashboard.py needs" >&2
+fi
 touch "$venv/.npp-setup-done"
 echo "setup: done ($venv)" >&2
