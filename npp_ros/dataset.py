@@ -140,6 +140,15 @@ class Dataset:
         lo, hi = self._offsets[index], self._offsets[index + 1]
         return Trajectory(self.states[lo:hi].copy(), self.actions[lo:hi].copy(), self.values[lo:hi].copy())
 
+    def prefix(self, trajectories: int) -> Dataset:
+        """A copy holding the first ``trajectories`` trajectories: the data as it was after that many calls."""
+        if not 0 <= trajectories <= self.num_trajectories:
+            raise DatasetError(f"a prefix of {trajectories} trajectories; the dataset holds {self.num_trajectories}")
+        out = Dataset(self.state_dim, self.action_dim, capacity=max(self.trajectory_offsets[trajectories], 1))
+        for index in range(trajectories):
+            out.append(self.trajectory(index))
+        return out
+
     def validate(self, states: ArrayLike, actions: ArrayLike, values: ArrayLike) -> Trajectory:
         """Validate a would-be trajectory against this dataset without appending it."""
         return Trajectory.validated(

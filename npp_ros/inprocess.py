@@ -8,7 +8,7 @@ so the same seed gives the same numbers either way.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -86,53 +86,6 @@ class PolicyRollouts:
         if len(policy.dataset) == 0:
             return None
         return rollout(self.plant, policy.act, initial_state, self.horizon).total_return
-
-
-@dataclass
-class Evaluation:
-    """Fresh s0 ~ rho: the policy's return against V*(s0) and V_lb(s0)."""
-
-    initial_states: FloatArray
-    policy_returns: FloatArray
-    expert_values: FloatArray
-    lower_bounds: FloatArray
-    visited_slope: float
-
-    @property
-    def true_gaps(self) -> FloatArray:
-        return self.expert_values - self.policy_returns
-
-    def fraction_within(self, epsilon: float) -> float:
-        return float(np.mean(self.true_gaps <= epsilon))
-
-    @property
-    def lower_bound_violations(self) -> int:
-        """Rollouts whose return fell below V_lb(s0): Theorem 3.4 broken (L too small)."""
-        return int(np.sum(self.policy_returns < self.lower_bounds - 1e-9))
-
-
-def evaluate(
-    policy: NonparametricPolicy,
-    expert: LQRExpert,
-    task: str,
-    rng: np.random.Generator,
-    count: int,
-    horizon: int,
-    progress: Callable[[int, int], None] | None = None,
-) -> Evaluation:
-    plant = LQRPlant(task, expert.seed)
-    states = np.array([sample_initial_state(task, rng) for _ in range(count)])
-    returns = np.empty(count)
-    slope = 0.0
-    for k, s0 in enumerate(states):
-        run = rollout(plant, policy.act, s0, horizon)
-        returns[k] = run.total_return
-        slope = max(slope, float(np.max(expert.slope(run.states))))
-        if progress is not None:
-            progress(k + 1, count)
-    values = np.asarray(expert.value(states))
-    lower = np.asarray(policy.v_lb(states))
-    return Evaluation(states, returns, values, lower, slope)
 
 
 def build_loop(

@@ -211,12 +211,7 @@ class NPPLoop:
             self._set_policy_prefix(self.dataset.num_trajectories - held)
 
     def _set_policy_prefix(self, count: int) -> None:
-        if count == self.dataset.num_trajectories:
-            self.policy_data = self.dataset
-            return
-        self.policy_data = Dataset(self.config.state_dim, self.config.action_dim)
-        for k in range(count):
-            self.policy_data.append(self.dataset.trajectory(k))
+        self.policy_data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
 
     # ------------------------------------------------------------------ one episode
     def _drive(self, episode: int, s0: FloatArray) -> float | None:

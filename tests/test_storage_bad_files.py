@@ -78,7 +78,7 @@ def test_truncated_files_are_refused_unchanged(good_file: Path, tmp_path_factory
 @FILES
 @given(
     version=st.text(st.characters(blacklist_categories=("Cs",)), max_size=12).filter(lambda v: v != str(FORMAT_VERSION))
-)  # noqa: E501
+)
 def test_other_versions_are_refused_unchanged(good_file: Path, tmp_path_factory, version: str) -> None:
     path = copy(good_file, tmp_path_factory)
     with sqlite3.connect(path) as conn:

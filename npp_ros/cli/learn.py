@@ -17,11 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from npp_ros.bounds import NonparametricPolicy
 from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
 from npp_ros.cli.args import nonnegative_int, positive_int
-from npp_ros.inprocess import LIPSCHITZ_CHOICES, build_config, build_loop, evaluate, lipschitz_checks, resolve_lipschitz
+from npp_ros.evaluation import check_policy
+from npp_ros.inprocess import LIPSCHITZ_CHOICES, build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.lipschitz import LipschitzWarning
-from npp_ros.lqr import PAPER_EPSILON, TASKS, LQRExpert
+from npp_ros.lqr import PAPER_EPSILON, TASKS, LQRExpert, LQRPlant, sample_initial_state
 from npp_ros.progress import Counter, StatusLine
 from npp_ros.storage import EpisodeRow, RunFileError
 
@@ -112,7 +114,16 @@ def main(argv: list[str] | None = None) -> int:
     evaluation = None
     if args.evaluate > 0 and len(loop.dataset):
         rng = np.random.default_rng([args.seed, 1 << 30])  # a stream the run never used for s0
-        evaluation = evaluate(loop.policy, expert, args.task, rng, args.evaluate, args.horizon, Counter("evaluating"))
+        states = np.array([sample_initial_state(args.task, rng) for _ in range(args.evaluate)])
+        certificate = result.certificate
+        policy = loop.policy
+        if certificate is not None and certificate.policy_trajectories != loop.policy_data.num_trajectories:
+            policy = NonparametricPolicy(loop.dataset.prefix(certificate.policy_trajectories), lipschitz.value)
+        evaluation = check_policy(
+            policy, LQRPlant(args.task, args.seed), expert, states, args.horizon,
+            epsilon=epsilon, p=args.p, delta=args.delta, against_expert=args.certify == "oracle",
+            progress=Counter("evaluating"),
+        )  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LipschitzWarning)  # reported below, in the summary
         checks = lipschitz_checks(loop, expert, evaluation.visited_slope if evaluation else 0.0)
@@ -139,19 +150,20 @@ def main(argv: list[str] | None = None) -> int:
     for check in checks:
         print(f"  L check         {'ok  ' if check.ok else 'FAIL'} {check.message()}")
     if evaluation is not None:
-        frac = evaluation.fraction_within(epsilon)
-        gaps = evaluation.true_gaps
         print(
-            f"  evaluation      {args.evaluate} fresh s0: V*(s0) - V^pi(s0) median {np.median(gaps):.2f}, "
-            f"max {gaps.max():.2f}; {frac:.0%} within epsilon; "
-            f"{evaluation.lower_bound_violations} returns below V_lb(s0)"
+            f"  evaluation      {evaluation.states} fresh s0, gap to {evaluation.reference}: median "
+            f"{evaluation.gap_q50:.2f}, max {evaluation.gap_max:.2f}; {evaluation.fraction:.1%} within epsilon "
+            f"(binomial test of >= {args.p:g}: p = {evaluation.p_value:.2g}); "
+            f"{evaluation.below_v_lb} returns below V_lb(s0)"
         )
         summary["evaluation"] = {
-            "rollouts": args.evaluate,
-            "fraction_within_epsilon": frac,
-            "true_gap_median": float(np.median(gaps)),
-            "true_gap_max": float(gaps.max()),
-            "lower_bound_violations": evaluation.lower_bound_violations,
+            "rollouts": evaluation.states,
+            "reference": evaluation.reference,
+            "fraction_within_epsilon": evaluation.fraction,
+            "binomial_p_value": evaluation.p_value,
+            "true_gap_median": evaluation.gap_q50,
+            "true_gap_max": evaluation.gap_max,
+            "lower_bound_violations": evaluation.below_v_lb,
         }
     print(f"  run folder      {run_dir} ({elapsed:.1f} s)")
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

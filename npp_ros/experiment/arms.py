@@ -1,0 +1,127 @@
+"""Arms (task x expert x L x certification) and the settings every (arm, seed) shares."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
+from npp_ros.dataset import FloatArray
+from npp_ros.lqr import (
+    PAPER_EPSILON,
+    TASKS,
+    DetunedLQRExpert,
+    LQRExpert,
+    sample_initial_state,
+)
+
+EXPERTS = ("optimal", "detuned")
+LIPSCHITZ_SETTINGS = ("paper", "analytic")
+DEFAULT_CHECKPOINTS = (10, 25, 50, 100, 250, 500, 1000)
+DETUNED_CONTROL_WEIGHT = 0.1
+EVALUATION_STREAM = 1 << 30  # rng stream for evaluation s0; the run's own s0 use [seed, episode]
+EVALUATION_CHUNK = 25  # rollouts stepped in lockstep (batched policy queries)
+HELD_OUT = 1000  # fresh s0 on which every certificate is checked
+HELD_OUT_STREAM = EVALUATION_STREAM + 1
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One line of the results table, over seeds."""
+
+    task: str
+    expert: str  # "optimal" or "detuned"
+    lipschitz: str  # "paper", "analytic" or a number
+    certify: str = "surrogate"  # the paper's checked quantity ...
+    rule: str = "paper"  # ... and its stopping rule, unless the arm says otherwise
+
+    def __post_init__(self) -> None:
+        if self.certify not in CERTIFY_MODES:
+            raise ValueError(f"unknown certification mode {self.certify!r}; known: {', '.join(CERTIFY_MODES)}")
+        if self.rule not in STOPPING_RULES:
+            raise ValueError(f"unknown stopping rule {self.rule!r}; known: {', '.join(STOPPING_RULES)}")
+        if self.task not in TASKS:
+            raise ValueError(f"unknown task {self.task!r}; known: {', '.join(sorted(TASKS))}")
+        if self.expert not in EXPERTS:
+            raise ValueError(f"unknown expert {self.expert!r}; known: {', '.join(EXPERTS)}")
+        if self.lipschitz not in LIPSCHITZ_SETTINGS:
+            try:
+                value = float(self.lipschitz)
+            except ValueError:
+                value = math.nan
+            if not (math.isfinite(value) and value > 0):
+                known = ", ".join(LIPSCHITZ_SETTINGS)
+                raise ValueError(f"L setting must be one of {known} or a number > 0, got {self.lipschitz!r}")
+
+    @property
+    def paper_certification(self) -> bool:
+        return (self.certify, self.rule) == ("surrogate", "paper")
+
+    @property
+    def name(self) -> str:
+        base = f"{self.task}-{self.expert}-L{self.lipschitz}"
+        return base if self.paper_certification else f"{base}-{self.certify}-{self.rule}"
+
+    @property
+    def label(self) -> str:
+        expert = "optimal expert" if self.expert == "optimal" else "detuned expert"
+        how = "" if self.paper_certification else f", certify={self.certify} ({self.rule})"
+        return f"{self.task}, {expert}, {self.lipschitz} L{how}"
+
+
+@dataclass(frozen=True)
+class ExperimentSettings:
+    """What every (arm, seed) shares; defaults follow the paper."""
+
+    max_episodes: dict[str, int]
+    evaluations: int = 100  # N
+    checkpoints: tuple[int, ...] = DEFAULT_CHECKPOINTS
+    horizon: int = 1000
+    p: float = 0.9
+    delta: float = 0.1
+    epsilon: dict[str, float] | None = None
+    control_weight: float = DETUNED_CONTROL_WEIGHT
+
+    def epsilon_for(self, task: str) -> float:
+        return (self.epsilon or {}).get(task, PAPER_EPSILON[task])
+
+    def checkpoints_for(self, task: str) -> list[int]:
+        budget = self.max_episodes[task]
+        return sorted({c for c in self.checkpoints if 0 < c <= budget} | {budget})
+
+
+def default_arms(
+    tasks: Sequence[str], lipschitz: Sequence[str], experts: Sequence[str], certify: Sequence[str] = ("paper",)
+) -> list[Arm]:
+    """The detuned expert is not run with the paper's L: the paper gives none for it.
+
+    ``certify`` lists "paper" (the surrogate gap under the paper's one-shot rule) and sound modes
+    (rollout, oracle, surrogate) under the sequential rule.
+    """
+    arms = []
+    for task in tasks:
+        for expert in experts:
+            for setting in lipschitz:
+                if expert == "detuned" and setting == "paper":
+                    continue
+                for mode in certify:
+                    if mode == "paper":
+                        arms.append(Arm(task, expert, setting))
+                    else:
+                        arms.append(Arm(task, expert, setting, mode, "sequential"))
+    return arms
+
+
+def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> LQRExpert:
+    if arm.expert == "detuned":
+        return DetunedLQRExpert(arm.task, seed, settings.control_weight, horizon=settings.horizon)
+    return LQRExpert(arm.task, seed, horizon=settings.horizon)
+
+
+def evaluation_states(task: str, seed: int, count: int) -> FloatArray:
+    """The fixed N initial states every checkpoint of a seed is evaluated on (common random numbers)."""
+    rng = np.random.default_rng([seed, EVALUATION_STREAM])
+    return np.array([sample_initial_state(task, rng) for _ in range(count)])

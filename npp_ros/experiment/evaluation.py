@@ -1,0 +1,185 @@
+"""Rollouts from fresh s0: checkpoint evaluations and the held-out check of a certificate."""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.certification import Certificate
+from npp_ros.dataset import Dataset
+from npp_ros.evaluation import (
+    VIOLATION_TOLERANCE,
+    HeldOutCheck,
+    check_policy,
+    controller_returns,
+    policy_rollouts,
+)
+from npp_ros.experiment.arms import (
+    EVALUATION_CHUNK,
+    HELD_OUT_STREAM,
+    Arm,
+    ExperimentSettings,
+    evaluation_states,
+)
+from npp_ros.lqr import (
+    LQRExpert,
+    LQRPlant,
+    sample_initial_state,
+)
+
+
+@dataclass(frozen=True)
+class EvaluationRow:
+    """One rollout from one evaluation s0 at one checkpoint."""
+
+    checkpoint: int  # episodes done when evaluated
+    rollout: int
+    oracle_calls: int
+    dataset_size: int
+    policy_return: float
+    expert_return: float  # the data expert from the same s0
+    optimal_return: float  # the optimal LQR controller from the same s0
+    v_lb: float
+    v_ub: float
+    visited_slope: float  # max |grad V^expert| over the states the policy visited
+    wall_time: float  # seconds for this checkpoint's whole evaluation (same on every row)
+
+    @property
+    def gap_to_expert(self) -> float:
+        return self.expert_return - self.policy_return
+
+    @property
+    def gap_to_optimal(self) -> float:
+        return self.optimal_return - self.policy_return
+
+    @property
+    def violates_lower_bound(self) -> bool:
+        """Theorem 3.4 (B.1 i): the return can never fall below V_lb(s0) when L is a true bound."""
+        return self.policy_return < self.v_lb - VIOLATION_TOLERANCE * max(1.0, abs(self.v_lb))
+
+
+EVALUATION_FIELDS = [f.name for f in fields(EvaluationRow)]
+
+
+def read_evaluations(path: Path) -> list[EvaluationRow]:
+    if not path.exists():
+        return []
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        if reader.fieldnames != EVALUATION_FIELDS:
+            raise ValueError(f"{path}: unexpected columns {reader.fieldnames}; expected {EVALUATION_FIELDS}")
+        rows = []
+        for line in reader:
+            rows.append(
+                EvaluationRow(
+                    **{
+                        name: int(line[name])
+                        if name in ("checkpoint", "rollout", "oracle_calls", "dataset_size")
+                        else float(line[name])
+                        for name in EVALUATION_FIELDS
+                    }
+                )
+            )
+    return rows
+
+
+def append_evaluations(path: Path, rows: Sequence[EvaluationRow]) -> None:
+    """Appends one checkpoint's rows in one write, so a crash leaves whole checkpoints only."""
+    new = not path.exists()
+    lines = []
+    if new:
+        lines.append(",".join(EVALUATION_FIELDS))
+    for row in rows:
+        lines.append(
+            ",".join(repr(v) if isinstance(v, float) else str(v) for v in (getattr(row, n) for n in EVALUATION_FIELDS))
+        )
+    with path.open("a") as fh:
+        fh.write("\n".join(lines) + "\n")
+        fh.flush()
+
+
+class Evaluator:
+    """Rolls the policy and both reference controllers out in MuJoCo from the evaluation s0."""
+
+    def __init__(self, arm: Arm, seed: int, settings: ExperimentSettings, expert: LQRExpert) -> None:
+        self.settings = settings
+        self.expert = expert
+        self.plant = LQRPlant(arm.task, seed)
+        self.states = evaluation_states(arm.task, seed, settings.evaluations)
+        optimal = expert if arm.expert == "optimal" else LQRExpert(arm.task, seed, horizon=settings.horizon)
+        self.optimal_returns = controller_returns(self.plant, optimal, self.states, settings.horizon)
+        self.expert_returns = (
+            self.optimal_returns
+            if optimal is expert
+            else controller_returns(self.plant, expert, self.states, settings.horizon)
+        )
+
+    def evaluate(
+        self, checkpoint: int, policy: NonparametricPolicy, progress: Callable[[int, int], None] | None = None
+    ) -> list[EvaluationRow]:
+        started = time.perf_counter()
+        lower = np.asarray(policy.v_lb(self.states))
+        upper = np.asarray(policy.v_ub(self.states))
+        returns, slopes = policy_rollouts(
+            self.plant,
+            policy,
+            self.states,
+            self.settings.horizon,
+            self.expert,
+            chunk=EVALUATION_CHUNK,
+            progress=progress,
+        )
+        wall = time.perf_counter() - started
+        data = policy.dataset
+        return [
+            EvaluationRow(
+                checkpoint,
+                k,
+                data.num_trajectories,
+                len(data),
+                float(returns[k]),
+                float(self.expert_returns[k]),
+                float(self.optimal_returns[k]),
+                float(lower[k]),
+                float(upper[k]),
+                float(slopes[k]),
+                wall,
+            )
+            for k in range(len(self.states))
+        ]
+
+
+def check_certificate(
+    certificate: Certificate,
+    dataset: Dataset,
+    arm: Arm,
+    seed: int,
+    settings: ExperimentSettings,
+    expert: LQRExpert,
+    count: int,
+) -> HeldOutCheck:
+    """The certified policy (the greedy policy over the trajectories it names) on ``count`` fresh s0.
+
+    The gap is to the exact optimal H-step return where the claim is about V* and the expert is
+    optimal; otherwise (oracle mode, or the detuned expert) to the expert's own H-step return.
+    """
+    rng = np.random.default_rng([seed, HELD_OUT_STREAM])
+    states = np.array([sample_initial_state(arm.task, rng) for _ in range(count)])
+    policy = NonparametricPolicy(dataset.prefix(certificate.policy_trajectories), certificate.lipschitz)
+    return check_policy(
+        policy, LQRPlant(arm.task, seed), expert, states, settings.horizon,
+        epsilon=certificate.epsilon, p=certificate.p, delta=certificate.delta,
+        against_expert=certificate.certify == "oracle" or arm.expert == "detuned",
+    )  # fmt: skip
+
+
+def read_held_out(run_dir: Path) -> HeldOutCheck | None:
+    path = run_dir / "heldout.json"
+    return HeldOutCheck(**json.loads(path.read_text())) if path.exists() else None

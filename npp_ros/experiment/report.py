@@ -1,0 +1,272 @@
+"""The results table: measured columns per (arm, seed), the verdicts they back, Markdown and CSV."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import binom
+
+from npp_ros.experiment.evaluation import HeldOutCheck
+from npp_ros.experiment.runs import RunRecord
+
+
+@dataclass(frozen=True)
+class ResultRow:
+    """One (arm, seed): the measured columns and the verdict they back."""
+
+    task: str
+    expert: str
+    lipschitz_setting: str
+    certify: str
+    rule: str
+    seed: int
+    lipschitz: float
+    slope_needed: float
+    l_is_bound: bool
+    epsilon: float
+    certified_episode: int | None
+    episodes: int
+    oracle_calls: int
+    dataset_size: int
+    evaluated_at: int
+    rollouts: int
+    gap_q50: float  # gap to the data expert, V^expert(s0) - V^pi(s0), measured returns
+    gap_q90: float
+    gap_max: float
+    fraction_within_epsilon: float
+    gap_to_optimal_q50: float
+    lower_bound_violations: int
+    crossed_bounds: int  # episodes with V_ub(s0) < V_lb(s0): the data alone prove L is too small
+    max_visited_slope: float
+    verdict: str
+    wall_time_s: float
+    held_out_states: int  # fresh s0 the certificate was checked on (0: no certificate)
+    held_out_fraction: float  # of those, the share with gap <= epsilon for the certificate's value
+    held_out_p_value: float
+    held_out_below_v_lb: int
+    held_out_verdict: str
+
+
+def held_out_verdict(check: HeldOutCheck | None, p: float, delta: float) -> str:
+    """The certificate's claim against fresh s0: a one-sided binomial test at level delta."""
+    if check is None:
+        return "no certificate"
+    if check.rejected:
+        return f"FALSE: {check.fraction:.1%} within eps, claimed >= {p:.0%} (binomial p = {check.p_value:.2g})"
+    if check.fraction >= p:
+        return f"held ({check.fraction:.1%} within eps)"
+    return f"below p, not significant ({check.fraction:.1%} within eps)"
+
+
+def verdict(certified: bool, fraction: float, rollouts: int, violations: int, p: float, delta: float) -> str:
+    """What the measurement says about the certificate's claim P(gap <= eps) >= p.
+
+    "contradicted": a one-sided binomial test rejects P(gap <= eps) >= p at level delta.
+    """
+    if not certified:
+        return "no certificate"
+    within = round(fraction * rollouts)
+    if fraction >= p:
+        if violations:
+            return f"held here, but L is not a bound ({violations} returns < V_lb)"
+        return "held"
+    if binom.cdf(within, rollouts, p) < delta:
+        return f"FAILED: {fraction:.0%} within eps, claimed >= {p:.0%}"
+    return f"below p, not significant ({fraction:.0%} within eps)"
+
+
+def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
+    final = max((row.checkpoint for row in record.evaluations), default=0)
+    rows = [row for row in record.evaluations if row.checkpoint == final]
+    gaps = np.array([row.gap_to_expert for row in rows]) if rows else np.array([np.nan])
+    to_optimal = np.array([row.gap_to_optimal for row in rows]) if rows else np.array([np.nan])
+    fraction = float(np.mean(gaps <= record.epsilon)) if rows else float("nan")
+    violations = sum(row.violates_lower_bound for row in rows)
+    last = record.episodes[-1] if record.episodes else None
+    check = record.held_out
+    return ResultRow(
+        task=record.arm.task,
+        expert=record.arm.expert,
+        lipschitz_setting=record.arm.lipschitz,
+        certify=record.arm.certify,
+        rule=record.arm.rule,
+        seed=record.seed,
+        lipschitz=record.lipschitz.value,
+        slope_needed=record.slope_needed,
+        l_is_bound=record.lipschitz.value >= record.slope_needed,
+        epsilon=record.epsilon,
+        certified_episode=record.certified_episode,
+        episodes=len(record.episodes),
+        oracle_calls=last.oracle_calls if last else 0,
+        dataset_size=last.dataset_size if last else 0,
+        evaluated_at=final,
+        rollouts=len(rows),
+        gap_q50=float(np.quantile(gaps, 0.5)),
+        gap_q90=float(np.quantile(gaps, 0.9)),
+        gap_max=float(np.max(gaps)),
+        fraction_within_epsilon=fraction,
+        gap_to_optimal_q50=float(np.quantile(to_optimal, 0.5)),
+        lower_bound_violations=violations,
+        crossed_bounds=sum(row.gap < 0 for row in record.episodes),
+        max_visited_slope=max((row.visited_slope for row in rows), default=float("nan")),
+        verdict=verdict(record.certified_episode is not None, fraction, len(rows), violations, p, delta),
+        wall_time_s=record.wall_time,
+        held_out_states=check.states if check else 0,
+        held_out_fraction=check.fraction if check else float("nan"),
+        held_out_p_value=check.p_value if check else float("nan"),
+        held_out_below_v_lb=check.below_v_lb if check else 0,
+        held_out_verdict=held_out_verdict(check, p, delta),
+    )
+
+
+RESULT_FIELDS = [f.name for f in fields(ResultRow)]
+
+
+def write_results(rows: Iterable[ResultRow], out_dir: Path) -> list[Path]:
+    """results.csv and results.json for tools, results.md for people."""
+    rows = list(rows)
+    paths = [out_dir / "results.csv", out_dir / "results.json", out_dir / "results.md"]
+    with paths[0].open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(RESULT_FIELDS)
+        for row in rows:
+            writer.writerow(["" if v is None else v for v in (getattr(row, n) for n in RESULT_FIELDS)])
+    paths[1].write_text(json.dumps([asdict(row) for row in rows], indent=2) + "\n")
+    paths[2].write_text(
+        "# npp-experiment results\n\n## Certificates, checked on held-out s0\n\n"
+        + certificate_table(rows)
+        + "\n## Per arm (seeds pooled)\n\n"
+        + summary_table(rows)
+        + "\n"
+        + COLUMN_NOTES
+        + "\n## Per seed\n\n"
+        + markdown_table(rows)
+    )
+    return paths
+
+
+COLUMN_NOTES = """\
+- certificates table: each certificate's policy (the greedy policy over the trajectories it names) rolled out
+  from 1,000 fresh s0 ~ rho (a stream of their own), against the value the certificate speaks of: the exact
+  optimal H-step return when it claims V* and the expert is optimal, else the expert's own H-step return from
+  the same s0. "FALSE" when a one-sided binomial test rejects P(gap <= eps) >= p at level delta.
+- gap: V^expert(s0) - V^pi(s0), measured H-step returns from the same s0, at the last evaluation (the
+  certificate's episode, or the budget). For the detuned expert this is the gap the certificate is about
+  (its data bound V^expert, not V*); "gap to optimum" compares with the optimal LQR controller.
+- within eps: the fraction of the N fresh s0 with gap <= epsilon. Condition (i) claims >= p.
+- returns < V_lb: rollouts whose return fell below V_lb(s0); impossible when L bounds the value's slope
+  (Theorem 3.4, B.1 i).
+- V_ub < V_lb at s0: episodes whose bounds crossed, which the data alone show cannot happen with a valid L.
+- max slope visited: the largest |grad V^expert| = |P x| along the policy's evaluation rollouts. The analytic L
+  is the sup over the expert's own trajectories; where the policy leaves them the slope can exceed it, and the
+  guarantees then rest on an assumption this column shows to be false there.
+- verdict: "held" when within eps >= p and no return fell below V_lb; "FAILED" when a one-sided binomial
+  test rejects P(gap <= eps) >= p at level delta.
+"""
+
+
+def certificate_table(rows: Sequence[ResultRow]) -> str:
+    """Per arm: what certified, after how much, and whether the claim survived fresh s0."""
+    head = (
+        "| task | expert | L | certify (rule) | certified | episodes (median, range) | oracle calls (median) "
+        "| held-out within eps (worst seed) | returns < V_lb (held-out) | verdicts |\n"
+        "|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for (task, expert, setting, certify, rule), group in _arms(rows).items():
+        certs = [r.certified_episode for r in group if r.certified_episode is not None]
+        episodes = [r.certified_episode if r.certified_episode is not None else r.episodes for r in group]
+        span = f"{int(np.median(episodes))} ({min(episodes)}-{max(episodes)})"
+        checked = [r for r in group if r.held_out_states]
+        worst = f"{min(r.held_out_fraction for r in checked):.1%}" if checked else "-"
+        below = f"{sum(r.held_out_below_v_lb for r in checked)}/{sum(r.held_out_states for r in checked)}"
+        verdicts: dict[str, int] = {}
+        for r in group:
+            key = r.held_out_verdict.split(" (")[0].split(":")[0]
+            verdicts[key] = verdicts.get(key, 0) + 1
+        said = ", ".join(f"{v} x {k}" for k, v in verdicts.items())
+        calls = int(np.median([r.oracle_calls for r in group]))
+        lines.append(
+            f"| {task} | {expert} | {setting} | {certify} ({rule}) | {len(certs)}/{len(group)} | {span} | {calls} "
+            f"| {worst} | {below if checked else '-'} | {said} |"
+        )
+    return head + "\n".join(lines) + "\n"
+
+
+def _arms(rows: Sequence[ResultRow]) -> dict[tuple[str, str, str, str, str], list[ResultRow]]:
+    groups: dict[tuple[str, str, str, str, str], list[ResultRow]] = {}
+    for row in rows:
+        groups.setdefault((row.task, row.expert, row.lipschitz_setting, row.certify, row.rule), []).append(row)
+    return groups
+
+
+def _expert_cell(row: ResultRow) -> str:
+    paper = (row.certify, row.rule) == ("surrogate", "paper")
+    return row.expert if paper else f"{row.expert}, {row.certify} ({row.rule})"
+
+
+def _slope_cell(row: ResultRow) -> str:
+    above = row.max_visited_slope > row.lipschitz
+    return f"**{row.max_visited_slope:.1f} > L**" if above else f"{row.max_visited_slope:.1f}"
+
+
+def summary_table(rows: Sequence[ResultRow]) -> str:
+    """One line per arm: what a user needs to decide whether to trust the certificates."""
+    head = (
+        "| task | expert | L used (slope needed) | certified | certified at (median, range) | oracle calls "
+        "| within eps (worst seed) | returns < V_lb | V_ub < V_lb episodes | slope visited / L (max) "
+        "| verdicts | compute s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for (task, expert, _, certify, rule), group in _arms(rows).items():
+        expert = expert if (certify, rule) == ("surrogate", "paper") else f"{expert}, {certify} ({rule})"
+        used = "/".join(f"{r.lipschitz:.0f}" for r in group)
+        needed = "/".join(f"{r.slope_needed:.0f}" for r in group)
+        bound = "" if all(r.l_is_bound for r in group) else " **not a bound**"
+        certs = [r.certified_episode for r in group if r.certified_episode is not None]
+        at = f"{int(np.median(certs))} ({min(certs)}-{max(certs)})" if certs else "-"
+        calls = int(np.median([r.oracle_calls for r in group]))
+        worst = min(r.fraction_within_epsilon for r in group)
+        below = sum(r.lower_bound_violations for r in group)
+        total = sum(r.rollouts for r in group)
+        crossed = sum(r.crossed_bounds for r in group)
+        verdicts: dict[str, int] = {}
+        for r in group:
+            key = r.verdict.split(" (")[0].split(":")[0]
+            verdicts[key] = verdicts.get(key, 0) + 1
+        said = ", ".join(f"{v} x {k}" for k, v in verdicts.items())
+        compute = sum(r.wall_time_s for r in group)
+        ratio = f"{max(r.max_visited_slope / r.lipschitz for r in group):.2f}"
+        above = sum(r.max_visited_slope > r.lipschitz for r in group)
+        ratio += f" (**{above} of {len(group)} seeds above L**)" if above else ""
+        lines.append(
+            f"| {task} | {expert} | {used} ({needed}){bound} | {len(certs)}/{len(group)} | {at} | {calls} "
+            f"| {worst:.0%} | {below}/{total} | {crossed} | {ratio} | {said} | {compute:.0f} |"
+        )
+    return head + "\n".join(lines) + "\n"
+
+
+def markdown_table(rows: Sequence[ResultRow]) -> str:
+    head = (
+        "| task | expert | L (needed) | seed | certified at | oracle calls | \\|D\\| | gap q50 / q90 / max "
+        "| within eps | gap to optimum q50 | returns < V_lb | V_ub < V_lb at s0 | max slope visited "
+        "| verdict | wall s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for r in rows:
+        bound = "" if r.l_is_bound else " **not a bound**"
+        cert = str(r.certified_episode) if r.certified_episode is not None else f"none ({r.episodes})"
+        lines.append(
+            f"| {r.task} | {_expert_cell(r)} | {r.lipschitz:.0f} ({r.slope_needed:.0f}){bound} | {r.seed} | {cert} "
+            f"| {r.oracle_calls} | {r.dataset_size} | {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
+            f"| {r.fraction_within_epsilon:.0%} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
+            f"| {r.crossed_bounds} | {_slope_cell(r)} | {r.verdict} | {r.wall_time_s:.0f} |"
+        )
+    return head + "\n".join(lines) + "\n"

@@ -1,0 +1,159 @@
+"""One (arm, seed): run or resume it to its certificate or budget, evaluating at checkpoints."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from npp_ros.bounds import NonparametricPolicy
+from npp_ros.experiment.arms import HELD_OUT, Arm, ExperimentSettings, make_expert
+from npp_ros.experiment.evaluation import (
+    EvaluationRow,
+    Evaluator,
+    HeldOutCheck,
+    append_evaluations,
+    check_certificate,
+    read_evaluations,
+    read_held_out,
+)
+from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
+from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.loop import NPPLoop, Observer
+from npp_ros.lqr import (
+    LQRExpert,
+)
+from npp_ros.storage import EpisodeRow
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """Everything the plots and the table need from one (arm, seed), read back from its folder."""
+
+    arm: Arm
+    seed: int
+    lipschitz: LipschitzConstant
+    slope_needed: float  # sup of the data expert's value slope over its trajectories from S0
+    epsilon: float
+    episodes: list[EpisodeRow]
+    evaluations: list[EvaluationRow]
+    certified_episode: int | None
+    wall_time: float
+    held_out: HeldOutCheck | None = None
+
+
+Progress = Callable[[str], None]
+
+
+class _EpisodeProgress(Observer):
+    def __init__(self, report: Progress, key: str, budget: int) -> None:
+        self.report, self.key, self.budget = report, key, budget
+        self._last = 0.0
+
+    def on_episode(self, row: EpisodeRow, status) -> None:
+        now = time.monotonic()
+        if now - self._last >= 1.0 or row.certified:
+            self._last = now
+            gap = "inf" if math.isinf(row.gap) else f"{row.gap:.1f}"
+            self.report(f"{self.key}: episode {row.episode + 1}/{self.budget}, gap {gap}, oracle {row.oracle_calls}")
+
+
+def run_arm_seed(
+    arm: Arm, seed: int, settings: ExperimentSettings, out_dir: Path, report: Progress | None = None
+) -> RunRecord:
+    """Runs (or resumes) one (arm, seed) to certification or budget, evaluating at checkpoints."""
+    report = report or (lambda _text: None)
+    key = f"{arm.name} seed {seed}"
+    run_dir = out_dir / "runs" / f"{arm.name}-seed{seed}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    expert = make_expert(arm, seed, settings)
+    lipschitz = resolve_lipschitz(arm.task, arm.lipschitz, expert)
+    epsilon = settings.epsilon_for(arm.task)
+    config = build_config(
+        arm.task, seed, lipschitz, epsilon, p=settings.p, delta=settings.delta, horizon=settings.horizon,
+        certify=arm.certify, rule=arm.rule,  # type: ignore[arg-type]  # Arm checks both
+    )  # fmt: skip
+    budget = settings.max_episodes[arm.task]
+    loop = build_loop(
+        config, expert, store_path=run_dir / "run.sqlite", observers=[_EpisodeProgress(report, key, budget)]
+    )
+    try:
+        evaluations_path = run_dir / "evaluations.csv"
+        done = {row.checkpoint for row in read_evaluations(evaluations_path)}
+        evaluator: Evaluator | None = None
+        for checkpoint in settings.checkpoints_for(arm.task):
+            if loop.certificate is not None and loop.certificate.episodes < checkpoint:
+                checkpoint = loop.certificate.episodes  # the run ended here: evaluate what it certified
+            if checkpoint in done:
+                continue
+            loop.run(checkpoint)
+            reached = min(checkpoint, loop.next_episode)
+            if reached in done:
+                continue
+            calls = policy_trajectories_at(loop, reached)
+            if calls == loop.policy_data.num_trajectories:
+                policy = loop.policy  # its search index is already built
+            else:  # resumed past an unevaluated checkpoint: rebuild the data as it was there
+                policy = NonparametricPolicy(loop.dataset.prefix(calls), lipschitz.value)
+            if evaluator is None:
+                report(f"{key}: reference rollouts")
+                evaluator = Evaluator(arm, seed, settings, expert)
+            label = f"{key}: evaluating at episode {reached}"
+            rows = evaluator.evaluate(reached, policy, lambda k, n, label=label: report(f"{label}: {k}/{n}"))
+            append_evaluations(evaluations_path, rows)
+            done.add(reached)
+            if loop.certificate is not None and reached >= loop.certificate.episodes:
+                break
+        if loop.certificate is not None and not (run_dir / "heldout.json").exists():
+            report(f"{key}: checking the certificate on {HELD_OUT} held-out s0")
+            check = check_certificate(loop.certificate, loop.dataset, arm, seed, settings, expert, HELD_OUT)
+            (run_dir / "heldout.json").write_text(json.dumps(asdict(check), indent=2) + "\n")
+        return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)
+    finally:
+        if loop.store is not None:
+            loop.store.close()
+
+
+def policy_trajectories_at(loop: NPPLoop, episodes: int) -> int:
+    """How many trajectories the policy acted on after ``episodes`` episodes (held-back data excluded)."""
+    if episodes == 0:
+        return 0
+    if loop.certificate is not None and episodes == loop.certificate.episodes:
+        return loop.certificate.policy_trajectories
+    calls = sum(row.oracle_called for row in loop.rows[:episodes])
+    if loop.config.certify != "oracle":
+        return calls
+    held = 0
+    for row in reversed(loop.rows[:episodes]):
+        if row.checked_gap > loop.config.epsilon:
+            break
+        held += int(row.oracle_called)
+    return calls - held
+
+
+def read_record(
+    arm: Arm,
+    seed: int,
+    settings: ExperimentSettings,
+    run_dir: Path,
+    loop: NPPLoop,
+    expert: LQRExpert,
+    lipschitz: LipschitzConstant,
+) -> RunRecord:
+    evaluations = read_evaluations(run_dir / "evaluations.csv")
+    wall = sum(row.wall_time for row in loop.rows) + sum({r.checkpoint: r.wall_time for r in evaluations}.values())
+    return RunRecord(
+        arm=arm,
+        seed=seed,
+        lipschitz=lipschitz,
+        slope_needed=expert.analytic_lipschitz().value,
+        epsilon=settings.epsilon_for(arm.task),
+        episodes=list(loop.rows),
+        evaluations=evaluations,
+        certified_episode=loop.certificate.episodes if loop.certificate else None,
+        wall_time=wall,
+        held_out=read_held_out(run_dir),
+    )
