@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from npp_ros.lipschitz import LipschitzConstant
 
-LIPSCHITZ_NAMED = ("analytic", "paper")  # resolved once the plant is known (inprocess.resolve_lipschitz)
+LIPSCHITZ_NAMED = ("analytic", "paper")  # resolved once the plant is known (run_setup.resolve_lipschitz)
 
 
 def parse_lipschitz(choice: str | float) -> str | LipschitzConstant:

@@ -39,10 +39,10 @@ from npp_ros.certification import (
 )
 from npp_ros.choices import LIPSCHITZ_NAMED, parse_lipschitz
 from npp_ros.dataset import FloatArray, Trajectory
-from npp_ros.inprocess import build_config, initial_state_fn, resolve_lipschitz, value_basis
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.loop import NPPLoop, Observer, RunConfig
 from npp_ros.lqr import PAPER_EPSILON, LQRExpert, initial_state_diameter
+from npp_ros.run_setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
 from npp_ros.storage import EpisodeRow, RunStore
 from npp_ros_graph.common import (
     BUSY,

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from npp_ros.experiment import Arm, ExperimentSettings, read_evaluations, verdict
-from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
 from npp_ros.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
+from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.storage import RunStore
 
 EXPERIMENT = [sys.executable, "-m", "npp_ros.cli.experiment"]

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from npp_ros.certification import Certificate, CertificationStatus
-from npp_ros.inprocess import build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.lipschitz import LipschitzWarning
 from npp_ros.loop import Observer
 from npp_ros.lqr import LQRExpert
+from npp_ros.run_setup import build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.storage import EpisodeRow, RunFileError, RunStore
 
 

@@ -21,10 +21,10 @@ from npp_ros.bounds import NonparametricPolicy
 from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
 from npp_ros.cli.args import nonnegative_int, positive_int
 from npp_ros.evaluation import check_policy
-from npp_ros.inprocess import LIPSCHITZ_CHOICES, build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.lipschitz import LipschitzWarning
 from npp_ros.lqr import PAPER_EPSILON, TASKS, LQRExpert, LQRPlant, sample_initial_state
 from npp_ros.progress import Counter, StatusLine
+from npp_ros.run_setup import LIPSCHITZ_CHOICES, build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.storage import EpisodeRow, RunFileError
 
 

@@ -20,12 +20,12 @@ from npp_ros.experiment.evaluation import (
     read_evaluations,
     read_held_out,
 )
-from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.loop import NPPLoop, Observer
 from npp_ros.lqr import (
     LQRExpert,
 )
+from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.storage import EpisodeRow
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from npp_ros.inprocess import build_config, build_loop, resolve_lipschitz
 from npp_ros.loop import NPPLoop, RunResult
 from npp_ros.lqr import LQRExpert
+from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.storage import EpisodeRow
 
 

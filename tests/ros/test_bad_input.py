@@ -42,8 +42,8 @@ from rclpy.client import Client
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 
-from npp_ros.inprocess import build_config, resolve_lipschitz
 from npp_ros.lqr import LQRExpert
+from npp_ros.run_setup import build_config, resolve_lipschitz
 from npp_ros.storage import RunStore
 from npp_ros_graph.common import (
     ACTION,

@@ -13,9 +13,9 @@ from sensor_msgs.msg import JointState
 
 from npp_ros.certification import Certificate
 from npp_ros.dataset import DatasetError, Trajectory
-from npp_ros.inprocess import build_config
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.lqr import LQRExpert
+from npp_ros.run_setup import build_config
 from npp_ros.storage import EpisodeRow
 from npp_ros_graph.convert import (
     MessageError,

@@ -1,8 +1,8 @@
-"""Algorithm 1 in one process: the lqr plant, its LQR expert and the loop, wired for a seed.
+"""A run's set-up for a task and seed: its L, its config, its s0 stream, its loop.
 
-This is what the supervisor node does over ROS, with the ROS parts replaced by direct calls;
-both build their loop with :func:`build_config` and sample s0 with :func:`initial_state_fn`,
-so the same seed gives the same numbers either way.
+npp-learn, npp-experiment and the supervisor node all build their run here (the supervisor with
+the ROS parts in place of direct calls): :func:`build_config`, :func:`initial_state_fn` and
+:func:`value_basis`, so the same seed gives the same numbers in process and through the graph.
 """
 
 from __future__ import annotations
