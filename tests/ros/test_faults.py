@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 from npp_interfaces.msg import Certificate, GapReport
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
-from reference import decisions, uninterrupted_run
+from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
 from npp_ros.dataset import Dataset
 from npp_ros.storage import RunStore, trajectory_digest
@@ -97,7 +97,7 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[RunRecord]
     trials = [t for r in records for t in r.trials]
     summary: dict[str, Any] = {
         "seed": SEED,
-        "config": {"task": "lqr_2_1", "horizon": HORIZON, "epsilon": EPSILON, "lipschitz": "analytic"},
+        "config": {"task": "lqr_2_1", "horizon": HORIZON, "epsilon": EPSILON, "lipschitz": "analytic", **ROLLOUT_FREE},
         "runs": len(records),
         "runs_certified": sum(r.certified for r in records),
         "trials": len(trials),
@@ -130,7 +130,7 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[RunRecord]
 
 def expected_run(task_seed: int) -> tuple[list[tuple[Any, ...]], Dataset, int]:
     """The uninterrupted run in process: the numbers every faulted run must end with."""
-    loop, result = uninterrupted_run(task_seed, EPSILON, HORIZON, MAX_EPISODES)
+    loop, result = uninterrupted_run(task_seed, EPSILON, HORIZON, MAX_EPISODES, **ROLLOUT_FREE)
     assert result.certified
     return decisions(result.rows), loop.dataset, result.episodes
 
@@ -201,7 +201,7 @@ def test_sigkill_any_node_mid_run_loses_nothing(
             "expert": {},
             "policy": {},
             "supervisor": {
-                "run_dir": str(run_dir), "epsilon": EPSILON, "max_episodes": MAX_EPISODES,
+                "run_dir": str(run_dir), "epsilon": EPSILON, "max_episodes": MAX_EPISODES, **ROLLOUT_FREE,
                 "expert_timeout": 3.0, "expert_retries": 20, "rollout_timeout": 8.0,
             },
         },

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 from npp_interfaces.msg import Certificate, GapReport
-from reference import decisions, uninterrupted_run
+from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
 from npp_ros.storage import RunStore
 from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
@@ -31,7 +31,7 @@ def test_unreachable_expert_is_reported_and_the_supervisor_exits(launch, tmp_pat
 
 def test_killing_policy_then_supervisor_loses_no_expert_data(launch, ros_client, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
-    supervisor_params = {"run_dir": str(run_dir), "max_episodes": 400, "rollout_timeout": 30.0}
+    supervisor_params = {"run_dir": str(run_dir), "max_episodes": 400, "rollout_timeout": 30.0, **ROLLOUT_FREE}
     launch("npp_ros_graph.sim_node")
     launch("npp_ros_graph.expert_node")
     policy = launch("npp_ros_graph.policy_node")
@@ -65,7 +65,7 @@ def test_killing_policy_then_supervisor_loses_no_expert_data(launch, ros_client,
     np.testing.assert_array_equal(after.states[: len(before)], before.states)
     assert [r.trajectory for r in rows if r.oracle_called] == list(range(after.num_trajectories))
     # The resumed run is the same run: same dataset and gap sequence as uninterrupted, in process.
-    local, result = uninterrupted_run()
+    local, result = uninterrupted_run(**ROLLOUT_FREE)
     assert decisions(rows) == decisions(result.rows)
     np.testing.assert_array_equal(after.states, local.dataset.states)
     assert certificates[-1].episodes == len(rows) == result.episodes
