@@ -1,14 +1,28 @@
-"""What every npp_ros node shares: QoS, topic names, main() (parameters: parameters.py).
+"""What every npp_ros node shares: QoS, topic names, main(), the Mailbox (parameters: parameters.py).
 
 Nodes convert messages to core types (convert.py), call the core, and publish; nothing here does math.
+
+Concurrency, the same in every node: one SingleThreadedExecutor (run_node) runs the callbacks, and
+a callback never blocks. It validates, does work that is short and bounded (a sim step, a policy
+query), and hands anything long to the node's one worker thread through a Mailbox; results go out
+from the worker as publications, or as a Future that an ``async`` service callback awaits. The
+worker, in turn, makes synchronous calls with deadlines and waits on Conditions that callbacks
+signal, never polls. This is the model of bdaiinstitute/synchros2 (blocking code in its own
+thread, callbacks only hand data over), kept to one thread per node. Callback groups with a
+MultiThreadedExecutor were the alternative: rclpy's runs every callback through a Python thread
+pool, which adds GIL hand-offs to each control step (the loop the policy node must keep fast), and
+a service that may hold a hundred requests in waiting would need a hundred pool threads.
 """
 
 from __future__ import annotations
 
 import itertools
 import sys
+import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
+from typing import Generic, TypeVar
 
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
@@ -127,3 +141,42 @@ class ThrottledWarnings:
         extra = f" ({suppressed} more like it suppressed)" if suppressed else ""
         self.node.get_logger().warning(message + extra)
         self._last[kind] = (now, 0)
+
+
+T = TypeVar("T")
+
+
+class Mailbox(Generic[T]):
+    """Hands items from executor callbacks to a worker thread: put() never blocks, take() waits on a
+    Condition (no polling) and close() releases every waiter.
+
+    ``keep=1`` holds only the newest item: put() returns the one it overtook, so the node can count
+    what it dropped. ``keep=None`` holds every item, in order (a node bounds that backlog itself).
+    """
+
+    def __init__(self, keep: int | None = None) -> None:
+        self._items: deque[T] = deque(maxlen=keep)
+        self._ready = threading.Condition()
+        self.closed = False
+
+    def put(self, item: T) -> T | None:
+        with self._ready:
+            overtaken = self._items[0] if len(self._items) == self._items.maxlen else None
+            self._items.append(item)
+            self._ready.notify()
+        return overtaken
+
+    def take(self, timeout: float | None = None) -> T | None:
+        """The oldest item held; None when the timeout passes first or the mailbox is closed."""
+        with self._ready:
+            if not self._ready.wait_for(lambda: self._items or self.closed, timeout) or self.closed:
+                return None
+            return self._items.popleft()
+
+    def close(self) -> None:
+        with self._ready:
+            self.closed = True
+            self._ready.notify_all()
+
+    def __len__(self) -> int:
+        return len(self._items)

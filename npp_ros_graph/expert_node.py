@@ -4,15 +4,14 @@ The expert is built from the sim's latched plant description, never from its own
 proves it models the same plant by comparing model fingerprints. Every request is validated; a bad
 one gets success = false and a message naming the problem, and the node keeps serving.
 
-Trajectories are computed by one worker thread while the executor keeps taking requests off the
-wire, so the node always knows its backlog: beyond `max_queue` waiting requests it answers at once
-with success = false and a message starting "busy:", instead of letting the middleware's queue
-overflow and drop requests silently.
+Trajectories are computed by the node's worker thread, handed over through a Mailbox, while the
+executor keeps taking requests off the wire, so the node always knows its backlog: beyond
+`max_queue` waiting requests it answers at once with success = false and a message starting
+"busy:", instead of letting the middleware's queue overflow and drop requests silently.
 """
 
 from __future__ import annotations
 
-import queue
 import sys
 import threading
 from collections.abc import Sequence
@@ -36,6 +35,7 @@ from npp_ros_graph.common import (
     NOT_READY,
     PLANT,
     SERVICE_QOS,
+    Mailbox,
     run_node,
 )
 from npp_ros_graph.convert import state_layout, trajectory_to_response
@@ -81,7 +81,7 @@ class ExpertNode(Node):
         self.gamma, self.max_horizon, self.max_queue = settings.gamma, settings.max_horizon, settings.max_queue
         self.waiting = 0  # accepted requests not yet answered (executor thread only)
         self.busy_refusals = 0
-        self._jobs: queue.SimpleQueue[tuple[LQRExpert, np.ndarray, int, Future] | None] = queue.SimpleQueue()
+        self._jobs: Mailbox[tuple[LQRExpert, np.ndarray, int, Future]] = Mailbox()
         self._worker = threading.Thread(target=self._work, name="npp-expert-worker", daemon=True)
         self._worker.start()
         self.expert: LQRExpert | None = None
@@ -141,10 +141,11 @@ class ExpertNode(Node):
     async def on_request(
         self, request: ExpertTrajectory.Request, response: ExpertTrajectory.Response
     ) -> ExpertTrajectory.Response:
-        """Validate at once; queue the computation for the worker, or refuse as busy when the queue is full.
+        """Validate at once; hand the computation to the worker, or refuse as busy when the queue is full.
 
-        A coroutine: while it awaits the worker, the executor takes further requests, so the backlog
-        is counted here rather than hidden in the middleware's queue.
+        A coroutine: a service answers from its callback, so the callback awaits the worker's Future
+        while the executor takes further requests; the backlog is counted here rather than hidden in
+        the middleware's queue.
         """
         try:
             problem = self._problem(request.state, int(request.horizon))
@@ -177,7 +178,7 @@ class ExpertNode(Node):
 
     def _work(self) -> None:
         """Worker thread: one trajectory at a time, in arrival order; wakes the executor when one is done."""
-        while (job := self._jobs.get()) is not None:
+        while (job := self._jobs.take()) is not None:
             expert, state, horizon, done = job
             try:
                 done.set_result(expert.trajectory(state, horizon or expert.horizon))
@@ -188,7 +189,7 @@ class ExpertNode(Node):
                 executor.wake()
 
     def destroy_node(self) -> None:
-        self._jobs.put(None)
+        self._jobs.close()
         self._worker.join(timeout=5.0)
         super().destroy_node()
 

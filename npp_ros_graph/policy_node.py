@@ -5,10 +5,13 @@ restart, or when it sees a gap in the trajectory indices, the node catches up th
 supervisor's /npp/dataset/get service, so nothing else needs restarting. With no data it says
 so and publishes nothing: it never invents an action.
 
-States are answered by a worker thread from a one-state mailbox: the executor keeps taking
-states off the wire while an action is computed, and a state overtaken by a newer one before it
-was answered is dropped (counted on /npp/policy/dropped_states and in the log). Under a state
-stream faster than the policy, it answers the newest state and never builds a queue.
+A state is answered in its callback, the fastest path round the control loop, unless the
+worker thread holds the data (bringing the search index up to date, which takes seconds at 10^6
+points); then the state waits in the worker's one-state mailbox. Either way only the newest state
+is answered: the callback first takes any states that arrived after its own off the wire, and a
+state overtaken by a newer one before it was answered is dropped (counted on
+/npp/policy/dropped_states and in the log). Under a state stream faster than the policy, it
+answers the newest state and never builds a queue.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from npp_ros_graph.common import (
     POLICY_STATUS,
     REPORT_QOS,
     STATE,
+    Mailbox,
     ThrottledWarnings,
     run_node,
 )
@@ -48,6 +52,9 @@ from npp_ros_graph.parameters import declare_settings
 
 CATCH_UP_TIMEOUT_S = 5.0  # a catch-up request unanswered this long is withdrawn and sent again
 REPORT_EVERY_S = 1.0
+IDLE_S = 0.1  # no state for this long: the control loop is idle, the worker may bring the index up to date
+
+Pending = tuple[int, np.ndarray, Time]  # (arrival number, state, its stamp): a state to answer
 
 USAGE = f"""npp-policy: greedy NPP actions for every state (ROS 2 node "npp_policy").
 
@@ -78,12 +85,16 @@ class PolicyNode(Node):
         self._catch_up_future = None
         self._catch_up_sent = 0.0
         self._catch_up_needed = True
-        # The answer thread reads the dataset while the executor appends to it: one lock for both.
+        # Whoever answers or indexes holds the data, so the worker's index build never meets an append.
         self._data_lock = threading.Lock()
-        self._mailbox: tuple[np.ndarray, Time] | None = None
-        self._mail = threading.Condition()
-        self._closing = False
-        self.dropped = 0  # states overtaken by a newer one before they were answered
+        self._inbox: Mailbox[Pending] = Mailbox(keep=1)
+        self._arrivals = 0  # states taken off the wire (executor thread)
+        self._last_answered = 0  # arrival number of the newest state answered (under the data lock)
+        self._last_state_at = time.monotonic()
+        # States overtaken by a newer one before they were answered: counted by the executor (mailbox,
+        # wire) and by whoever answers (a newer one was answered first); each thread writes its own.
+        self._dropped_waiting = 0
+        self._dropped_answering = 0
         self.answered = 0
         self._dropped_reported = 0
         self._warn = ThrottledWarnings(self)
@@ -92,12 +103,12 @@ class PolicyNode(Node):
         self.dropped_pub = self.create_publisher(UInt64, POLICY_DROPPED, REPORT_QOS)
         self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
         self.create_subscription(TrajectoryMsg, DATASET_TOPIC, self.on_trajectory, REPORT_QOS)
-        self.create_subscription(JointState, STATE, self.on_state, CONTROL_QOS)
+        self._state_sub = self.create_subscription(JointState, STATE, self.on_state, CONTROL_QOS)
         self.dataset_client = self.create_client(GetTrajectories, DATASET_SERVICE)
         self.create_timer(0.5, self.maybe_catch_up)
         self.create_timer(REPORT_EVERY_S, self.report_dropped)
-        self._answerer = threading.Thread(target=self._answer_loop, name="npp-policy-answers", daemon=True)
-        self._answerer.start()
+        self._worker = threading.Thread(target=self._work, name="npp-policy-worker", daemon=True)
+        self._worker.start()
 
     # ---------------------------------------------------------------- dataset
     def on_plant(self, msg: PlantDescription) -> None:
@@ -175,19 +186,44 @@ class PolicyNode(Node):
             self.get_logger().info(f"holding {self.dataset.num_trajectories} trajectories ({len(self.dataset)} points)")
 
     # ---------------------------------------------------------------- acting
+    @property
+    def dropped(self) -> int:
+        return self._dropped_waiting + self._dropped_answering
+
     def on_state(self, msg: JointState) -> None:
-        """Executor side: validate and leave the state in the mailbox; an unanswered older one is dropped."""
-        try:
-            state = self._state(msg)
-        except ValueError as exc:
-            problem = str(exc)
-            self._warn(problem.split(":")[0], f"state refused: {problem}")
+        """Answer the newest state: here when the data is free, else through the worker's mailbox."""
+        newest = self._newest_state(msg)
+        if newest is None:
             return
-        with self._mail:
-            if self._mailbox is not None:
-                self.dropped += 1
-            self._mailbox = (state, msg.header.stamp)
-            self._mail.notify()
+        self._arrivals += 1
+        self._last_state_at = time.monotonic()
+        pending = (self._arrivals, *newest)
+        if self._data_lock.acquire(blocking=False):
+            try:
+                self._answer(pending)
+            finally:
+                self._data_lock.release()
+        elif self._inbox.put(pending) is not None:
+            self._dropped_waiting += 1
+
+    def _newest_state(self, msg: JointState) -> tuple[np.ndarray, Time] | None:
+        """The newest answerable state among `msg` and those already behind it on the wire."""
+        newest = None
+        sub = self._state_sub
+        while msg is not None:
+            try:
+                state = self._state(msg)
+            except ValueError as exc:
+                problem = str(exc)
+                self._warn(problem.split(":")[0], f"state refused: {problem}")
+            else:
+                if newest is not None:
+                    self._dropped_waiting += 1
+                newest = (state, msg.header.stamp)
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+            msg = None if taken is None else taken[0]
+        return newest
 
     def _state(self, msg: JointState) -> np.ndarray:
         """The state a message carries, if the policy can answer it; else a ValueError saying why not."""
@@ -198,29 +234,18 @@ class PolicyNode(Node):
             raise ValueError("no data yet: the policy has no action to give")
         return state_from_joint_state(msg, plant.joint_names)
 
-    def _answer_loop(self) -> None:
-        """Answer thread: always the newest state; whatever arrived meanwhile replaced it.
-
-        When no state waits it brings the search index up to date with newly appended data, so
-        index builds and merges (seconds at 10^6 points) happen between episodes, not inside a
-        control step.
+    def _work(self) -> None:
+        """Worker thread: answers the states that came while it held the data; when the control loop
+        is idle it brings the search index up to date with newly appended data, so index builds and
+        merges (seconds at 10^6 points) happen between episodes, not inside a control step.
         """
-        while True:
-            with self._mail:
-                ready = self._mail.wait_for(lambda: self._mailbox is not None or self._closing, timeout=0.1)
-                if self._closing:
-                    return
-                if not ready:
-                    msg = None
-                else:
-                    msg, self._mailbox = self._mailbox, None
-            if msg is None:
+        while not self._inbox.closed:
+            pending = self._inbox.take(timeout=IDLE_S)
+            if pending is not None:
+                with self._data_lock:
+                    self._answer(pending)
+            elif time.monotonic() - self._last_state_at >= IDLE_S:
                 self._warm_index()
-                continue
-            try:
-                self._answer(*msg)
-            except Exception as exc:  # the answer thread must outlive any single bad state
-                self.get_logger().error(f"could not answer a state: {type(exc).__name__}: {exc}")
 
     def _warm_index(self) -> None:
         policy = self.policy
@@ -229,11 +254,20 @@ class PolicyNode(Node):
         with self._data_lock:
             policy.index.sync()
 
-    def _answer(self, state: np.ndarray, stamp: Time) -> None:
+    def _answer(self, pending: Pending) -> None:
+        """Publish the greedy action for a state, unless a newer one was answered first (data lock held)."""
+        arrival, state, stamp = pending
+        if arrival <= self._last_answered:
+            self._dropped_answering += 1
+            return
+        self._last_answered = arrival
         assert self.policy is not None and self.plant is not None
-        with self._data_lock:
+        try:
             action = self.policy.act(state)
-        self.action_pub.publish(action_to_joint_state(action, self.plant.actuated_joint_names, stamp))
+            self.action_pub.publish(action_to_joint_state(action, self.plant.actuated_joint_names, stamp))
+        except Exception as exc:  # neither the executor nor the worker may die of a single bad state
+            self.get_logger().error(f"could not answer a state: {type(exc).__name__}: {exc}")
+            return
         self.answered += 1
 
     def report_dropped(self) -> None:
@@ -249,10 +283,8 @@ class PolicyNode(Node):
         self._dropped_reported = dropped
 
     def destroy_node(self) -> None:
-        with self._mail:
-            self._closing = True
-            self._mail.notify()
-        self._answerer.join(timeout=5.0)
+        self._inbox.close()
+        self._worker.join(timeout=5.0)
         super().destroy_node()
 
 
