@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from npp_ros.dataset import Dataset, DatasetError, FloatArray
 from npp_ros.kdtree import BoundIndex
+from npp_ros.vectors import bounded
 
 # Upper limit on the (queries x points) block evaluated at once, to bound memory.
 _BLOCK_ELEMENTS = 1 << 22
@@ -77,6 +78,7 @@ class NonparametricPolicy:
             row, col = (int(i) for i in np.argwhere(~np.isfinite(batch))[0])
             where = f"[{col}]" if single else f"[{row}, {col}]"
             raise DatasetError(f"state{where} is {float(batch[row, col])}; query states must be finite")
+        bounded(arr, "state")  # the distances must not overflow: huge states are refused, not answered
         return batch, single
 
     def _actions(self, actions: ArrayLike, batch_size: int) -> FloatArray:
@@ -87,6 +89,7 @@ class NonparametricPolicy:
             raise DatasetError(f"action must have shape ({m},) or ({batch_size}, {m}); got {arr.shape}")
         if not np.isfinite(batch).all():
             raise DatasetError("query actions must be finite")
+        bounded(arr, "action")
         return batch
 
     # ----------------------------------------------------------------- core search

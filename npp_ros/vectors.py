@@ -1,7 +1,14 @@
-"""The one check that a state or an action is usable: a flat vector of the expected length, all finite.
+"""The one check that a state or an action is usable: a flat vector of the expected length, all finite,
+and small enough that distances to it can be computed.
 
 Every entry point that receives a vector from outside (a service request, a topic, a reset) calls
-:func:`finite_vector`, so the rule and its wording live in one place.
+:func:`finite_vector`, and the policy's queries call :func:`bounded`, so the rule and its wording
+live in one place.
+
+Why a magnitude limit: the bounds use |s - s_i|, a sum of squares. Past about 1.3e154 a square
+overflows to inf, every distance is inf, every candidate scores -inf, and the greedy policy would
+answer with the action of index 0 and V_lb = -inf: a wrong answer, not a refusal. Entries up to
+MAX_MAGNITUDE keep every square below 1e301, so sums over any realistic dimension stay finite.
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ from numpy.typing import ArrayLike
 from npp_ros.dataset import DatasetError, FloatArray
 
 SHOWN_ENTRIES = 5  # non-finite entries named in a message; more would drown the reason
+MAX_MAGNITUDE = 1e150  # |entry| above this: distances to it overflow (see the module docstring)
 
 
 class VectorError(DatasetError):
@@ -39,4 +47,19 @@ def finite_vector(values: ArrayLike, size: int, what: str = "state", layout: str
     if bad.size:
         which = ", ".join(f"{what}[{i}] = {arr[i]}" for i in bad[:SHOWN_ENTRIES])
         raise VectorError(f"{what} must be finite: {which}")
+    return bounded(arr, what)
+
+
+def bounded(arr: FloatArray, what: str = "state") -> FloatArray:
+    """``arr`` (finite, any shape) if every entry is within +-MAX_MAGNITUDE, else a VectorError naming them.
+
+    A 2-D array is a batch: entries are named [row, column].
+    """
+    big = np.argwhere(np.abs(arr) > MAX_MAGNITUDE)
+    if len(big):
+        which = ", ".join(f"{what}[{', '.join(map(str, ix))}] = {arr[tuple(ix)]:g}" for ix in big[:SHOWN_ENTRIES])
+        raise VectorError(
+            f"{what} is too large to compare with the data: {which}; entries must be within "
+            f"+-{MAX_MAGNITUDE:g} (beyond that the squared distances overflow and no bound can be computed)"
+        )
     return arr
