@@ -285,5 +285,25 @@ class Certificate:
         return cls(**values)
 
 
+def false_certificate_rate(
+    spec: CertificationSpec, q: float, repetitions: int, seed: int, episodes: int = 1000
+) -> float:
+    """How often a rule certifies policies that each pass a check with probability q (< p: falsely).
+
+    Every failed check replaces the policy by another one with the same q, as new data does in a
+    run; the first episode has no policy. Condition (i) only.
+    """
+    rng = np.random.default_rng(seed)
+    false = 0
+    for _ in range(repetitions):
+        certifier = Certifier(spec)
+        certifier.observe(math.inf, failed=True)
+        for passed in rng.random(episodes) < q:
+            if certifier.observe(0.0 if passed else math.inf, failed=not passed).certified:
+                false += 1
+                break
+    return false / repetitions
+
+
 def assumption_list(items: Sequence[str | None]) -> tuple[str, ...]:
     return tuple(item for item in items if item)

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import CertificationSpec, Certifier
+from npp_ros.certification import STOPPING_RULES as RULES
+from npp_ros.certification import CertificationSpec, false_certificate_rate
 from npp_ros.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.loop import NPPLoop, RunConfig
@@ -105,28 +106,13 @@ def test_rollout_mode_never_passes_the_counterexample_state() -> None:
     assert passes and all(r.policy_return == pytest.approx(-0.11) for r in passes)
 
 
-def false_certificate_rate(rule: str, q: float, repetitions: int, seed: int) -> float:
-    """Policies that each pass a check with probability q < p, replaced after every failure."""
-    spec = CertificationSpec("i", EPSILON, 0.9, 0.1, L, certify="rollout", rule=rule)
-    rng = np.random.default_rng(seed)
-    false = 0
-    for _ in range(repetitions):
-        certifier = Certifier(spec)
-        certifier.observe(math.inf, failed=True)
-        passes = rng.random(1000) < q
-        for passed in passes:
-            if certifier.observe(0.0 if passed else 1.0, failed=not passed).certified:
-                false += 1
-                break
-    return false / repetitions
-
-
 @pytest.mark.parametrize("q", [0.85])
 def test_sequential_rule_keeps_false_certificates_below_delta(q: float) -> None:
     repetitions, delta = 2000, 0.1
     # One-sided margin: 3 standard errors of a frequency at delta (sampling error over 2,000 runs).
     margin = 3 * math.sqrt(delta * (1 - delta) / repetitions)
-    sequential = false_certificate_rate("sequential", q, repetitions, seed=7)
-    paper = false_certificate_rate("paper", q, repetitions, seed=7)
+    rule = {name: CertificationSpec("i", EPSILON, 0.9, delta, L, certify="rollout", rule=name) for name in RULES}
+    sequential = false_certificate_rate(rule["sequential"], q, repetitions, seed=7)
+    paper = false_certificate_rate(rule["paper"], q, repetitions, seed=7)
     assert sequential + margin < delta, f"sequential rule: {sequential:.3%} false certificates"
     assert paper - margin > delta, f"paper's rule: {paper:.3%} false certificates"

@@ -1,0 +1,33 @@
+"""How often each stopping rule certifies a policy below p: the README's figures.
+
+Usage: .venv/bin/python scripts/stopping_rules.py [--repetitions 2000] [--seed 7]
+Policies pass each check with probability q < p = 0.9 and are replaced after every failure (as
+new data replaces the policy in a run), for up to 1,000 episodes; delta = 0.1.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from npp_ros.certification import STOPPING_RULES, CertificationSpec, false_certificate_rate
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repetitions", type=int, default=2000)
+    ap.add_argument("--seed", type=int, default=7)
+    args = ap.parse_args()
+    print("| q per policy | " + " | ".join(f"false certificates, {rule} rule" for rule in STOPPING_RULES) + " |")
+    print("|---|" + "---|" * len(STOPPING_RULES))
+    for q in (0.85, 0.8, 0.7):
+        rates = [
+            false_certificate_rate(
+                CertificationSpec("i", 1.0, 0.9, 0.1, 1.0, rule=rule), q, args.repetitions, args.seed
+            )
+            for rule in STOPPING_RULES
+        ]
+        print(f"| {q} | " + " | ".join(f"{rate:.1%}" for rate in rates) + " |")
+
+
+if __name__ == "__main__":
+    main()
