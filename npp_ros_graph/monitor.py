@@ -1,11 +1,17 @@
 """npp-monitor: prints the gap, episode and certificate topics live (there is no ros2 CLI here), or those of a
-bag recorded by npp-record (--bag), in the same lines."""
+bag recorded by npp-record (--bag), in the same lines.
+
+While nothing arrives (no graph yet, another ROS domain, a finished run) it says on stderr what it waits
+for and where it listens (ROS_DOMAIN_ID, discovery range), with the npp nodes and publishers it sees:
+first after a few seconds, then periodically."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+import time
 from pathlib import Path
 
 import rclpy
@@ -14,6 +20,10 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from npp_ros_graph.common import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
+
+TOPICS = {"gap": GAP, "episode": EPISODE}  # --topics names; the certificate is always shown
+FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
+NOTICE_EVERY_S = 30.0  # then once per this much further silence
 
 
 def gap_line(msg: GapReport) -> str:
@@ -48,19 +58,65 @@ class MonitorNode(Node):
         super().__init__("npp_monitor")
         self.exit_on_certificate = exit_on_certificate
         self.certified = False
+        self.topics = [TOPICS[name] for name in TOPICS if name in topics] + [CERTIFICATE]
+        self.last_message = self.last_notice = time.monotonic()
+        self.notices = 0
         if "gap" in topics:
             self.create_subscription(GapReport, GAP, lambda m: self.show(gap_line(m)), REPORT_QOS)
         if "episode" in topics:
             self.create_subscription(EpisodeResult, EPISODE, lambda m: self.show(episode_line(m)), REPORT_QOS)
         self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_QOS)
+        self.create_timer(1.0, self.notice_if_silent)
 
-    @staticmethod
-    def show(line: str) -> None:
+    def show(self, line: str) -> None:
+        self.last_message = time.monotonic()
         print(line, flush=True)
 
     def on_certificate(self, msg: Certificate) -> None:
         self.show(certificate_line(msg))
         self.certified = True
+
+    def notice_if_silent(self) -> None:
+        """A silent monitor looks like a hung one: after a while say what it waits for, and where."""
+        now = time.monotonic()
+        wait = FIRST_NOTICE_S if self.notices == 0 else NOTICE_EVERY_S
+        if now - max(self.last_message, self.last_notice) < wait:
+            return
+        self.notices += 1
+        self.last_notice = now
+        print(f"npp-monitor: {self.waiting_line(now - self.last_message)}", file=sys.stderr, flush=True)
+
+    def waiting_line(self, silent_s: float) -> str:
+        publishers = ", ".join(f"/{t} {self.count_publishers(t)}" for t in self.topics)
+        nodes = sorted(
+            f"{ns.rstrip('/')}/{n}" for n, ns in self.get_node_names_and_namespaces() if n.startswith("npp_")
+        )
+        others = [n for n in nodes if n != "/npp_monitor"]
+        seen = ", ".join(others) if others else "none (no graph on this domain, or not discoverable from here)"
+        return (
+            f"nothing received for {silent_s:.0f} s; waiting for {', '.join('/' + t for t in self.topics)} "
+            f"on {listening_on()}. Publishers: {publishers}. npp nodes seen: {seen}"
+        )
+
+
+def listening_on() -> str:
+    """The domain and discovery range this process listens on: the usual reasons a graph is not seen."""
+    domain = os.environ.get("ROS_DOMAIN_ID") or "0 (ROS_DOMAIN_ID unset)"
+    scope = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "SUBNET (unset; npp-run uses LOCALHOST)"
+    peers = os.environ.get("ROS_STATIC_PEERS")
+    return f"ROS_DOMAIN_ID {domain}, discovery {scope}" + (f", static peers {peers}" if peers else "")
+
+
+def topic_names(text: str) -> set[str]:
+    """--topics as a set of known names; an unknown one is refused with the known ones."""
+    names = {name.strip() for name in text.split(",") if name.strip()} - {"certificate"}
+    unknown = sorted(names - TOPICS.keys())
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown topic {', '.join(map(repr, unknown))}; known: {', '.join(TOPICS)} "
+            "(the certificate is always shown)"
+        )
+    return names
 
 
 def print_bag(bag: str, topics: set[str]) -> int:
@@ -85,15 +141,16 @@ def main(argv: list[str] | None = None) -> int:
     own = args_in[: len(args_in) - len(ros_args)]
     ap = argparse.ArgumentParser(prog="npp-monitor", description=__doc__)
     ap.add_argument(
-        "--topics", default="gap,episode", help="comma-separated: gap, episode (certificate is always shown)"
-    )
+        "--topics", default="gap,episode", type=topic_names,
+        help="comma-separated: gap, episode (certificate is always shown)",
+    )  # fmt: skip
     ap.add_argument("--exit-on-certificate", action="store_true", help="exit once a certificate has been printed")
     ap.add_argument("--bag", metavar="PATH", help="print a bag recorded by npp-record instead of the live topics")
     args = ap.parse_args(own)
     if args.bag:
-        return print_bag(args.bag, set(args.topics.split(",")))
+        return print_bag(args.bag, args.topics)
     rclpy.init(args=["npp-monitor", *ros_args])
-    node = MonitorNode(set(args.topics.split(",")), args.exit_on_certificate)
+    node = MonitorNode(args.topics, args.exit_on_certificate)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:

@@ -1,31 +1,54 @@
 """npp-run: starts sim, expert, policy and supervisor as four processes and follows the run.
 
 Shows live progress from the /npp/gap topic, prints the certificate, and stops all four
-cleanly when the run is certified, when it runs out of episodes, on Ctrl-C, or when a node
-dies (saying which, with its log). The run folder holds run.sqlite (dataset and episode log),
-gaps.csv, episodes.csv and logs/<node>.log. Started again on the same folder, the supervisor
-resumes the run.
+cleanly when the run is certified, when it runs out of episodes, on Ctrl-C, SIGTERM or SIGHUP,
+or when a node dies (saying which, why, and where its log is). The nodes die with npp-run even
+when it is SIGKILLed. The run folder holds run.sqlite (dataset and episode log), gaps.csv,
+episodes.csv and logs/<node>.log (the previous start's log kept as logs/<node>.1.log). Started
+again on the same folder, the supervisor resumes the run.
+
+Refused before any node starts: a run folder another writer holds (named with its pid and
+command line), and another graph on the same ROS domain (its nodes named); one that appears
+within the first seconds after the start stops this run with the same reason.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
+import re
+import shlex
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
+from contextlib import suppress
+from datetime import datetime
 from pathlib import Path
+from typing import IO
 
 import rclpy
 from npp_interfaces.msg import Certificate, GapReport
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
-from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros.storage import RunFileError, _WriterLock
+from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS
 from npp_ros_graph.dashboard import start_dashboard
 from npp_ros_graph.monitor import certificate_line, gap_line
 from npp_ros_graph.record import start_recorder
+
+DISCOVERY_S = 2.0  # listened for before starting: discovery on one machine takes well under a second
+SECOND_GRAPH_WINDOW_S = 30.0  # a second graph seen this soon after the start stops this run
+GRAPH_TOPICS = (PLANT, GAP)  # one publisher each per graph: its sim and its supervisor
+LOG_HEADER = "==== npp-run: this start of the node at"
+TWO_GRAPHS = (
+    "Two graphs on one domain mix their states, actions and datasets: stop the other one, or give this run "
+    "its own domain (--domain-id N)"
+)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -64,19 +87,97 @@ class Follower(Node):
         now = time.monotonic()
         text = gap_line(msg)
         if self.tty:
-            sys.stderr.write("\r" + text.ljust(110))
-            sys.stderr.flush()
+            say("\r" + text.ljust(110), end="")
         elif now - self._printed > 2.0:
-            print(text, file=sys.stderr, flush=True)
+            say(text)
             self._printed = now
 
     def on_certificate(self, msg: Certificate) -> None:
         self.certificate = msg
 
+    def other_graph(self, ours: int) -> str | None:
+        """Who else publishes a graph's one-per-graph topics (the sim's plant, the supervisor's gaps), or None.
 
-def restore_default_sigint() -> None:
-    """In each child: started from a background job, it would inherit an ignored SIGINT and never stop."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+        ``ours`` is how many of those publishers this run owns on each topic: 0 before its nodes start,
+        1 after. Two graphs on one domain mix their states, actions and datasets, so either is refused.
+        """
+        found = []
+        for topic in GRAPH_TOPICS:
+            if self.count_publishers(topic) > ours:
+                nodes = [_node_name(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
+                found.append(f"/{topic} is published by {', '.join(sorted(nodes))}")
+        if not found:
+            return None
+        names = [_node_name(ns, n) for n, ns in self.get_node_names_and_namespaces() if n.startswith("npp_")]
+        seen = ", ".join(f"{n} x{names.count(n)}" if names.count(n) > 1 else n for n in sorted(set(names)))
+        return f"{'; '.join(found)} (npp nodes on the domain: {seen})"
+
+
+def _node_name(namespace: str, name: str) -> str:
+    if name == "_NODE_NAME_UNKNOWN_":  # its endpoint is discovered, its node not yet
+        return "a node not yet named"
+    return f"{namespace.rstrip('/')}/{name}"
+
+
+def say(text: str, end: str = "\n") -> None:
+    """A line on stderr that never stops the shutdown: after a hang-up the terminal is gone (EIO)."""
+    with suppress(OSError, ValueError):
+        sys.stderr.write(text + end)
+        sys.stderr.flush()
+
+
+def where() -> str:
+    """The domain and discovery range the graph runs on, as a user would check them."""
+    domain = os.environ.get("ROS_DOMAIN_ID") or "0 (ROS_DOMAIN_ID unset)"
+    return f"ROS_DOMAIN_ID {domain}, discovery {os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'SUBNET')}"
+
+
+# --------------------------------------------------------------------------- children die with npp-run
+class Stopped(Exception):
+    """SIGHUP (the terminal closed) or SIGTERM (kill, systemd, a job control): stop the nodes, then exit."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_stopped(signum: int, _frame: object) -> None:
+    raise Stopped(signum)
+
+
+def _ignore_further(signum: int, _frame: object) -> None:
+    """While the nodes are being stopped, a second SIGHUP or SIGTERM must not cut the shutdown short."""
+
+
+_PR_SET_PDEATHSIG = 1
+_prctl: Callable[..., int] | None = None
+
+
+def _load_prctl() -> None:
+    """Loaded in npp-run itself: a child between fork and exec must not load libraries."""
+    global _prctl
+    if _prctl is None and sys.platform.startswith("linux"):
+        _prctl = ctypes.CDLL(None, use_errno=True).prctl
+
+
+def child_setup(parent: int) -> Callable[[], None]:
+    """What each child runs before exec: it dies with npp-run, however npp-run ends.
+
+    SIGINT is restored (started from a background job, a child would inherit an ignored SIGINT and
+    never stop). PR_SET_PDEATHSIG has the kernel send SIGTERM to the child when npp-run dies, even by
+    SIGKILL, which no handler in npp-run can catch; rclpy turns SIGTERM into a clean shutdown. If npp-run
+    died before the call, the child is already orphaned and stops itself.
+    """
+    _load_prctl()
+
+    def setup() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        if _prctl is not None:
+            _prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+            if os.getppid() != parent:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    return setup
 
 
 def stop_all(procs: dict[str, subprocess.Popen]) -> None:
@@ -88,15 +189,73 @@ def stop_all(procs: dict[str, subprocess.Popen]) -> None:
         try:
             proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
         except subprocess.TimeoutExpired:
-            print(f"npp-run: {name} did not stop on SIGINT; killing it", file=sys.stderr)
+            say(f"npp-run: {name} did not stop on SIGINT; killing it")
             proc.kill()
             proc.wait()
 
 
+# --------------------------------------------------------------------------- logs and refusals
+def open_log(run_dir: Path, name: str) -> IO[str]:
+    """logs/NAME.log for this attempt; the previous attempt's log is kept as logs/NAME.1.log."""
+    path = run_dir / "logs" / f"{name}.log"
+    if path.exists() and path.stat().st_size > 0:
+        path.replace(path.with_name(f"{name}.1.log"))
+    return path.open("a")
+
+
+_ERROR_LINE = re.compile(
+    r"\[(ERROR|FATAL)\]"  # an rclpy log line
+    r"|^[A-Za-z_][\w.]*(Error|Exception)\b"  # a traceback's last line
+    r"|^(\S*/)?(npp-\w+|\w+_node\.py): "  # a refusal at start-up: "npp-sim: bad parameter: ..."
+)
+
+_OWN_NAME = re.compile(r"^(\S*/)?(npp-\w+|\w+_node\.py): ")  # npp-run names the node already
+
+
+def reason_line(log: Path) -> str:
+    """The line in a node's log that says why it stopped: its last error line, else its last line."""
+    try:
+        lines = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.strip()]
+    except OSError:
+        return ""
+    lines = [line for line in lines if not line.startswith(LOG_HEADER)]
+    errors = [line for line in lines if _ERROR_LINE.search(line)]
+    return _OWN_NAME.sub("", (errors or lines or [""])[-1])
+
+
+def folder_in_use(run_dir: Path) -> str | None:
+    """Why this run folder cannot take a writer now (another one holds it), or None.
+
+    The run file's own writer lock (npp_ros.storage) is taken and released at once: the check names
+    the holder exactly as the supervisor would, but before any node starts.
+    """
+    try:
+        _WriterLock.acquire(run_dir / "run.sqlite").release()
+    except RunFileError as exc:
+        return f"{exc}{_started_by(run_dir / 'run.lock')}"
+    return None
+
+
+def _started_by(lock: Path) -> str:
+    """' (its npp-run: pid N, npp-run ...)' for a lock holder that an npp-run started, else ''."""
+    with suppress(OSError, ValueError, IndexError):
+        pid = int(lock.read_text().split()[0])
+        parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        argv = Path(f"/proc/{parent}/cmdline").read_bytes().decode(errors="replace").split("\0")[:-1]
+        if any("run_graph" in a or a.endswith("npp-run") for a in argv[:3]):
+            return f" (its npp-run: pid {parent}, {shlex.join(argv)[:200]})"
+    return ""
+
+
+# --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     run_dir = (args.run_dir or Path("runs") / f"graph-{args.task}-seed{args.seed}").resolve()
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    in_use = folder_in_use(run_dir)
+    if in_use is not None:  # before any node: a second graph would only be refused by its supervisor
+        say(f"npp-run: {in_use}; not starting")
+        return 2
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.domain_id is not None:
@@ -111,61 +270,103 @@ def main(argv: list[str] | None = None) -> int:
             "run_dir": str(run_dir), "rollouts": not args.no_rollouts,
         },
     }  # fmt: skip
+    for signum in (signal.SIGHUP, signal.SIGTERM):
+        signal.signal(signum, _raise_stopped)
     procs: dict[str, subprocess.Popen] = {}
     extras: dict[str, subprocess.Popen] = {}  # started first and stopped last, so that they see the whole run
-    if args.dashboard is not None:  # first: a port in use stops npp-run before anything else started
-        extras["dashboard"] = procs["dashboard"] = start_dashboard(run_dir, env, args.dashboard)
-    if args.record:
-        extras["record"] = procs["record"] = start_recorder(run_dir, env)
-    for name, values in params.items():
-        cmd = [sys.executable, "-m", f"npp_ros_graph.{name}_node", "--ros-args"]
-        for key, value in values.items():
-            text = (
-                str(value).lower() if isinstance(value, bool) else repr(value) if isinstance(value, str) else str(value)
-            )
-            cmd += ["-p", f"{key}:={text}"]
-        log = (run_dir / "logs" / f"{name}.log").open("a")
-        procs[name] = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=restore_default_sigint
-        )
-    print(f"npp-run: started sim, expert, policy, supervisor (logs in {run_dir / 'logs'})", file=sys.stderr)
-
-    rclpy.init(args=["npp-run"])
-    follower = Follower()
-    executor = SingleThreadedExecutor()
-    executor.add_node(follower)
+    follower: Follower | None = None
     code = 0
-    budget_reached_at: float | None = None
     try:
-        while follower.certificate is None:
+        # SIGINT stays Python's (KeyboardInterrupt); SIGTERM and SIGHUP raise Stopped.
+        rclpy.init(args=["npp-run"], signal_handler_options=SignalHandlerOptions.NO)
+        follower = Follower()
+        executor = SingleThreadedExecutor()
+        executor.add_node(follower)
+        deadline = time.monotonic() + DISCOVERY_S
+        while time.monotonic() < deadline:  # time for discovery: is another graph on this domain?
             executor.spin_once(timeout_sec=0.1)
-            dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
-            if dead:
-                for name, rc in dead.items():
-                    print(
-                        f"\nnpp-run: npp-{name} exited with code {rc}; see {run_dir / 'logs' / (name + '.log')}",
-                        file=sys.stderr,
-                    )
-                code = 1
-                break
-            if follower.last is not None and follower.last.episode + 1 >= args.max_episodes:
-                budget_reached_at = budget_reached_at or time.monotonic()
-                if time.monotonic() - budget_reached_at > 5.0:
-                    print(f"\nnpp-run: NOT CERTIFIED within {args.max_episodes} episodes", file=sys.stderr)
-                    code = 1
-                    break
-    except (KeyboardInterrupt, ExternalShutdownException):
-        print("\nnpp-run: interrupted; stopping the nodes (the run resumes from its folder)", file=sys.stderr)
+        other = follower.other_graph(ours=0)
+        if other is not None:
+            say(f"npp-run: another graph is running on {where()}: {other}; not starting. {TWO_GRAPHS}")
+            return 2
+        if args.dashboard is not None:  # first: a port in use stops npp-run before any node started
+            extras["dashboard"] = procs["dashboard"] = start_dashboard(run_dir, env, args.dashboard)
+        if args.record:
+            extras["record"] = procs["record"] = start_recorder(run_dir, env)
+        setup = child_setup(os.getpid())
+        for name, values in params.items():
+            cmd = [sys.executable, "-m", f"npp_ros_graph.{name}_node", "--ros-args"]
+            for key, value in values.items():
+                text = (
+                    str(value).lower()
+                    if isinstance(value, bool)
+                    else repr(value)
+                    if isinstance(value, str)
+                    else str(value)
+                )
+                cmd += ["-p", f"{key}:={text}"]
+            with open_log(run_dir, name) as log:
+                procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=setup)
+                log.write(f"{LOG_HEADER} {datetime.now().isoformat(timespec='seconds')}: pid {procs[name].pid}\n")
+        say(f"npp-run: started sim, expert, policy, supervisor on {where()} (logs in {run_dir / 'logs'})")
+        code = follow(follower, executor, procs, run_dir, args.max_episodes)
+    except KeyboardInterrupt:
+        say("\nnpp-run: interrupted; stopping the nodes (the run resumes from its folder)")
         code = 130
+    except ExternalShutdownException:
+        code = 130
+    except Stopped as exc:
+        say(f"\nnpp-run: {exc} received; stopping the nodes (the run resumes from its folder)")
+        code = 128 + exc.signum
     finally:
-        if follower.certificate is not None:
-            print(("\n" if follower.tty else "") + certificate_line(follower.certificate))
-            print(f"run folder: {run_dir}")
-        follower.destroy_node()
+        for signum in (signal.SIGHUP, signal.SIGTERM):
+            signal.signal(signum, _ignore_further)
+        if follower is not None:
+            if follower.certificate is not None:
+                with suppress(OSError):
+                    print(("\n" if follower.tty else "") + certificate_line(follower.certificate))
+                    print(f"run folder: {run_dir}")
+            follower.destroy_node()
         rclpy.try_shutdown()
         stop_all({name: proc for name, proc in procs.items() if name not in extras})
         stop_all(extras)
     return code
+
+
+def follow(
+    follower: Follower, executor: SingleThreadedExecutor, procs: dict[str, subprocess.Popen], run_dir: Path,
+    max_episodes: int,
+) -> int:  # fmt: skip
+    """Spin until the certificate, the episode budget, a dead node or a second graph; the exit code."""
+    started = time.monotonic()
+    budget_reached_at: float | None = None
+    checked = 0.0
+    warned: str | None = None
+    while follower.certificate is None:
+        executor.spin_once(timeout_sec=0.1)
+        dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
+        if dead:
+            for name, rc in dead.items():
+                log = run_dir / "logs" / f"{name}.log"
+                why = reason_line(log)
+                say(f"\nnpp-run: npp-{name} exited with code {rc}" + (f": {why}" if why else "") + f" (log: {log})")
+            return 1
+        now = time.monotonic()
+        if now - checked >= 1.0:
+            checked = now
+            other = follower.other_graph(ours=1)
+            if other is not None and now - started < SECOND_GRAPH_WINDOW_S:
+                say(f"\nnpp-run: another graph is running on {where()}: {other}; stopping. {TWO_GRAPHS}")
+                return 2
+            if other is not None and other != warned:  # a newcomer after our start: it should stop itself
+                say(f"\nnpp-run: WARNING another graph joined {where()}: {other}. {TWO_GRAPHS}")
+            warned = other
+        if follower.last is not None and follower.last.episode + 1 >= max_episodes:
+            budget_reached_at = budget_reached_at or now
+            if now - budget_reached_at > 5.0:
+                say(f"\nnpp-run: NOT CERTIFIED within {max_episodes} episodes")
+                return 1
+    return 0
 
 
 if __name__ == "__main__":

@@ -1,0 +1,223 @@
+"""npp-run and npp-monitor as users met them: processes that outlive npp-run, a node that refuses to start,
+a second npp-run on the same folder or the same domain, and a monitor that waits in silence.
+
+Each npp-run here gets its own ROS_DOMAIN_ID (domain_coordinator), so a graph from one test is never
+seen by the next. Waits are generous: the machine may be busy."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+from domain_coordinator import domain_id
+
+START_TIMEOUT_S = 180.0  # four Python processes importing rclpy and MuJoCo on a shared 2-core machine
+GONE_TIMEOUT_S = 30.0  # the children get SIGTERM at once; a loaded machine may take a while to run them
+NODES = ("sim", "expert", "policy", "supervisor")
+
+
+def npp_run(run_dir: Path, domain: int, *extra: str, log: Path) -> subprocess.Popen[str]:
+    """npp-run on its own domain; episodes never certify (tiny epsilon), so it runs until stopped."""
+    command = [
+        sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--domain-id", str(domain),
+        "--horizon", "50", "--epsilon", "0.001", "--max-episodes", "100000", *extra,
+    ]  # fmt: skip
+    return subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, text=True)
+
+
+@contextmanager
+def stopped_at_exit(proc: subprocess.Popen[str]) -> Iterator[subprocess.Popen[str]]:
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.2)
+
+
+def alive(pid: int) -> bool:
+    """Running (a zombie waiting to be reaped by init has ended)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def node_children(parent: int) -> dict[str, int]:
+    """The node processes npp-run started: name -> pid."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) != parent:
+            continue
+        for name in NODES:
+            if f"npp_ros_graph.{name}_node" in argv:
+                found[name] = int(entry.name)
+    return found
+
+
+def nodes_up(run_dir: Path, parent: int) -> dict[str, int]:
+    """The four children once each has written past npp-run's header line (rclpy up, node created)."""
+    children: dict[str, int] = {}
+
+    def up() -> bool:
+        children.update(node_children(parent))
+        logs = [run_dir / "logs" / f"{name}.log" for name in NODES]
+        return len(children) == 4 and all(p.exists() and len(p.read_text().splitlines()) >= 2 for p in logs)
+
+    wait_until(up, START_TIMEOUT_S, "the four nodes to start")
+    return children
+
+
+# ----------------------------------------------------------------------------- 1. children die with npp-run
+@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGHUP, signal.SIGTERM])
+def test_nodes_die_with_npp_run(tmp_path: Path, ros_domain: int, signum: signal.Signals) -> None:
+    run_dir, out = tmp_path / "run", tmp_path / "npp-run.out"
+    with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), log=out)) as run:
+        children = nodes_up(run_dir, run.pid)
+        os.kill(run.pid, signum)
+        code = run.wait(60)
+        start = time.monotonic()
+        try:
+            wait_until(lambda: not any(alive(pid) for pid in children.values()), GONE_TIMEOUT_S, "the nodes to end")
+        finally:
+            for pid in children.values():  # never leave one behind, even when the test fails
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+        print(f"\n{signum.name}: npp-run exited {code}; its 4 nodes gone {time.monotonic() - start:.1f} s later")
+    assert code == -signum if signum == signal.SIGKILL else code == 128 + signum
+    if signum != signal.SIGKILL:
+        assert f"{signum.name} received; stopping the nodes" in out.read_text()
+
+
+# ----------------------------------------------------------------------------- 2. a node that refuses
+def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp_path: Path, ros_domain: int) -> None:
+    run_dir = tmp_path / "run"
+    with domain_id() as domain:
+        first = subprocess.run(
+            [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--domain-id",
+             str(domain), "--horizon", "0"],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        second = subprocess.run(
+            [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--domain-id",
+             str(domain), "--epsilon", "-1"],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+    print("\n" + first.stderr.strip().splitlines()[-1] + "\n" + second.stderr.strip().splitlines()[-1])
+    assert first.returncode == 1
+    assert (
+        "npp-run: npp-sim exited with code 2: parameter horizon must be an integer in [1, 100000], got 0"
+        f" (log: {run_dir / 'logs' / 'sim.log'})" in first.stderr
+    )
+    assert second.returncode == 1
+    assert "npp-supervisor exited with code 2: parameter epsilon must be a number in [0, inf], got -1.0" in (
+        second.stderr
+    )
+    # Each start has its own log: the second start's is sim.log, the first's is kept as sim.1.log.
+    logs = run_dir / "logs"
+    assert "parameter horizon must be" in (logs / "sim.1.log").read_text()
+    assert "parameter horizon" not in (logs / "sim.log").read_text()
+    assert "epsilon must be" in (logs / "supervisor.log").read_text()
+    for name in NODES:
+        header = (logs / f"{name}.log").read_text().splitlines()[0]
+        assert header.startswith("==== npp-run: this start of the node at ") and ": pid " in header
+
+
+# ----------------------------------------------------------------------------- 3. a second npp-run
+def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_domain: int) -> None:
+    run_dir, out = tmp_path / "run", tmp_path / "first.out"
+    with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), log=out)) as first:
+        nodes_up(run_dir, first.pid)
+        lock = run_dir / "run.lock"
+        wait_until(lambda: lock.exists() and lock.read_text().strip() != "", START_TIMEOUT_S, "the supervisor's lock")
+        holder = int(lock.read_text().split()[0])
+        sim_log = (run_dir / "logs" / "sim.log").read_text()
+
+        # Same folder, another domain: the folder's writer lock refuses it before any node starts.
+        with domain_id() as other:
+            started = time.monotonic()
+            same_folder = subprocess.run(
+                [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--domain-id",
+                 str(other), "--horizon", "50"],
+                capture_output=True, text=True, timeout=600,
+            )  # fmt: skip
+            took = time.monotonic() - started
+        print(f"\nsame folder ({took:.1f} s): {same_folder.stderr.strip()}")
+        assert same_folder.returncode == 2
+        assert f"{run_dir} is in use by pid {holder} (" in same_folder.stderr
+        assert f"(its npp-run: pid {first.pid}, " in same_folder.stderr
+        assert "started sim" not in same_folder.stderr
+        assert not (run_dir / "logs" / "sim.1.log").exists()  # no node of the second run ever started
+        assert (run_dir / "logs" / "sim.log").read_text().startswith(sim_log)
+
+        # Same domain, another folder: the other graph's sim and supervisor are seen and named.
+        started = time.monotonic()
+        same_domain = subprocess.run(
+            [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(tmp_path / "other"), "--domain-id",
+             str(domain), "--horizon", "50"],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        took = time.monotonic() - started
+        print(f"same domain ({took:.1f} s): {same_domain.stderr.strip().splitlines()[-1]}")
+        assert same_domain.returncode == 2
+        assert f"another graph is running on ROS_DOMAIN_ID {domain}" in same_domain.stderr
+        assert "/npp/sim/plant is published by /npp_sim" in same_domain.stderr
+        assert "give this run its own domain (--domain-id N)" in same_domain.stderr
+        # The first run goes on untouched.
+        assert first.poll() is None, out.read_text()
+        first.send_signal(signal.SIGINT)
+        assert first.wait(120) == 130
+    assert "another graph" not in out.read_text()
+
+
+# ----------------------------------------------------------------------------- 4. npp-monitor
+def test_monitor_says_what_it_waits_for_and_where(tmp_path: Path, ros_domain: int) -> None:
+    err = tmp_path / "monitor.err"
+    with domain_id() as empty:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(empty))
+        monitor = subprocess.Popen(
+            [sys.executable, "-m", "npp_ros_graph.monitor"], stdout=subprocess.PIPE, stderr=err.open("w"), env=env
+        )
+        with stopped_at_exit(monitor):  # type: ignore[arg-type]
+            wait_until(lambda: "npp-monitor: nothing received" in err.read_text(), 120, "the monitor's notice")
+    line = err.read_text().splitlines()[0]
+    print("\n" + line)
+    assert f"waiting for /npp/gap, /npp/episode, /npp/certificate on ROS_DOMAIN_ID {empty}, discovery LOCALHOST" in line
+    assert "Publishers: /npp/gap 0, /npp/episode 0, /npp/certificate 0" in line
+    assert "npp nodes seen: none" in line
+
+
+def test_monitor_refuses_unknown_topics_naming_the_known_ones() -> None:
+    run = subprocess.run(
+        [sys.executable, "-m", "npp_ros_graph.monitor", "--topics", "gap,gaps"], capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert run.returncode == 2
+    assert "argument --topics: unknown topic 'gaps'; known: gap, episode" in run.stderr
