@@ -1,12 +1,13 @@
 # Two entry points, each doing its own set-up on a fresh machine:
 #   make run    the main job (the ROS graph runs Algorithm 1 on lqr_2_1 to a certificate)
-#   make test   the test suite
+#   make test   the test suite (what CI runs)
+#   make test-quick  the core's fast tests, no ROS graph (under a minute)
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.npp-setup-done
 INTERFACES := $(shell find msgs_py -type f 2>/dev/null)
 
-.PHONY: setup run test lint clean-venv
+.PHONY: setup run test test-quick lint clean-venv
 setup: $(STAMP)
 
 $(STAMP): requirements.lock pyproject.toml scripts/setup.sh $(INTERFACES)
@@ -17,6 +18,9 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest
+
+test-quick: $(STAMP)
+	$(PY) -m pytest -q -m "not slow" --ignore=tests/ros
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check npp_ros npp_ros_graph nodes tests && $(VENV)/bin/ruff format --check npp_ros npp_ros_graph nodes tests

@@ -1,4 +1,8 @@
-"""Shared fixtures: real dm_control plants and LQR experts (built once per session)."""
+"""Shared fixtures: real dm_control plants and LQR experts (built once per session).
+
+Modules that run whole experiments, command lines or thousands of simulated runs are marked
+``slow``; `make test-quick` skips them and the ROS graph, `make test` runs everything.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +10,26 @@ import pytest
 
 from npp_ros.dataset import Dataset
 from npp_ros.lqr import LQRExpert, episode_rng, sample_initial_state
+
+SLOW_MODULES = {
+    "test_experiment.py",  # npp-experiment end to end, several times
+    "test_cli_learn.py",  # npp-learn to a certificate
+    "test_cli_args.py",  # command lines as processes
+    "test_loop.py",  # Algorithm 1 to a certificate on lqr_2_1
+    "test_soundness.py",  # 2,000 simulated runs per rule
+    "test_storage_reliability.py",  # real second processes, tmpfs
+    "test_trajopt.py",  # iLQR at H = 1000
+    "test_pendulum.py",
+    "test_cartpole.py",
+    "test_bench.py",
+    "test_theorems.py",  # greedy rollouts from 40 s0 per theorem
+}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.name in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(scope="session")

@@ -114,6 +114,7 @@ def test_randomised_datasets_match_brute_force(
     assert_same_as_brute_force(index, NonparametricPolicy(data, lipschitz, index=False), queries)
 
 
+@pytest.mark.slow  # disassembles the compiled kernels
 def test_kernels_contain_no_fused_multiply_add() -> None:
     """An FMA rounds once where the brute force rounds twice: it would break bit-for-bit equality."""
     data = Dataset(3, 1)
