@@ -50,6 +50,7 @@ def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: P
     assert decisions(graph_rows) == decisions(local.rows)
     assert local.certificate is not None and certificate["episodes"] == local.certificate.episodes
     assert Certificate.from_dict(certificate) == local.certificate  # the same certificate, field by field
-    assert (local.certificate.certify, local.certificate.rule, local.certificate.proven) == ("rollout", "sequential", True)
+    cert = local.certificate
+    assert (cert.certify, cert.rule, cert.proven) == ("rollout", "sequential", True)
     np.testing.assert_array_equal(graph_data.states, local_loop.dataset.states)
     np.testing.assert_array_equal(graph_data.values, local_loop.dataset.values)
