@@ -5,6 +5,10 @@ numbers), compute the gap, call the expert service when it exceeds epsilon (dead
 retries), persist and hand the trajectory to the policy, reset the sim to s0, let the policy
 drive, and publish the gap report and the episode result. Certifies and publishes the
 certificate latched. Restarted on the same run folder, it resumes where the file ends.
+
+Algorithm 1 runs in the node's worker thread, which makes synchronous calls with deadlines; the
+executor's callbacks only hand data over: the plant through a Mailbox, what the policy holds and
+the sim's rollout results through the RolloutHandshake, which the worker waits on.
 """
 
 from __future__ import annotations
@@ -60,6 +64,7 @@ from npp_ros_graph.common import (
     RESET_SERVICE,
     ROLLOUT_DONE,
     SERVICE_QOS,
+    Mailbox,
     run_node,
 )
 from npp_ros_graph.convert import (
@@ -150,9 +155,8 @@ class SupervisorNode(Node):
         self.loop: NPPLoop | None = None
         self.plant: PlantDescription | None = None
         self.stop = threading.Event()
-        self._rollouts: dict[int, EpisodeResult] = {}
-        self._rollout_arrived = threading.Condition()
-        self.policy_trajectories = -1
+        self._plants: Mailbox[PlantDescription] = Mailbox(keep=1)
+        self.handshake = RolloutHandshake()
         self.gap_pub = self.create_publisher(GapReport, GAP, REPORT_QOS)
         self.episode_pub = self.create_publisher(EpisodeResult, EPISODE, REPORT_QOS)
         self.certificate_pub = self.create_publisher(CertificateMsg, CERTIFICATE, LATCHED_QOS)
@@ -160,11 +164,12 @@ class SupervisorNode(Node):
         self.expert = self.create_client(ExpertTrajectory, EXPERT_SERVICE)
         self.reset = self.create_client(ResetEpisode, RESET_SERVICE)
         self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
-        self.create_subscription(EpisodeResult, ROLLOUT_DONE, self.on_rollout, REPORT_QOS)
-        self.create_subscription(UInt32, POLICY_STATUS, self.on_policy_status, LATCHED_QOS)
+        self.create_subscription(EpisodeResult, ROLLOUT_DONE, self.handshake.on_rollout, REPORT_QOS)
+        self.create_subscription(UInt32, POLICY_STATUS, self.handshake.on_policy_status, LATCHED_QOS)
         self.create_service(GetTrajectories, DATASET_SERVICE, self.serve_dataset, qos_profile=SERVICE_QOS)
-        self.worker: threading.Thread | None = None
         self.exit_code = 0
+        self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
+        self.worker.start()
         self.get_logger().info("waiting for the sim's plant description")
 
     # ---------------------------------------------------------------- graph inputs
@@ -174,16 +179,7 @@ class SupervisorNode(Node):
                 self.get_logger().error("the sim now describes another plant; this run keeps its own")
             return
         self.plant = msg
-        self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
-        self.worker.start()
-
-    def on_rollout(self, msg: EpisodeResult) -> None:
-        with self._rollout_arrived:
-            self._rollouts[msg.episode] = msg
-            self._rollout_arrived.notify_all()
-
-    def on_policy_status(self, msg: UInt32) -> None:
-        self.policy_trajectories = msg.data
+        self._plants.put(msg)
 
     def serve_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
         loop = self.loop
@@ -205,6 +201,9 @@ class SupervisorNode(Node):
 
     # ---------------------------------------------------------------- Algorithm 1
     def run_algorithm(self) -> None:
+        """Worker thread: waits for the sim's plant, then runs the episodes."""
+        if self._plants.take() is None:
+            return  # the node closed before the sim described its plant
         try:
             self._run_algorithm()
         except Exception as exc:  # the run must never die silently: say why and exit non-zero
@@ -267,6 +266,10 @@ class SupervisorNode(Node):
             return None
         return future.result()
 
+    def destroy_node(self) -> None:
+        self._plants.close()
+        super().destroy_node()
+
 
 class RosExpert:
     """The oracle over /npp/expert/trajectory: a deadline per call, retries, clear failure."""
@@ -313,6 +316,48 @@ class RosExpert:
             pause = min(2 * pause, 2.0)
 
 
+class RolloutHandshake:
+    """What an episode's rollout waits for: the policy holding the current dataset, then the sim's
+    result for that episode. Subscription callbacks record both and notify; the worker waits on the
+    same Condition, so it wakes when either arrives, never polls.
+    """
+
+    def __init__(self) -> None:
+        self._changed = threading.Condition()
+        self._policy_holds = -1  # trajectories the policy reported last (-1: no report yet)
+        self._results: dict[int, EpisodeResult] = {}
+
+    def on_policy_status(self, msg: UInt32) -> None:
+        with self._changed:
+            self._policy_holds = int(msg.data)
+            self._changed.notify_all()
+
+    def on_rollout(self, msg: EpisodeResult) -> None:
+        with self._changed:
+            self._results[int(msg.episode)] = msg
+            self._changed.notify_all()
+
+    def policy_holds(self, trajectories: int) -> bool:
+        return self._policy_holds >= trajectories
+
+    def wait_for_policy(self, trajectories: int, deadline: float) -> bool:
+        """Whether the policy holds at least `trajectories` by the deadline (time.monotonic)."""
+        with self._changed:
+            return self._changed.wait_for(
+                lambda: self._policy_holds >= trajectories, max(deadline - time.monotonic(), 0.0)
+            )
+
+    def wait_for_rollout(self, episode: int, deadline: float) -> EpisodeResult | None:
+        """The sim's result for `episode`, or None when the deadline passes first; results of earlier
+        episodes that finish late (skipped ones) are discarded."""
+        with self._changed:
+            self._changed.wait_for(lambda: episode in self._results, max(deadline - time.monotonic(), 0.0))
+            result = self._results.pop(episode, None)
+            for late in [k for k in self._results if k < episode]:
+                del self._results[late]
+        return result
+
+
 class RosRollouts:
     """Episode driver: reset the sim to s0 and let the policy node drive; returns the sim's return."""
 
@@ -320,15 +365,14 @@ class RosRollouts:
         self.node, self.timeout = node, timeout
 
     def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None:
-        node, log = self.node, self.node.get_logger()
+        node, log, handshake = self.node, self.node.get_logger(), self.node.handshake
         held = policy.dataset.num_trajectories
         deadline = time.monotonic() + self.timeout
-        while node.policy_trajectories < held and time.monotonic() < deadline and not node.stop.is_set():
+        if not handshake.policy_holds(held):
             log.info(f"waiting for the policy to hold {held} trajectories", throttle_duration_sec=10.0)
-            time.sleep(0.01)
-        if node.policy_trajectories < held:
-            log.warning(f"episode {episode}: the policy is not up to date; no rollout this episode")
-            return None
+            if not handshake.wait_for_policy(held, deadline):
+                log.warning(f"episode {episode}: the policy is not up to date; no rollout this episode")
+                return None
         if not node.reset.wait_for_service(timeout_sec=self.timeout):
             log.warning(f"episode {episode}: sim reset service unavailable; no rollout this episode")
             return None
@@ -337,13 +381,7 @@ class RosRollouts:
         if response is None or not response.success:
             log.warning(f"episode {episode}: sim reset failed: {getattr(response, 'message', 'no answer')}")
             return None
-        with node._rollout_arrived:
-            node._rollout_arrived.wait_for(
-                lambda: episode in node._rollouts, timeout=max(deadline - time.monotonic(), 1.0)
-            )
-            result = node._rollouts.pop(episode, None)
-            for late in [k for k in node._rollouts if k < episode]:  # skipped episodes finishing late
-                del node._rollouts[late]
+        result = handshake.wait_for_rollout(episode, max(deadline, time.monotonic() + 1.0))
         if result is None:
             log.warning(f"episode {episode}: the policy's episode did not finish in time; no return recorded")
             return None
