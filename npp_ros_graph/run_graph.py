@@ -2,8 +2,8 @@
 
 Shows live progress from the /npp/gap topic, prints the certificate, and stops all four
 cleanly when the run is certified, when it runs out of episodes, on Ctrl-C, SIGTERM or SIGHUP,
-or when a node dies (saying which, why, and where its log is). The nodes die with npp-run even
-when it is SIGKILLed. The run folder holds run.sqlite (dataset and episode log), gaps.csv,
+or when a node dies (saying which, why, and where its log is); a node whose process is stopped
+(SIGSTOP, a debugger) is named within seconds. The nodes die with npp-run even when it is SIGKILLed. The run folder holds run.sqlite (dataset and episode log), gaps.csv,
 episodes.csv and logs/<node>.log (the previous start's log kept as logs/<node>.1.log). Started
 again on the same folder, the supervisor resumes the run.
 
@@ -45,6 +45,7 @@ DISCOVERY_S = 2.0  # listened for before starting: discovery on one machine take
 SECOND_GRAPH_WINDOW_S = 30.0  # a second graph seen this soon after the start stops this run
 GRAPH_TOPICS = (PLANT, GAP)  # one publisher each per graph: its sim and its supervisor
 LOG_HEADER = "==== npp-run: this start of the node at"
+STALL_NOTICE_S = 2.0  # a node stopped this long is named
 TWO_GRAPHS = (
     "Two graphs on one domain mix their states, actions and datasets: stop the other one, or give this run "
     "its own domain (--domain-id N)"
@@ -247,6 +248,42 @@ def _started_by(lock: Path) -> str:
     return ""
 
 
+# --------------------------------------------------------------------------- stalled nodes
+class StallWatch:
+    """Names a node whose process is stopped (SIGSTOP, Ctrl-Z, a debugger): the run waits for it in
+    silence otherwise, and from the outside a stopped node looks like a slow one."""
+
+    def __init__(self, procs: dict[str, subprocess.Popen]) -> None:
+        self.procs = procs
+        self.since: dict[str, float] = {}
+        self.told: set[str] = set()
+
+    def check(self, now: float) -> list[str]:
+        lines = []
+        for name, proc in self.procs.items():
+            if _stopped(proc.pid):
+                self.since.setdefault(name, now)
+                if name not in self.told and now - self.since[name] >= STALL_NOTICE_S:
+                    self.told.add(name)
+                    lines.append(
+                        f"npp-{name} (pid {proc.pid}) is stopped (SIGSTOP or a debugger); the run waits for it "
+                        f"(kill -CONT {proc.pid} resumes it)"
+                    )
+            elif name in self.since:
+                stopped_for = now - self.since.pop(name)
+                if name in self.told:
+                    self.told.discard(name)
+                    lines.append(f"npp-{name} (pid {proc.pid}) runs again after about {stopped_for:.0f} s stopped")
+        return lines
+
+
+def _stopped(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in ("T", "t")
+    except (OSError, IndexError):
+        return False
+
+
 # --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
@@ -342,6 +379,7 @@ def follow(
     budget_reached_at: float | None = None
     checked = 0.0
     warned: str | None = None
+    stalls = StallWatch(procs)
     while follower.certificate is None:
         executor.spin_once(timeout_sec=0.1)
         dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
@@ -354,6 +392,8 @@ def follow(
         now = time.monotonic()
         if now - checked >= 1.0:
             checked = now
+            for line in stalls.check(now):
+                say(f"\nnpp-run: {line}")
             other = follower.other_graph(ours=1)
             if other is not None and now - started < SECOND_GRAPH_WINDOW_S:
                 say(f"\nnpp-run: another graph is running on {where()}: {other}; stopping. {TWO_GRAPHS}")

@@ -221,3 +221,23 @@ def test_monitor_refuses_unknown_topics_naming_the_known_ones() -> None:
     )  # fmt: skip
     assert run.returncode == 2
     assert "argument --topics: unknown topic 'gaps'; known: gap, episode" in run.stderr
+
+
+# ----------------------------------------------------------------------------- 6. a stopped node is named
+def test_a_stopped_node_is_named_within_seconds(tmp_path: Path, ros_domain: int) -> None:
+    run_dir, out = tmp_path / "run", tmp_path / "npp-run.out"
+    with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), log=out)) as run:
+        supervisor = nodes_up(run_dir, run.pid)["supervisor"]
+        wait_until(lambda: "[gap]" in out.read_text(), START_TIMEOUT_S, "the first gap report")
+        os.kill(supervisor, signal.SIGSTOP)
+        stopped = time.monotonic()
+        try:
+            wait_until(lambda: f"npp-supervisor (pid {supervisor}) is stopped" in out.read_text(), 60, "the notice")
+            named_after = time.monotonic() - stopped
+            time.sleep(max(0.0, 10.0 - named_after))
+        finally:
+            os.kill(supervisor, signal.SIGCONT)
+        wait_until(lambda: f"npp-supervisor (pid {supervisor}) runs again" in out.read_text(), 60, "the resumption")
+        print(f"\nthe stopped supervisor was named {named_after:.1f} s after SIGSTOP")
+        assert run.poll() is None
+    assert f"(kill -CONT {supervisor} resumes it)" in out.read_text()
