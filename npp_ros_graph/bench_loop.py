@@ -12,7 +12,9 @@ Both are measured in the same run with the same driver, so their ratio is the co
 policy (its query and its node code) relative to the ROS round trip itself. Every run gets its
 own ROS_DOMAIN_ID and localhost-only discovery.
 
-Usage: python -m npp_ros_graph.bench_loop [--quick] [--json FILE|-] [--steps N]
+Usage: npp-bench-ros [--quick] [--out DIR] [--json FILE|-] [--steps N]. With --out it puts its
+result into DIR/bench.json and bench.md (results/bench: the ROS section and its target rows,
+the index figures kept); `npp-bench --ros` calls measure() within its own run instead.
 """
 
 from __future__ import annotations
@@ -233,24 +235,13 @@ def isolated_env(domain: int) -> dict[str, str]:
     return env
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m npp_ros_graph.bench_loop", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--echo", action="store_true", help="run the bare ping-pong partner node")
-    parser.add_argument("--quick", action="store_true", help="small datasets and few steps (smoke run)")
-    parser.add_argument("--steps", type=int, default=2000, help="lockstep steps per timed run")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs per partner")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", default=None, help="write the result as JSON to this file ('-' = stdout)")
-    parser.add_argument("--logs", type=Path, default=None, help="folder for the partner nodes' logs")
-    args, _ = parser.parse_known_args(argv)
-    if args.echo:
-        return run_node(
-            EchoNode, [sys.argv[0], *(sys.argv[sys.argv.index("--ros-args") :] if "--ros-args" in sys.argv else [])]
-        )
-    if args.quick:
-        args.steps, args.repeats = 200, 2
-    cases = [(task, 2 if args.quick else n) for task, n in CASES]
-    logs = args.logs or Path(os.environ.get("TMPDIR", "/tmp")) / f"npp-bench-loop-{os.getpid()}"
+def measure(
+    quick: bool = False, steps: int = 2000, repeats: int = 3, seed: int = 0, logs: Path | None = None
+) -> dict[str, Any]:
+    """Both cases, each partner in its own process, on a ROS domain reserved for this run."""
+    args = argparse.Namespace(steps=200 if quick else steps, repeats=2 if quick else repeats, seed=seed)
+    cases = [(task, 2 if quick else n) for task, n in CASES]
+    logs = logs or Path(os.environ.get("TMPDIR", "/tmp")) / f"npp-bench-loop-{os.getpid()}"
     logs.mkdir(parents=True, exist_ok=True)
     with domain_id() as domain:  # a domain no other session (tests, runs) is using
         env = isolated_env(int(domain))
@@ -261,7 +252,46 @@ def main(argv: list[str] | None = None) -> int:
             results = [measure_case(task, n, args, env, logs) for task, n in cases]
         finally:
             rclpy.try_shutdown()
-    out = {"domain_id": env["ROS_DOMAIN_ID"], "logs": str(logs), "cases": results}
+    return {"domain_id": env["ROS_DOMAIN_ID"], "logs": str(logs), "cases": results}
+
+
+def write_into(folder: Path, ros: dict[str, Any]) -> None:
+    """The ROS section of folder/bench.json and bench.md, replaced; the rest as npp-bench wrote it."""
+    from npp_ros.cli.bench import markdown, with_ros  # the bench's own table; its imports are heavy for a partner
+
+    path = folder / "bench.json"
+    result = json.loads(path.read_text())
+    with_ros(result, ros)
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    (folder / "bench.md").write_text(markdown(result))
+    log(f"wrote the ROS loop into {path} and {folder / 'bench.md'}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="npp-bench-ros", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--echo", action="store_true", help="run the bare ping-pong partner node")
+    parser.add_argument("--quick", action="store_true", help="small datasets and few steps (smoke run)")
+    parser.add_argument("--steps", type=int, default=2000, help="lockstep steps per timed run")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per partner")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=None, help="put the result into OUT/bench.json and bench.md")
+    parser.add_argument("--json", default=None, help="write the result as JSON to this file ('-' = stdout)")
+    parser.add_argument("--logs", type=Path, default=None, help="folder for the partner nodes' logs")
+    args, _ = parser.parse_known_args(argv)
+    if args.echo:
+        return run_node(
+            EchoNode, [sys.argv[0], *(sys.argv[sys.argv.index("--ros-args") :] if "--ros-args" in sys.argv else [])]
+        )
+    if args.out and not (args.out / "bench.json").exists():
+        parser.error(f"{args.out / 'bench.json'} does not exist; `npp-bench --out {args.out}` writes it")
+    started = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+    load_start = list(os.getloadavg())
+    out = measure(args.quick, args.steps, args.repeats, args.seed, args.logs)
+    results = out["cases"]
+    if args.out:
+        out |= {"command": "npp-bench-ros " + " ".join(sys.argv[1:] if argv is None else argv), "date": started,
+                "load_average_start": load_start, "load_average_end": list(os.getloadavg())}  # fmt: skip
+        write_into(args.out, out)
     text = json.dumps(out, indent=2)
     if args.json == "-":
         sys.stdout.write(text + "\n")

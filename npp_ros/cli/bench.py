@@ -456,6 +456,9 @@ def markdown(result: dict[str, Any]) -> str:
     ros = result.get("ros")
     if ros:
         lines += ["## ROS loop (sim <-> policy lockstep vs a bare ROS ping-pong, same messages)", ""]
+        if ros.get("command"):  # measured on its own, after the figures above
+            lines += [f"Command: `{ros['command']}`, {ros['date']}; load average at start "
+                      f"{ros['load_average_start']}, at end {ros['load_average_end']}.", ""]  # fmt: skip
         if ros.get("error"):
             lines += [f"Failed: {ros['error']}", ""]
         lines += ["| task | points | graph steps/s | ping-pong steps/s | ratio | target | met |",
@@ -498,7 +501,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--brute-budget", type=float, default=2e6, help="points x queries per brute-force timing")
     parser.add_argument("--seed", type=int, default=0, help="seed of the initial states")
     parser.add_argument("--runs", type=Path, nargs="*", default=[], help="run folders whose compression to report")
-    parser.add_argument("--ros", action="store_true", help="also measure the ROS loop rate (npp_ros_graph.bench_loop)")
+    parser.add_argument("--ros", action="store_true", help="also measure the ROS loop rate (npp-bench-ros)")
     parser.add_argument("--no-compile", action="store_true", help="skip the cold-cache compile measurement")
     args = parser.parse_args(argv)
     if args.quick:
@@ -555,13 +558,9 @@ def main(argv: list[str] | None = None) -> int:
         progress.step(f"compile: cold {result['compile']['cold_first_query_s']:.2f}s, "
                       f"warm {result['compile']['warm_first_query_s']:.2f}s")  # fmt: skip
     result["compression_runs"] = compression_of_runs(args.runs, progress)
-    if args.ros:
-        result["ros"] = ros_loop(args, progress)
     result["targets"] = targets(cases, scaling)
-    for c in result.get("ros", {}).get("cases", []):
-        result["targets"].append({"case": f"ROS loop {c['task']}, {c['points']:,d} points",
-                                  "metric": "graph / bare ping-pong steps/s", "value": c["ratio"],
-                                  "target": f">= {c['target']:g}x", "met": c["met"]})  # fmt: skip
+    if args.ros:
+        with_ros(result, ros_loop(args, progress))
     checks = [c.exact["exact"] for c in cases] + [r["exact"]["exact"] for r in scaling] + [ties["exact"]]
     result["all_exact"] = bool(all(checks))
     result["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
@@ -572,14 +571,31 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if result["all_exact"] else 1
 
 
+def with_ros(result: dict[str, Any], ros: dict[str, Any]) -> None:
+    """Puts a ROS loop measurement into a bench result, its target rows replacing any earlier ones."""
+    result["ros"] = ros
+    rows = [row for row in result.get("targets", []) if not row["case"].startswith("ROS loop")]
+    for c in ros.get("cases", []):
+        rows.append({"case": f"ROS loop {c['task']}, {c['points']:,d} points",
+                     "metric": "graph / bare ping-pong steps/s", "value": c["ratio"],
+                     "target": f">= {c['target']:g}x", "met": c["met"]})  # fmt: skip
+    result["targets"] = rows
+
+
 def ros_loop(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
-    """The ROS loop rate, measured by npp_ros_graph/bench_loop.py in its own process (npp_ros stays ROS-free)."""
-    cmd = [sys.executable, "-m", "npp_ros_graph.bench_loop", "--json", "-"] + (["--quick"] if args.quick else [])
-    res = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its progress goes to our stderr
-    if res.returncode != 0:
-        out: dict[str, Any] = {"error": f"npp_ros_graph.bench_loop exited with {res.returncode}", "cases": []}
+    """The ROS loop rate, measured by the ROS wing (npp-bench-ros, npp_ros_graph/bench_loop.py).
+
+    Imported here and only here, on request: the core itself never needs ROS.
+    """
+    try:
+        from npp_ros_graph.bench_loop import measure
+    except ImportError as exc:
+        out: dict[str, Any] = {"error": f"--ros needs the ROS wing (npp_ros_graph, rclpy): {exc}", "cases": []}
     else:
-        out = json.loads(res.stdout)
+        try:
+            out = measure(quick=args.quick)
+        except Exception as exc:  # the index figures above still get written
+            out = {"error": f"npp-bench-ros failed: {type(exc).__name__}: {exc}", "cases": []}
     done = ", ".join(f"{c['task']} {c['ratio']:.2f}" for c in out.get("cases", []))
     progress.step(f"ROS loop: graph / ping-pong {done or out.get('error')}")
     return out
