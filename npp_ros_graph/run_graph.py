@@ -3,9 +3,10 @@
 Shows live progress from the /npp/gap topic, prints the certificate, and stops all four
 cleanly when the run is certified, when it runs out of episodes, on Ctrl-C, SIGTERM or SIGHUP,
 or when a node dies (saying which, why, and where its log is); a node whose process is stopped
-(SIGSTOP, a debugger) is named within seconds. The nodes die with npp-run even when it is SIGKILLed. The run folder holds run.sqlite (dataset and episode log), gaps.csv,
-episodes.csv and logs/<node>.log (the previous start's log kept as logs/<node>.1.log). Started
-again on the same folder, the supervisor resumes the run.
+(SIGSTOP, a debugger) is named within seconds. The nodes die with npp-run even when it is
+SIGKILLed. The run folder holds run.sqlite (dataset and episode log), gaps.csv, episodes.csv
+and logs/<node>.log (the previous start's log kept as logs/<node>.1.log). Started again on the
+same folder, the supervisor resumes the run.
 
 Refused before any node starts: a run folder another writer holds (named with its pid and
 command line), and another graph on the same ROS domain (its nodes named); one that appears
