@@ -30,6 +30,7 @@ from scipy.linalg import solve_discrete_are
 
 from npp_ros.dataset import DatasetError, FloatArray
 from npp_ros.pendulum import wrap_angle
+from npp_ros.tasks import OptimizerTask
 from npp_ros.trajopt import MujocoDynamics, OptimizingExpert
 
 TASK = "cartpole_swingup"
@@ -257,3 +258,17 @@ class CartpoleExpert(OptimizingExpert):
         self.seed = int(seed)
         self.task = TASK
         self.reward_lipschitz_detail = "not computed for the smooth swing-up reward"
+
+
+SWINGUP = OptimizerTask(
+    name=TASK,
+    state_dim=4,
+    action_dim=1,
+    stored_state="cart position, pole angle wrapped to (-pi, pi], cart velocity, pole angular velocity",
+    initial_state_diameter=None,  # rho is Gaussian around the bottom: unbounded support, condition (ii) refuses
+    no_analytic_lipschitz="its iLQR expert computes no bound on its value's slope",
+    plant_factory=CartpolePlant,
+    expert_factory=CartpoleExpert,
+    sampler=sample_initial_state,
+    default_time_budget=DEFAULT_TIME_BUDGET,
+)

@@ -9,48 +9,46 @@ P(gap <= epsilon) >= p at level delta.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.stats import binom
 
 from npp_ros.bounds import NonparametricPolicy
 from npp_ros.dataset import FloatArray
-from npp_ros.lqr import LQRExpert, LQRPlant, rollout_batch
+from npp_ros.lqr import rollout_batch
+from npp_ros.tasks import Expert, Plant, Task
 
 CHUNK = 100  # rollouts stepped in lockstep
 VIOLATION_TOLERANCE = 1e-9  # relative: a return below V_lb(s0) by more than rounding
 
 
 def policy_rollouts(
-    plant: LQRPlant,
+    plant: Plant,
     policy: NonparametricPolicy,
     states: FloatArray,
     horizon: int,
-    expert: LQRExpert,
+    slope: Callable[[ArrayLike], FloatArray] | None,
     *,
     chunk: int = CHUNK,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
-    """The policy's H-step return from each s0, and the largest |grad V^expert| along each rollout."""
+    """The policy's H-step return from each s0, and the largest |grad V^expert| along each rollout
+    (NaN where the expert's value slope is not known in closed form)."""
     returns = np.empty(len(states))
     slopes = np.empty(len(states))
     for lo in range(0, len(states), chunk):
         hi = min(lo + chunk, len(states))
         for k, run in enumerate(rollout_batch(plant, policy.act, states[lo:hi], horizon)):
             returns[lo + k] = run.total_return
-            slopes[lo + k] = float(np.max(expert.slope(run.states)))
+            slopes[lo + k] = math.nan if slope is None else float(np.max(slope(run.states)))
         if progress is not None:
             progress(hi, len(states))
     return returns, slopes
-
-
-def controller_returns(plant: LQRPlant, expert: LQRExpert, states: FloatArray, horizon: int) -> FloatArray:
-    """The expert's own H-step returns from each s0, measured in MuJoCo."""
-    runs = rollout_batch(plant, lambda xs: np.array([expert.action(x) for x in xs]), states, horizon)
-    return np.array([run.total_return for run in runs])
 
 
 def below_lower_bound(returns: FloatArray, lower: FloatArray) -> FloatArray:
@@ -77,8 +75,9 @@ class HeldOutCheck:
 
 def check_policy(
     policy: NonparametricPolicy,
-    plant: LQRPlant,
-    expert: LQRExpert,
+    task: Task,
+    plant: Plant,
+    expert: Expert,
     states: FloatArray,
     horizon: int,
     *,
@@ -91,16 +90,16 @@ def check_policy(
     """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
 
     ``against_expert``: the expert's own H-step return from the same s0 (oracle mode, or a
-    suboptimal expert); otherwise the exact optimal H-step return H - 0.5 s0'P_H s0.
+    suboptimal expert); otherwise the task's optimal H-step return (lqr: H - 0.5 s0'P_H s0). A task
+    that knows no optimum is always checked against its expert.
     """
     started = time.perf_counter()
-    returns, slopes = policy_rollouts(plant, policy, states, horizon, expert, progress=progress)
-    if against_expert:
-        reference, what = controller_returns(plant, expert, states, horizon), "the expert's H-step return"
+    returns, slopes = policy_rollouts(plant, policy, states, horizon, task.value_slope(expert), progress=progress)
+    optimal = None if against_expert else task.optimal_returns(expert, plant, states, horizon)
+    if optimal is None:
+        reference, what = task.expert_returns(expert, plant, states, horizon), "the expert's H-step return"
     else:
-        p_h = expert.finite_horizon_cost(horizon)
-        reference = horizon - 0.5 * np.einsum("bi,ij,bj->b", states, p_h, states)
-        what = "the optimal H-step return V*_H"
+        reference, what = optimal, "the optimal H-step return V*_H"
     gaps = reference - returns
     count = len(states)
     within = int(np.sum(gaps <= epsilon))
@@ -109,5 +108,5 @@ def check_policy(
     return HeldOutCheck(
         states=count, reference=what, within=within, fraction=within / count, p_value=p_value,
         rejected=p_value < delta, below_v_lb=below, gap_q50=float(np.median(gaps)), gap_max=float(np.max(gaps)),
-        wall_time=time.perf_counter() - started, visited_slope=float(np.max(slopes)),
+        wall_time=time.perf_counter() - started, visited_slope=float(np.max(slopes)) if len(slopes) else math.nan,
     )  # fmt: skip

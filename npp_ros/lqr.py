@@ -23,8 +23,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are, solve_discrete_lyapunov
 
+from npp_ros.certification import CheckedQuantity
 from npp_ros.dataset import DatasetError, FloatArray, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.tasks import DEFAULT_OPTIONS, Expert, ExpertOptions, Plant, Task, UnknownTaskError, check_horizon
+from npp_ros.tasks import MAX_HORIZON as MAX_HORIZON  # re-exported: callers of the lqr module use them
+from npp_ros.tasks import episode_rng as episode_rng
 from npp_ros.values import ValueBasis, theorem_34_condition
 
 TASKS: dict[str, tuple[int, int]] = {"lqr_2_1": (2, 1), "lqr_6_2": (6, 2)}
@@ -34,7 +38,6 @@ PAPER_LIPSCHITZ: dict[str, float] = {"lqr_2_1": 50.0, "lqr_6_2": 200.0}
 PAPER_EPSILON: dict[str, float] = {"lqr_2_1": 50.0, "lqr_6_2": 300.0}
 DEFAULT_HORIZON = 1000
 INITIAL_RADIUS = math.sqrt(2.0)
-MAX_HORIZON = 100_000
 # The analytic L is a supremum computed in floating point (relative error ~1e-15); it is used with
 # this relative margin so that rounding can never put a slope of V above it.
 ANALYTIC_MARGIN = 1e-6
@@ -42,22 +45,10 @@ ANALYTIC_MARGIN = 1e-6
 ROUNDING_SLACK = 1e-9
 
 
-class UnknownTaskError(ValueError):
-    pass
-
-
 def check_task(task: str) -> tuple[int, int]:
     if task not in TASKS:
         raise UnknownTaskError(f"unknown task {task!r}; known tasks: {', '.join(sorted(TASKS))}")
     return TASKS[task]
-
-
-def check_horizon(horizon: int) -> int:
-    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):
-        raise ValueError(f"horizon must be an integer, got {horizon!r}")
-    if not 1 <= horizon <= MAX_HORIZON:
-        raise ValueError(f"horizon must lie in [1, {MAX_HORIZON}], got {horizon}")
-    return int(horizon)
 
 
 def sample_initial_state(task: str, rng: np.random.Generator) -> FloatArray:
@@ -70,11 +61,6 @@ def sample_initial_state(task: str, rng: np.random.Generator) -> FloatArray:
 def initial_state_diameter() -> float:
     """diam(S0) for the lqr tasks: the position sphere of radius sqrt(2)."""
     return 2 * INITIAL_RADIUS
-
-
-def episode_rng(seed: int, episode: int) -> np.random.Generator:
-    """One independent stream per (seed, episode): runs resume and replay exactly."""
-    return np.random.default_rng([int(seed), int(episode)])
 
 
 class LQRPlant:
@@ -185,7 +171,9 @@ class Rollout:
         return float(self.rewards.sum())
 
 
-def rollout(plant: LQRPlant, controller, initial_state: ArrayLike, horizon: int) -> Rollout:
+def rollout(
+    plant: Plant, controller: Callable[[FloatArray], ArrayLike], initial_state: ArrayLike, horizon: int
+) -> Rollout:
     """Roll ``controller(state) -> action`` out on the plant for ``horizon`` steps."""
     horizon = check_horizon(horizon)
     states = np.empty((horizon, plant.state_dim))
@@ -201,7 +189,7 @@ def rollout(plant: LQRPlant, controller, initial_state: ArrayLike, horizon: int)
 
 
 def rollout_batch(
-    plant: LQRPlant, controller: Callable[[FloatArray], FloatArray], initial_states: ArrayLike, horizon: int
+    plant: Plant, controller: Callable[[FloatArray], FloatArray], initial_states: ArrayLike, horizon: int
 ) -> list[Rollout]:
     """Rollouts from many s0 in lockstep, one plant clone each; ``controller`` maps (B, n) -> (B, m).
 
@@ -410,3 +398,70 @@ class DetunedLQRExpert(LQRExpert):
             tail=tail,
             tail_detail="tail(s0) = J~(x_H) = 0.5 x_H' P~ x_H, x_H = Phi~^H s0: the expert's cost left after H steps",
         )
+
+
+# ----------------------------------------------------------------------------- the registry's entries
+@dataclass(frozen=True)
+class LQRTask(Task):
+    """An lqr task: closed-form optimal expert (or the detuned one), analytic L, V* known at any s0."""
+
+    default_certify: CheckedQuantity = "rollout"
+    experts: tuple[str, ...] = ("optimal", "detuned")
+    optimal_expert: bool = True
+
+    def make_plant(self, seed: int) -> LQRPlant:
+        return LQRPlant(self.name, seed)
+
+    def make_expert(self, seed: int, horizon: int, options: ExpertOptions = DEFAULT_OPTIONS) -> LQRExpert:
+        kind = self.expert_kind(options)
+        given = [name for name in ("time_budget", "max_iterations", "values") if getattr(options, name) is not None]
+        if given:
+            raise ValueError(f"the {self.name} expert is closed form: {', '.join(given)} do not apply to it")
+        if kind == "detuned":
+            return DetunedLQRExpert(self.name, seed, options.control_weight, horizon=horizon, gamma=options.gamma)
+        return LQRExpert(self.name, seed, horizon=horizon, gamma=options.gamma)
+
+    def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
+        return sample_initial_state(self.name, rng)
+
+    def analytic_lipschitz(self, expert: Expert) -> LipschitzConstant:
+        assert isinstance(expert, LQRExpert)
+        return expert.analytic_lipschitz()
+
+    def expert_value(self, expert: Expert) -> Callable[[FloatArray], float]:
+        assert isinstance(expert, LQRExpert)
+        return expert.value  # type: ignore[return-value]  # a float for one state
+
+    def value_slope(self, expert: Expert) -> Callable[[ArrayLike], FloatArray]:
+        assert isinstance(expert, LQRExpert)
+        return expert.slope  # type: ignore[return-value]  # an array for rows
+
+    def optimal_returns(self, expert: Expert, plant: Plant, states: FloatArray, horizon: int) -> FloatArray:
+        """The exact optimal H-step return H - 0.5 s0'P_H s0 (the plant's P_H, whatever the expert's kind)."""
+        optimal = expert if type(expert) is LQRExpert else LQRExpert(self.name, expert.seed, horizon=horizon)
+        assert isinstance(optimal, LQRExpert)
+        p_h = optimal.finite_horizon_cost(horizon)
+        return horizon - 0.5 * np.einsum("bi,ij,bj->b", states, p_h, states)
+
+    def expert_returns(self, expert: Expert, plant: Plant, states: FloatArray, horizon: int) -> FloatArray:
+        """The expert's controller rolled out in MuJoCo from each s0, in lockstep."""
+        assert isinstance(expert, LQRExpert)
+        runs = rollout_batch(plant, lambda xs: np.array([expert.action(x) for x in xs]), states, horizon)
+        return np.array([run.total_return for run in runs])
+
+
+def _lqr_task(name: str) -> LQRTask:
+    bodies, actuators = TASKS[name]
+    return LQRTask(
+        name=name,
+        state_dim=2 * bodies,
+        action_dim=actuators,
+        stored_state=f"qpos then qvel of {bodies} joints",
+        initial_state_diameter=initial_state_diameter(),
+        paper_lipschitz=PAPER_LIPSCHITZ[name],
+        paper_epsilon=PAPER_EPSILON[name],
+    )
+
+
+LQR_2_1 = _lqr_task("lqr_2_1")
+LQR_6_2 = _lqr_task("lqr_6_2")

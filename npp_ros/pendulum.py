@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are
 
 from npp_ros.dataset import DatasetError, FloatArray
+from npp_ros.tasks import OptimizerTask
 from npp_ros.trajopt import OptimizingExpert
 
 TASK = "pendulum_swingup"
@@ -282,3 +283,25 @@ class PendulumExpert(OptimizingExpert):
         self.task = TASK
         self.reward_lipschitz = math.inf
         self.reward_lipschitz_detail = "is infinite: the reward is 1 within 8 degrees of upright, else 0"
+
+
+SWINGUP = OptimizerTask(
+    name=TASK,
+    state_dim=2,
+    action_dim=1,
+    stored_state="hinge angle wrapped to (-pi, pi], angular velocity",
+    initial_state_diameter=initial_state_diameter(),
+    paper_lipschitz=PAPER_LIPSCHITZ,
+    paper_epsilon=PAPER_EPSILON,
+    paper_lipschitz_note=(
+        "the paper's choice (Appendix B); not a bound: 0/1 rewards make every H-step value a staircase in s0"
+    ),
+    no_analytic_lipschitz="its 0/1 reward makes every H-step value a staircase in s0, so no finite L bounds it",
+    plant_factory=PendulumPlant,
+    expert_factory=PendulumExpert,
+    sampler=sample_initial_state,
+    default_time_budget=DEFAULT_TIME_BUDGET,
+)
+"""Stored values are ``window`` (the H-step return of each stored state), not ``return-to-go``: an upright
+state held to the end is stored with value H - t under return-to-go, one state with many values, which
+no L fits and which give rollout mode no bound; window values are one number per visited state."""

@@ -1,5 +1,7 @@
 """A run's set-up for a task and seed: its L, its config, its s0 stream, its loop.
 
+Everything task-specific comes from the task registry (npp_ros.tasks): plant, expert, rho, L choices.
+
 npp-learn, npp-experiment and the supervisor node all build their run here (the supervisor with
 the ROS parts in place of direct calls): :func:`build_config`, :func:`initial_state_fn` and
 :func:`value_basis`, so the same seed gives the same numbers in process and through the graph.
@@ -7,6 +9,7 @@ the ROS parts in place of direct calls): :func:`build_config`, :func:`initial_st
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -18,34 +21,16 @@ from npp_ros.certification import CheckedQuantity, Condition, StoppingRule
 from npp_ros.dataset import FloatArray
 from npp_ros.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
 from npp_ros.loop import NPPLoop, Observer, RunConfig
-from npp_ros.lqr import (
-    PAPER_LIPSCHITZ,
-    LQRExpert,
-    LQRPlant,
-    check_task,
-    episode_rng,
-    initial_state_diameter,
-    rollout,
-    sample_initial_state,
-)
+from npp_ros.lqr import rollout
 from npp_ros.storage import RunStore
+from npp_ros.tasks import LIPSCHITZ_CHOICES as LIPSCHITZ_CHOICES  # re-exported for the CLIs
+from npp_ros.tasks import Expert, Plant, get_task
 from npp_ros.values import ValueBasis
 
-LIPSCHITZ_CHOICES = ("analytic", "paper")
 
-
-def resolve_lipschitz(task: str, choice: str | float, expert: LQRExpert) -> LipschitzConstant:
-    """'analytic' (default, a true bound), 'paper' (50 / 200, not a bound) or a number (user)."""
-    if choice == "analytic":
-        return expert.analytic_lipschitz()
-    if choice == "paper":
-        return LipschitzConstant(PAPER_LIPSCHITZ[task], "paper", "the paper's choice (Section 5); not a bound on V*")
-    try:
-        value = float(choice)
-    except ValueError:
-        known = ", ".join(LIPSCHITZ_CHOICES)
-        raise ValueError(f"the Lipschitz choice must be one of {known} or a number, got {choice!r}") from None
-    return LipschitzConstant(value, "user", "given on the command line")
+def resolve_lipschitz(task: str, choice: str | float, expert: Expert) -> LipschitzConstant:
+    """'analytic' (a true bound, where the expert computes one), 'paper' (the paper's, not a bound) or a number."""
+    return get_task(task).resolve_lipschitz(choice, expert)
 
 
 def build_config(
@@ -59,26 +44,28 @@ def build_config(
     delta: float = 0.1,
     horizon: int = 1000,
     gamma: float = 1.0,
-    certify: CheckedQuantity = "rollout",
+    certify: CheckedQuantity | None = None,
     rule: StoppingRule = "sequential",
 ) -> RunConfig:
-    bodies, actuators = check_task(task)
+    """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts)."""
+    spec = get_task(task)
     return RunConfig(
-        task=task, seed=seed, state_dim=2 * bodies, action_dim=actuators, lipschitz=lipschitz,
+        task=task, seed=seed, state_dim=spec.state_dim, action_dim=spec.action_dim, lipschitz=lipschitz,
         epsilon=epsilon, condition=condition, p=p, delta=delta, horizon=horizon, gamma=gamma,
-        diameter=initial_state_diameter(), certify=certify, rule=rule,
+        diameter=spec.initial_state_diameter, certify=certify or spec.default_certify, rule=rule,
     )  # fmt: skip
 
 
 def initial_state_fn(task: str, seed: int) -> Callable[[int], FloatArray]:
     """s0 for episode e: its own seeded stream, so a resumed run replays the same states."""
-    return lambda episode: sample_initial_state(task, episode_rng(seed, episode))
+    spec = get_task(task)
+    return lambda episode: spec.initial_state(seed, episode)
 
 
 class PolicyRollouts:
     """Episode driver: the greedy policy drives the plant for H steps; returns the return."""
 
-    def __init__(self, plant: LQRPlant, horizon: int) -> None:
+    def __init__(self, plant: Plant, horizon: int) -> None:
         self.plant = plant
         self.horizon = horizon
 
@@ -90,7 +77,7 @@ class PolicyRollouts:
 
 def build_loop(
     config: RunConfig,
-    expert: LQRExpert,
+    expert: Expert,
     *,
     store_path: Path | None = None,
     rollouts: bool = False,
@@ -99,7 +86,8 @@ def build_loop(
     """The loop for ``config`` with this expert; the sound modes always let the policy drive."""
     store = RunStore.open_or_create(store_path, config.metadata()) if store_path is not None else None
     drive = rollouts or config.certify != "surrogate"
-    driver = PolicyRollouts(LQRPlant(config.task, config.seed), config.horizon) if drive else None
+    task = get_task(config.task)
+    driver = PolicyRollouts(task.make_plant(config.seed), config.horizon) if drive else None
     return NPPLoop(
         config,
         expert,
@@ -107,24 +95,28 @@ def build_loop(
         store=store,
         driver=driver,
         observers=observers,
-        expert_value=expert.value,
+        expert_value=task.expert_value(expert),
         basis=value_basis(expert, config.lipschitz.value),
     )
 
 
-def value_basis(expert: LQRExpert, lipschitz: float) -> ValueBasis:
+def value_basis(expert: Expert, lipschitz: float) -> ValueBasis:
     """The expert's value basis with Theorem 3.4's condition checked for its plant and this L."""
     holds, text = expert.theorem_34_condition(lipschitz)
     return replace(expert.value_basis(), theorem_34_holds=holds, theorem_34=text)
 
 
-def lipschitz_checks(loop: NPPLoop, expert: LQRExpert, rollout_slope: float = 0.0) -> list[LipschitzCheck]:
+def lipschitz_checks(loop: NPPLoop, expert: Expert, rollout_slope: float = 0.0) -> list[LipschitzCheck]:
     """Compare the L in use with every slope this run can compute or estimate (warns on shortfalls)."""
-    slopes = [(expert.analytic_lipschitz().value, "analytic (expert trajectories from S0)")]
-    if len(loop.dataset):
-        slopes.append((float(np.max(expert.slope(loop.dataset.states))), "exact |P x| over the dataset"))
+    task = get_task(loop.config.task)
+    slopes: list[tuple[float, str]] = []
+    if "analytic" in task.lipschitz_choices():
+        slopes.append((task.analytic_lipschitz(expert).value, "analytic (expert trajectories from S0)"))
+    slope = task.value_slope(expert)
+    if slope is not None and len(loop.dataset):
+        slopes.append((float(np.max(slope(loop.dataset.states))), "exact |grad V| over the dataset"))
     if len(loop.dataset) >= 2:
         slopes.append((estimate_global(loop.dataset), "data-estimated (global)"))
-    if rollout_slope:
-        slopes.append((rollout_slope, "exact |P x| over the evaluation rollouts"))
+    if rollout_slope and math.isfinite(rollout_slope):  # NaN: the expert knows no closed-form slope
+        slopes.append((rollout_slope, "exact |grad V| over the evaluation rollouts"))
     return [check_lipschitz(loop.config.lipschitz.value, slope, source) for slope, source in slopes]

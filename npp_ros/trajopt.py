@@ -631,7 +631,8 @@ class OptimizingExpert:
         self.max_slope_seen = max(self.max_slope_seen, result.max_value_slope)
         self.max_transition_norm = max(self.max_transition_norm, result.max_transition_norm)
         self.requests += 1
-        trajectory = Trajectory(self.represent(raw), result.actions.copy(), values)
+        # Q_0 is the replayed H-step return in both value modes: the expert's own return at s0 (oracle mode).
+        trajectory = Trajectory(self.represent(raw), result.actions.copy(), values, expert_return=float(values[0]))
         return ExpertSolution(trajectory, result, raw, kept_warm_start)
 
     def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:

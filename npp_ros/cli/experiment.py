@@ -38,14 +38,18 @@ from npp_ros.experiment import (
     run_arm_seed,
     write_results,
 )
+from npp_ros.experiment.arms import HELD_OUT
 from npp_ros.lqr import TASKS
+from npp_ros.tasks import TASK_NAMES
 
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="npp-experiment", description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
-    ap.add_argument("--tasks", nargs="+", choices=sorted(TASKS), default=sorted(TASKS), help="lqr tasks")
+    ap.add_argument(
+        "--tasks", nargs="+", choices=TASK_NAMES, default=sorted(TASKS), help="tasks (default: the paper's lqr tasks)"
+    )
     ap.add_argument(
         "--seeds", nargs="+", type=nonnegative_int, default=[0, 1, 2, 3], help="seeds (plant and s0 streams)"
     )
@@ -60,8 +64,9 @@ def parser() -> argparse.ArgumentParser:
         "--experts",
         nargs="+",
         choices=EXPERTS,
-        default=list(EXPERTS),
-        help="data source: the optimal LQR, or a detuned LQR (Appendix B; run with the analytic L only)",
+        default=None,
+        help="data source, where a task has it: the optimal LQR, a detuned LQR (Appendix B; run with the analytic "
+        "L only), ilqr (the swing-up tasks' optimizer); default: every expert of each task",
     )
     ap.add_argument(
         "--max-episodes", type=positive_int, default=1000, help="episode budget per run (stops earlier if certified)"
@@ -79,10 +84,11 @@ def parser() -> argparse.ArgumentParser:
         "--certify",
         nargs="+",
         choices=("paper", *CERTIFY_MODES),
-        default=["paper"],
+        default=None,
         help="what certifies, side by side: 'paper' (the surrogate gap V_ub - V_lb under the paper's one-shot "
         "rule, to reproduce it) or a mode under the sequentially valid rule: rollout (V_ub + tail - the "
-        "policy's return), oracle (the expert's return - the policy's), surrogate",
+        "policy's return), oracle (the expert's return - the policy's), surrogate; default: paper for the lqr "
+        "tasks, the task's own sound mode (oracle) for tasks with a suboptimal optimizer expert",
     )
     ap.add_argument(
         "--epsilon",
@@ -95,6 +101,12 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--delta", type=float, default=0.1, help="condition (i): confidence delta")
     ap.add_argument(
         "--control-weight", type=float, default=DETUNED_CONTROL_WEIGHT, help="detuned expert: control cost x this"
+    )
+    ap.add_argument(
+        "--time-budget", type=float, default=None, help="seconds per expert request (optimizer experts; default 5)"
+    )
+    ap.add_argument(
+        "--held-out", type=positive_int, default=HELD_OUT, help="fresh s0 on which each certificate is checked"
     )
     ap.add_argument("--out", type=Path, default=Path("results/experiment"), help="output folder")
     ap.add_argument(
@@ -159,8 +171,12 @@ def main(argv: list[str] | None = None) -> int:
         delta=args.delta,
         control_weight=args.control_weight,
         epsilon={task: args.epsilon for task in args.tasks} if args.epsilon is not None else None,
+        time_budget=args.time_budget,
+        held_out=args.held_out,
     )
     try:
+        for task in args.tasks:
+            settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
         arms = default_arms(args.tasks, args.lipschitz, args.experts, args.certify)
     except ValueError as exc:
         print(f"npp-experiment: {exc}", file=sys.stderr)

@@ -1,6 +1,6 @@
-"""npp-learn: run Algorithm 1 in one process on an lqr task, to a certificate.
+"""npp-learn: run Algorithm 1 in one process on a registered task, to a certificate.
 
-No ROS involved: the plant, the LQR expert and the loop run here. The run is stored as it
+No ROS involved: the plant, the task's expert and the loop run here. The run is stored as it
 grows in RUN_DIR/run.sqlite and resumes from there when started again with the same settings.
 """
 
@@ -22,10 +22,10 @@ from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
 from npp_ros.cli.args import nonnegative_int, positive_int
 from npp_ros.evaluation import check_policy
 from npp_ros.lipschitz import LipschitzWarning
-from npp_ros.lqr import PAPER_EPSILON, TASKS, LQRExpert, LQRPlant, sample_initial_state
 from npp_ros.progress import Counter, StatusLine
 from npp_ros.run_setup import LIPSCHITZ_CHOICES, build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.storage import EpisodeRow, RunFileError
+from npp_ros.tasks import TASK_NAMES, ExpertOptions, get_task
 
 
 def parser() -> argparse.ArgumentParser:
@@ -34,22 +34,26 @@ def parser() -> argparse.ArgumentParser:
         description=__doc__,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    ap.add_argument("--task", choices=sorted(TASKS), default="lqr_2_1", help="dm_control lqr task")
+    ap.add_argument("--task", choices=TASK_NAMES, default="lqr_2_1", help="dm_control task (npp_ros.tasks)")
     ap.add_argument("--seed", type=nonnegative_int, default=0, help="task seed (plant) and initial-state stream")
-    ap.add_argument("--epsilon", type=float, default=None, help="target suboptimality; default: the paper's (50 / 300)")
+    ap.add_argument(
+        "--epsilon", type=float, default=None, help="target suboptimality; default: the paper's (50 / 300 / 130)"
+    )
     ap.add_argument(
         "--lipschitz",
-        default="analytic",
+        default=None,
         help=f"L: one of {', '.join(LIPSCHITZ_CHOICES)} or a number. 'analytic' bounds the expert's value slope "
-        "(the guarantee holds); 'paper' is 50 / 200, which is NOT a bound on these tasks",
+        "(the guarantee holds; lqr only); 'paper' (50 / 200 / 4300) is NOT a bound on these tasks; "
+        "default: analytic where the task has it, else paper",
     )
     ap.add_argument(
         "--certify",
         choices=CERTIFY_MODES,
-        default="rollout",
+        default=None,
         help="what each episode checks: rollout (V_ub + tail - the policy's own return; sound when L bounds the "
         "value's slope), oracle (the expert's return - the policy's; needs no L, relative to the expert) or "
-        "surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4)",
+        "surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4). Default: the task's (rollout on lqr, oracle "
+        "for the swing-up tasks, whose iLQR experts are suboptimal)",
     )
     ap.add_argument(
         "--rule",
@@ -64,6 +68,16 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
     ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
     ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
+    ap.add_argument(
+        "--time-budget", type=float, default=None, help="seconds per expert request (iLQR experts; default 5)"
+    )
+    ap.add_argument(
+        "--values",
+        choices=("window", "return-to-go"),
+        default=None,
+        help="what an iLQR expert stores as Q_t: window (the H-step return of s_t, the default: one value per "
+        "state) or return-to-go (depends on the time left, so rollout mode refuses it)",
+    )
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/learn-TASK-seedSEED")
     ap.add_argument(
         "--rollouts", action="store_true", help="with --certify surrogate, let the policy drive every episode too"
@@ -76,11 +90,14 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    epsilon = args.epsilon if args.epsilon is not None else PAPER_EPSILON[args.task]
+    task = get_task(args.task)
     run_dir = args.run_dir or Path("runs") / f"learn-{args.task}-seed{args.seed}"
     try:
-        expert = LQRExpert(args.task, args.seed, horizon=args.horizon, gamma=args.gamma)
-        lipschitz = resolve_lipschitz(args.task, args.lipschitz, expert)
+        epsilon = task.epsilon(args.epsilon)
+        options = ExpertOptions(gamma=args.gamma, time_budget=args.time_budget, values=args.values)
+        expert = task.make_expert(args.seed, args.horizon, options)
+        choice = args.lipschitz or task.default_lipschitz_choice()
+        lipschitz = resolve_lipschitz(args.task, choice, expert)
         config = build_config(
             args.task, args.seed, lipschitz, epsilon,
             condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
@@ -114,14 +131,14 @@ def main(argv: list[str] | None = None) -> int:
     evaluation = None
     if args.evaluate > 0 and len(loop.dataset):
         rng = np.random.default_rng([args.seed, 1 << 30])  # a stream the run never used for s0
-        states = np.array([sample_initial_state(args.task, rng) for _ in range(args.evaluate)])
+        states = np.array([task.sample_initial_state(rng) for _ in range(args.evaluate)])
         certificate = result.certificate
         policy = loop.policy
         if certificate is not None and certificate.policy_trajectories != loop.policy_data.num_trajectories:
             policy = NonparametricPolicy(loop.dataset.prefix(certificate.policy_trajectories), lipschitz.value)
         evaluation = check_policy(
-            policy, LQRPlant(args.task, args.seed), expert, states, args.horizon,
-            epsilon=epsilon, p=args.p, delta=args.delta, against_expert=args.certify == "oracle",
+            policy, task, task.make_plant(args.seed), expert, states, args.horizon,
+            epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.certify == "oracle",
             progress=Counter("evaluating"),
         )  # fmt: skip
     with warnings.catch_warnings():

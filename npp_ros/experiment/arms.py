@@ -10,15 +10,9 @@ import numpy as np
 
 from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
 from npp_ros.dataset import FloatArray
-from npp_ros.lqr import (
-    PAPER_EPSILON,
-    TASKS,
-    DetunedLQRExpert,
-    LQRExpert,
-    sample_initial_state,
-)
+from npp_ros.tasks import TASK_NAMES, Expert, ExpertOptions, OptimizerTask, get_task
 
-EXPERTS = ("optimal", "detuned")
+EXPERTS = ("optimal", "detuned", "ilqr")  # every task's expert kinds (Task.experts)
 LIPSCHITZ_SETTINGS = ("paper", "analytic")
 DEFAULT_CHECKPOINTS = (10, 25, 50, 100, 250, 500, 1000)
 DETUNED_CONTROL_WEIGHT = 0.1
@@ -43,10 +37,11 @@ class Arm:
             raise ValueError(f"unknown certification mode {self.certify!r}; known: {', '.join(CERTIFY_MODES)}")
         if self.rule not in STOPPING_RULES:
             raise ValueError(f"unknown stopping rule {self.rule!r}; known: {', '.join(STOPPING_RULES)}")
-        if self.task not in TASKS:
-            raise ValueError(f"unknown task {self.task!r}; known: {', '.join(sorted(TASKS))}")
-        if self.expert not in EXPERTS:
-            raise ValueError(f"unknown expert {self.expert!r}; known: {', '.join(EXPERTS)}")
+        if self.task not in TASK_NAMES:
+            raise ValueError(f"unknown task {self.task!r}; known: {', '.join(TASK_NAMES)}")
+        experts = get_task(self.task).experts
+        if self.expert not in experts:
+            raise ValueError(f"unknown expert {self.expert!r} for {self.task}; it has: {', '.join(experts)}")
         if self.lipschitz not in LIPSCHITZ_SETTINGS:
             try:
                 value = float(self.lipschitz)
@@ -67,7 +62,7 @@ class Arm:
 
     @property
     def label(self) -> str:
-        expert = "optimal expert" if self.expert == "optimal" else "detuned expert"
+        expert = f"{self.expert} expert"
         how = "" if self.paper_certification else f", certify={self.certify} ({self.rule})"
         return f"{self.task}, {expert}, {self.lipschitz} L{how}"
 
@@ -84,9 +79,11 @@ class ExperimentSettings:
     delta: float = 0.1
     epsilon: dict[str, float] | None = None
     control_weight: float = DETUNED_CONTROL_WEIGHT
+    time_budget: float | None = None  # seconds per expert request (optimizer experts); None = the task's
+    held_out: int = HELD_OUT  # fresh s0 on which each certificate is checked
 
     def epsilon_for(self, task: str) -> float:
-        return (self.epsilon or {}).get(task, PAPER_EPSILON[task])
+        return get_task(task).epsilon((self.epsilon or {}).get(task))
 
     def checkpoints_for(self, task: str) -> list[int]:
         budget = self.max_episodes[task]
@@ -94,20 +91,30 @@ class ExperimentSettings:
 
 
 def default_arms(
-    tasks: Sequence[str], lipschitz: Sequence[str], experts: Sequence[str], certify: Sequence[str] = ("paper",)
+    tasks: Sequence[str],
+    lipschitz: Sequence[str],
+    experts: Sequence[str] | None,
+    certify: Sequence[str] | None = ("paper",),
 ) -> list[Arm]:
-    """The detuned expert is not run with the paper's L: the paper gives none for it.
+    """Each task with the experts, L settings and modes it offers among those asked for.
 
-    ``certify`` lists "paper" (the surrogate gap under the paper's one-shot rule) and sound modes
-    (rollout, oracle, surrogate) under the sequential rule.
+    ``experts`` None: every expert of each task. A named L setting a task cannot resolve is left
+    out for it (no 'analytic' for the pendulum), and the detuned expert is not run with the paper's
+    L: the paper gives none for it. ``certify`` lists "paper" (the surrogate gap under the paper's
+    one-shot rule) and sound modes (rollout, oracle, surrogate) under the sequential rule; None is
+    "paper" for a task whose expert is optimal and the task's default mode otherwise.
     """
     arms = []
     for task in tasks:
-        for expert in experts:
+        spec = get_task(task)
+        modes = certify or (("paper",) if spec.optimal_expert else (spec.default_certify,))
+        for expert in spec.experts if experts is None else [e for e in experts if e in spec.experts]:
             for setting in lipschitz:
+                if setting in LIPSCHITZ_SETTINGS and setting not in spec.lipschitz_choices():
+                    continue
                 if expert == "detuned" and setting == "paper":
                     continue
-                for mode in certify:
+                for mode in modes:
                     if mode == "paper":
                         arms.append(Arm(task, expert, setting))
                     else:
@@ -115,13 +122,15 @@ def default_arms(
     return arms
 
 
-def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> LQRExpert:
-    if arm.expert == "detuned":
-        return DetunedLQRExpert(arm.task, seed, settings.control_weight, horizon=settings.horizon)
-    return LQRExpert(arm.task, seed, horizon=settings.horizon)
+def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> Expert:
+    task = get_task(arm.task)
+    budget = settings.time_budget if isinstance(task, OptimizerTask) else None  # closed-form experts take none
+    options = ExpertOptions(kind=arm.expert, control_weight=settings.control_weight, time_budget=budget)
+    return task.make_expert(seed, settings.horizon, options)
 
 
 def evaluation_states(task: str, seed: int, count: int) -> FloatArray:
     """The fixed N initial states every checkpoint of a seed is evaluated on (common random numbers)."""
     rng = np.random.default_rng([seed, EVALUATION_STREAM])
-    return np.array([sample_initial_state(task, rng) for _ in range(count)])
+    spec = get_task(task)
+    return np.array([spec.sample_initial_state(rng) for _ in range(count)])

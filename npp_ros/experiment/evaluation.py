@@ -18,7 +18,6 @@ from npp_ros.evaluation import (
     VIOLATION_TOLERANCE,
     HeldOutCheck,
     check_policy,
-    controller_returns,
     policy_rollouts,
 )
 from npp_ros.experiment.arms import (
@@ -28,11 +27,7 @@ from npp_ros.experiment.arms import (
     ExperimentSettings,
     evaluation_states,
 )
-from npp_ros.lqr import (
-    LQRExpert,
-    LQRPlant,
-    sample_initial_state,
-)
+from npp_ros.tasks import Expert, get_task
 
 
 @dataclass(frozen=True)
@@ -45,7 +40,7 @@ class EvaluationRow:
     dataset_size: int
     policy_return: float
     expert_return: float  # the data expert from the same s0
-    optimal_return: float  # the optimal LQR controller from the same s0
+    optimal_return: float  # the optimal controller from the same s0 (NaN where the task knows none)
     v_lb: float
     v_ub: float
     visited_slope: float  # max |grad V^expert| over the states the policy visited
@@ -108,18 +103,20 @@ def append_evaluations(path: Path, rows: Sequence[EvaluationRow]) -> None:
 class Evaluator:
     """Rolls the policy and both reference controllers out in MuJoCo from the evaluation s0."""
 
-    def __init__(self, arm: Arm, seed: int, settings: ExperimentSettings, expert: LQRExpert) -> None:
+    def __init__(self, arm: Arm, seed: int, settings: ExperimentSettings, expert: Expert) -> None:
         self.settings = settings
         self.expert = expert
-        self.plant = LQRPlant(arm.task, seed)
+        task = self.task = get_task(arm.task)
+        self.plant = task.make_plant(seed)
         self.states = evaluation_states(arm.task, seed, settings.evaluations)
-        optimal = expert if arm.expert == "optimal" else LQRExpert(arm.task, seed, horizon=settings.horizon)
-        self.optimal_returns = controller_returns(self.plant, optimal, self.states, settings.horizon)
-        self.expert_returns = (
-            self.optimal_returns
-            if optimal is expert
-            else controller_returns(self.plant, expert, self.states, settings.horizon)
-        )
+        self.expert_returns = task.expert_returns(expert, self.plant, self.states, settings.horizon)
+        if not task.optimal_expert:
+            self.optimal_returns = np.full(len(self.states), np.nan)
+        elif arm.expert == task.experts[0]:
+            self.optimal_returns = self.expert_returns
+        else:
+            optimal = task.make_expert(seed, settings.horizon)
+            self.optimal_returns = task.expert_returns(optimal, self.plant, self.states, settings.horizon)
 
     def evaluate(
         self, checkpoint: int, policy: NonparametricPolicy, progress: Callable[[int, int], None] | None = None
@@ -132,7 +129,7 @@ class Evaluator:
             policy,
             self.states,
             self.settings.horizon,
-            self.expert,
+            self.task.value_slope(self.expert),
             chunk=EVALUATION_CHUNK,
             progress=progress,
         )
@@ -162,21 +159,23 @@ def check_certificate(
     arm: Arm,
     seed: int,
     settings: ExperimentSettings,
-    expert: LQRExpert,
+    expert: Expert,
     count: int,
 ) -> HeldOutCheck:
     """The certified policy (the greedy policy over the trajectories it names) on ``count`` fresh s0.
 
     The gap is to the exact optimal H-step return where the claim is about V* and the expert is
-    optimal; otherwise (oracle mode, or the detuned expert) to the expert's own H-step return.
+    optimal; otherwise (oracle mode, the detuned expert, an optimizer expert) to the expert's own
+    H-step return from the same s0.
     """
+    task = get_task(arm.task)
     rng = np.random.default_rng([seed, HELD_OUT_STREAM])
-    states = np.array([sample_initial_state(arm.task, rng) for _ in range(count)])
+    states = np.array([task.sample_initial_state(rng) for _ in range(count)])
     policy = NonparametricPolicy(dataset.prefix(certificate.policy_trajectories), certificate.lipschitz)
     return check_policy(
-        policy, LQRPlant(arm.task, seed), expert, states, settings.horizon,
+        policy, task, task.make_plant(seed), expert, states, settings.horizon,
         epsilon=certificate.epsilon, p=certificate.p, delta=certificate.delta,
-        against_expert=certificate.certify == "oracle" or arm.expert == "detuned",
+        against_expert=certificate.certify == "oracle" or arm.expert != task.experts[0],
     )  # fmt: skip
 
 

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from npp_ros.bounds import NonparametricPolicy
-from npp_ros.experiment.arms import HELD_OUT, Arm, ExperimentSettings, make_expert
+from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
 from npp_ros.experiment.evaluation import (
     EvaluationRow,
     Evaluator,
@@ -22,11 +22,9 @@ from npp_ros.experiment.evaluation import (
 )
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.loop import NPPLoop, Observer
-from npp_ros.lqr import (
-    LQRExpert,
-)
 from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.storage import EpisodeRow
+from npp_ros.tasks import Expert, get_task
 
 
 @dataclass(frozen=True)
@@ -36,7 +34,7 @@ class RunRecord:
     arm: Arm
     seed: int
     lipschitz: LipschitzConstant
-    slope_needed: float  # sup of the data expert's value slope over its trajectories from S0
+    slope_needed: float  # sup of the data expert's value slope over its trajectories from S0 (NaN: unknown)
     epsilon: float
     episodes: list[EpisodeRow]
     evaluations: list[EvaluationRow]
@@ -108,8 +106,8 @@ def run_arm_seed(
             if loop.certificate is not None and reached >= loop.certificate.episodes:
                 break
         if loop.certificate is not None and not (run_dir / "heldout.json").exists():
-            report(f"{key}: checking the certificate on {HELD_OUT} held-out s0")
-            check = check_certificate(loop.certificate, loop.dataset, arm, seed, settings, expert, HELD_OUT)
+            report(f"{key}: checking the certificate on {settings.held_out} held-out s0")
+            check = check_certificate(loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out)
             (run_dir / "heldout.json").write_text(json.dumps(asdict(check), indent=2) + "\n")
         return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)
     finally:
@@ -140,7 +138,7 @@ def read_record(
     settings: ExperimentSettings,
     run_dir: Path,
     loop: NPPLoop,
-    expert: LQRExpert,
+    expert: Expert,
     lipschitz: LipschitzConstant,
 ) -> RunRecord:
     evaluations = read_evaluations(run_dir / "evaluations.csv")
@@ -149,7 +147,7 @@ def read_record(
         arm=arm,
         seed=seed,
         lipschitz=lipschitz,
-        slope_needed=expert.analytic_lipschitz().value,
+        slope_needed=slope_needed(arm.task, expert),
         epsilon=settings.epsilon_for(arm.task),
         episodes=list(loop.rows),
         evaluations=evaluations,
@@ -157,3 +155,9 @@ def read_record(
         wall_time=wall,
         held_out=read_held_out(run_dir),
     )
+
+
+def slope_needed(task: str, expert: Expert) -> float:
+    """The analytic bound on the expert's value slope where the task computes one, else NaN."""
+    spec = get_task(task)
+    return spec.analytic_lipschitz(expert).value if "analytic" in spec.lipschitz_choices() else math.nan
