@@ -46,10 +46,16 @@ def episode_line(msg: EpisodeResult) -> str:
 
 
 def certificate_line(msg: Certificate) -> str:
+    """The certificate as a user must read it: what was checked, on which test, resting on what."""
+    proven = "proven" if msg.proven else "NOT proven (it rests on a step that does not hold here)"
+    indent = "\n              "
     return (
         f"[certificate] condition ({msg.condition}), epsilon {msg.epsilon:g}, p {msg.p:g}, delta {msg.delta:g}, "
-        f"L {msg.lipschitz:g} ({msg.lipschitz_source}), episodes {msg.episodes}, oracle calls {msg.oracle_calls}, "
-        f"|D| {msg.dataset_size}\n              {msg.statement}"
+        f"L {msg.lipschitz:g} ({msg.lipschitz_source}, margin {msg.lipschitz_margin:g}), episodes {msg.episodes}, "
+        f"oracle calls {msg.oracle_calls}, |D| {msg.dataset_size}"
+        f"{indent}certify={msg.certify}: checked {msg.quantity}; test {msg.test}, delta spent {msg.delta_spent:.3g}; "
+        f"{proven}"
+        f"{indent}{msg.statement}" + "".join(f"{indent}assumes: {text}" for text in msg.assumptions)
     )
 
 
