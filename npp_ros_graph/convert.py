@@ -25,8 +25,8 @@ from sensor_msgs.msg import JointState
 from npp_ros.certification import Certificate
 from npp_ros.dataset import DatasetError, FloatArray, Trajectory
 from npp_ros.loop import RunConfig
-from npp_ros.lqr import LQRPlant
 from npp_ros.storage import EpisodeRow
+from npp_ros.tasks import Plant
 from npp_ros.vectors import finite_vector
 
 NS_PER_S = 1_000_000_000
@@ -145,7 +145,7 @@ def action_from_joint_state(msg: JointState, actuated_joint_names: Sequence[str]
 
 
 # ----------------------------------------------------------------------------- plant
-def plant_description(plant: LQRPlant, seed: int, horizon: int) -> PlantDescription:
+def plant_description(plant: Plant, seed: int, horizon: int) -> PlantDescription:
     return PlantDescription(
         task=plant.task,
         seed=seed,

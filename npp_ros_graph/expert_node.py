@@ -1,4 +1,4 @@
-"""npp-expert: serves the LQR expert's optimal trajectories for exactly the plant the sim describes.
+"""npp-expert: serves the task's expert trajectories for exactly the plant the sim describes.
 
 The expert is built from the sim's latched plant description, never from its own parameters, and
 proves it models the same plant by comparing model fingerprints. Every request is validated; a bad
@@ -26,7 +26,7 @@ from rclpy.task import Future
 
 from npp_ros.choices import check_gamma
 from npp_ros.dataset import Trajectory
-from npp_ros.lqr import MAX_HORIZON, LQRExpert
+from npp_ros.tasks import MAX_HORIZON, Expert, ExpertOptions, get_task
 from npp_ros.vectors import finite_vector
 from npp_ros_graph.common import (
     BUSY,
@@ -45,6 +45,8 @@ PARAMETERS = (
     Param("gamma", 1.0, "discount, in (0, 1]; 1 = undiscounted H-step values V* = H - J*", 0.0, 1.0),
     Param("max_horizon", 10000, "largest horizon a request may ask for", 1, MAX_HORIZON),
     Param("max_queue", 100, "requests that may wait for the worker; more are refused at once with 'busy:'", 1),
+    Param("time_budget", 0.0, "seconds per request for an optimizer (iLQR) expert; 0 = the task's default", 0.0),
+    Param("max_iterations", 0, "iLQR iterations per request for an optimizer expert; 0 = the task's default", 0),
 )
 
 
@@ -55,15 +57,28 @@ class ExpertSettings:
     gamma: float
     max_horizon: int
     max_queue: int
+    time_budget: float
+    max_iterations: int
 
     def __post_init__(self) -> None:
         check_gamma(self.gamma)
 
+    def options(self) -> ExpertOptions:
+        """What the task's make_expert gets; 0 is the task's default (a closed-form expert refuses others)."""
+        return ExpertOptions(
+            gamma=self.gamma,
+            time_budget=self.time_budget or None,
+            max_iterations=self.max_iterations or None,
+        )
 
-USAGE = f"""npp-expert: the LQR expert oracle as a ROS 2 service (node "npp_expert").
 
-Builds the closed-form optimal controller of the plant the sim publishes and answers trajectory
-requests from any state. Bad requests get success = false and a precise message.
+USAGE = f"""npp-expert: the task's expert oracle as a ROS 2 service (node "npp_expert").
+
+Builds the expert the task registry names for the plant the sim publishes (lqr: the closed-form
+optimal controller; swing-up tasks: iLQR within time_budget seconds per request) and answers
+trajectory requests from any state, one at a time. A long request never blocks the service: others
+wait their turn, and beyond max_queue are refused at once with "busy:". Bad requests get
+success = false and a precise message.
 
 subscribes  /{PLANT} (npp_interfaces/msg/PlantDescription, latched): the plant to model
 serves      /{EXPERT_SERVICE} (npp_interfaces/srv/ExpertTrajectory)
@@ -79,12 +94,13 @@ class ExpertNode(Node):
         super().__init__("npp_expert")
         settings = declare_settings(self, PARAMETERS, ExpertSettings)
         self.gamma, self.max_horizon, self.max_queue = settings.gamma, settings.max_horizon, settings.max_queue
+        self.options = settings.options()
         self.waiting = 0  # accepted requests not yet answered (executor thread only)
         self.busy_refusals = 0
-        self._jobs: Mailbox[tuple[LQRExpert, np.ndarray, int, Future]] = Mailbox()
+        self._jobs: Mailbox[tuple[Expert, np.ndarray, int, Future]] = Mailbox()
         self._worker = threading.Thread(target=self._work, name="npp-expert-worker", daemon=True)
         self._worker.start()
-        self.expert: LQRExpert | None = None
+        self.expert: Expert | None = None
         self.description: PlantDescription | None = None
         self.refusal: str | None = None  # set when the described plant cannot be modelled
         self._plant_sub = self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
@@ -122,7 +138,7 @@ class ExpertNode(Node):
         ):
             return  # the same plant again (e.g. a second latched delivery)
         self.expert, self.description, self.refusal = None, desc, None
-        expert = LQRExpert(desc.task, int(desc.seed), horizon=int(desc.horizon), gamma=self.gamma)
+        expert = get_task(desc.task).make_expert(int(desc.seed), int(desc.horizon), self.options)
         mine = expert.plant.model_sha256()
         if mine != desc.model_sha256:
             self.refusal = (

@@ -37,6 +37,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from npp_ros.storage import RunFileError, _WriterLock
+from npp_ros.tasks import TASK_NAMES
 from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS
 from npp_ros_graph.dashboard import start_dashboard
 from npp_ros_graph.monitor import certificate_line, gap_line
@@ -57,11 +58,18 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="npp-run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--task", default="lqr_2_1", help="lqr_2_1 or lqr_6_2")
+    ap.add_argument("--task", default="lqr_2_1", choices=TASK_NAMES, help="dm_control task (npp_ros.tasks)")
     ap.add_argument("--seed", type=int, default=0, help="task seed")
     ap.add_argument("--horizon", type=int, default=1000, help="episode length")
-    ap.add_argument("--epsilon", type=float, default=0.0, help="target gap > 0; 0: the paper's (50 / 300)")
-    ap.add_argument("--lipschitz", default="analytic", help="'analytic', 'paper' (not a bound) or a number")
+    ap.add_argument("--epsilon", type=float, default=0.0, help="target gap > 0; 0: the paper's (50 / 300 / 130)")
+    ap.add_argument(
+        "--lipschitz", default="task", help="'analytic' (lqr), 'paper' (not a bound) or a number; task: the task's"
+    )
+    ap.add_argument(
+        "--certify", default="task", help="rollout, oracle or surrogate; task: the task's (lqr rollout, else oracle)"
+    )
+    ap.add_argument("--time-budget", type=float, default=0.0, help="seconds per iLQR expert request; 0: the task's")
+    ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
     ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")
     ap.add_argument("--no-rollouts", action="store_true", help="skip the policy's episodes (gap checks only)")
@@ -301,10 +309,11 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID") if k in env})
     params = {
         "sim": {"task": args.task, "seed": args.seed, "horizon": args.horizon},
-        "expert": {},
+        "expert": {"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},
         "policy": {},
         "supervisor": {
-            "epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "max_episodes": args.max_episodes,
+            "epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
+            "max_episodes": args.max_episodes,
             "run_dir": str(run_dir), "rollouts": not args.no_rollouts,
         },
     }  # fmt: skip

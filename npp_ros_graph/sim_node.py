@@ -1,4 +1,4 @@
-"""npp-sim: the dm_control lqr plant stepped in lockstep with whoever answers its states.
+"""npp-sim: a registered task's plant stepped in lockstep with whoever answers its states.
 
 It publishes a state, then waits: only an action stamped with that state's time moves the plant,
 so a slow or restarted policy can never make it skip or double a step. Anything else arriving on
@@ -20,7 +20,7 @@ from npp_interfaces.srv import ResetEpisode
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from npp_ros.lqr import MAX_HORIZON, TASKS, LQRPlant, check_horizon, check_task, episode_rng, sample_initial_state
+from npp_ros.tasks import MAX_HORIZON, TASK_NAMES, Plant, Task, check_horizon, get_task
 from npp_ros.vectors import finite_vector
 from npp_ros_graph.common import (
     ACTION,
@@ -46,7 +46,7 @@ from npp_ros_graph.convert import (
 from npp_ros_graph.parameters import Param, StartupError, declare_settings, parameter_help
 
 PARAMETERS = (
-    Param("task", "lqr_2_1", "dm_control lqr task", choices=tuple(sorted(TASKS))),
+    Param("task", "lqr_2_1", "dm_control task (the registry in npp_ros.tasks)", choices=TASK_NAMES),
     Param("seed", 0, "task seed: the plant's stiffnesses depend on it; also seeds s0 ~ rho per episode", 0, 2**32 - 1),
     Param("horizon", 1000, "control steps per episode", 1, MAX_HORIZON),
     Param("resend_after", 1.0, "seconds without an answer before the current state is sent again (0 = never)", 0.0),
@@ -63,11 +63,11 @@ class SimSettings:
     resend_after: float
 
     def __post_init__(self) -> None:
-        check_task(self.task)
+        get_task(self.task)
         check_horizon(self.horizon)
 
 
-USAGE = f"""npp-sim: the lqr plant in lockstep (node "npp_sim").
+USAGE = f"""npp-sim: a task's plant in lockstep (node "npp_sim").
 
 After a reset it publishes the episode's first state, then steps once per action answering the
 latest state, and publishes the next state; after `horizon` steps it reports the episode. A state
@@ -96,7 +96,8 @@ class SimNode(Node):
             settings.horizon,
             settings.resend_after,
         )
-        self.plant: LQRPlant | None = None
+        self.spec: Task = get_task(self.task)
+        self.plant: Plant | None = None
         self.dt_ns = 0
         # The running episode; `state_stamp` is the last published state's time, None when no episode runs.
         self.episode = 0
@@ -121,7 +122,7 @@ class SimNode(Node):
         self._build_timer.cancel()
         self.destroy_timer(self._build_timer)
         try:
-            plant = LQRPlant(self.task, self.seed)
+            plant = self.spec.make_plant(self.seed)
         except Exception as exc:  # run_node turns this into a clean exit with the reason
             raise StartupError(f"cannot build the plant {self.task} seed {self.seed}: {exc}") from exc
         self.plant = plant
@@ -153,9 +154,9 @@ class SimNode(Node):
         if plant is None:
             return f"the plant {self.task} seed {self.seed} is still being built; retry shortly"
         if len(request.state) == 0:
-            s0 = sample_initial_state(self.task, episode_rng(self.seed, request.episode))
+            s0 = self.spec.initial_state(self.seed, request.episode)
         else:
-            layout = f"qpos then qvel of {plant.bodies} joints of {self.task}, or none to sample s0"
+            layout = f"{self.spec.stored_state} of {self.task}, or none to sample s0"
             try:
                 s0 = finite_vector(request.state, plant.state_dim, "state", layout)
             except ValueError as exc:

@@ -45,9 +45,9 @@ from npp_ros.choices import LIPSCHITZ_NAMED, parse_lipschitz
 from npp_ros.dataset import FloatArray, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.loop import NPPLoop, Observer, RunConfig
-from npp_ros.lqr import PAPER_EPSILON, LQRExpert, initial_state_diameter
 from npp_ros.run_setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
 from npp_ros.storage import EpisodeRow, RunStore
+from npp_ros.tasks import get_task
 from npp_ros_graph.common import (
     BUSY,
     CERTIFICATE,
@@ -77,12 +77,18 @@ from npp_ros_graph.convert import (
 )
 from npp_ros_graph.parameters import Param, declare_settings, parameter_help
 
+TASK_DEFAULT = "task"  # a choice the task decides, once the sim names it
+
 PARAMETERS = (
-    Param("epsilon", 0.0, "target gap; 0 = the paper's value for the task (50 for lqr_2_1, 300 for lqr_6_2)", 0.0),
-    Param("lipschitz", "analytic", "L: analytic (bounds V*'s slope on the expert's states), paper (50 / 200, not a "
-          "bound) or a number > 0", choices=(*LIPSCHITZ_NAMED, "a number > 0")),
+    Param("epsilon", 0.0, "target gap; 0 = the paper's value for the task (50 lqr_2_1, 300 lqr_6_2, 130 pendulum)",
+          0.0),
+    Param("lipschitz", TASK_DEFAULT, "L: analytic (bounds V*'s slope on the expert's states; lqr), paper (50 / 200 / "
+          "4300, not a bound) or a number > 0; task = analytic where the task has it, else paper",
+          choices=(TASK_DEFAULT, *LIPSCHITZ_NAMED, "a number > 0")),
     Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
-    Param("certify", "rollout", "the checked quantity (surrogate is the paper's)", choices=CERTIFY_MODES),
+    Param("certify", TASK_DEFAULT, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
+          "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
+          choices=(TASK_DEFAULT, *CERTIFY_MODES)),
     Param("rule", "sequential", "stopping rule: sequential (valid however often it looks) or the paper's",
           choices=STOPPING_RULES),
     Param("p", 0.9, "condition (i): share of initial states within epsilon, in (0, 1)", 0.0, 1.0),
@@ -101,14 +107,15 @@ PARAMETERS = (
 class SupervisorSettings:
     """The supervisor's parameters, checked at start by the constructors the run uses.
 
-    CertificationSpec checks condition, certify, rule, p, delta and epsilon (a stand-in for 0, the
-    paper's value, which depends on the task the sim will name); parse_lipschitz reads L once.
+    CertificationSpec checks condition, certify, rule, p, delta and epsilon (stand-ins for what the
+    task the sim will name decides: epsilon 0, certify and L "task", diam(S0)); parse_lipschitz
+    reads L once.
     """
 
     epsilon: float
     lipschitz: str | LipschitzConstant
     condition: Condition
-    certify: CheckedQuantity
+    certify: CheckedQuantity | str
     rule: StoppingRule
     p: float
     delta: float
@@ -122,12 +129,14 @@ class SupervisorSettings:
     def __post_init__(self) -> None:
         if not self.run_dir.strip():
             raise ValueError("run_dir must name a folder")
-        lipschitz = parse_lipschitz(self.lipschitz) if isinstance(self.lipschitz, str) else self.lipschitz
+        lipschitz = self.lipschitz
+        if isinstance(lipschitz, str) and lipschitz != TASK_DEFAULT:
+            lipschitz = parse_lipschitz(lipschitz)
         object.__setattr__(self, "lipschitz", lipschitz)
         CertificationSpec(
-            self.condition, self.epsilon or min(PAPER_EPSILON.values()), self.p, self.delta,
+            self.condition, self.epsilon or 1.0, self.p, self.delta,
             lipschitz.value if isinstance(lipschitz, LipschitzConstant) else 1.0,
-            initial_state_diameter(), certify=self.certify, rule=self.rule,
+            1.0, certify="rollout" if self.certify == TASK_DEFAULT else self.certify, rule=self.rule,  # type: ignore[arg-type]
         )  # fmt: skip
 
 
@@ -214,17 +223,21 @@ class SupervisorNode(Node):
     def _run_algorithm(self) -> None:
         assert self.plant is not None
         s, plant = self.settings, self.plant
-        task = plant.task
-        expert = LQRExpert(task, plant.seed, horizon=plant.horizon)  # for L's analytic bound and V*(s0)
+        task, spec = plant.task, get_task(plant.task)
+        # The task's expert, built here too: L's analytic bound, V(s0) where closed form, the value basis.
+        expert = spec.make_expert(plant.seed, plant.horizon)
         if expert.plant.model_sha256() != plant.model_sha256:
             raise RuntimeError("the sim's plant differs from the task's model: refusing to certify")
-        epsilon = s.epsilon or PAPER_EPSILON[task]
-        lipschitz = (
-            s.lipschitz if isinstance(s.lipschitz, LipschitzConstant) else resolve_lipschitz(task, s.lipschitz, expert)
-        )
+        epsilon = spec.epsilon(s.epsilon or None)
+        if isinstance(s.lipschitz, LipschitzConstant):
+            lipschitz = s.lipschitz
+        else:
+            choice = spec.default_lipschitz_choice() if s.lipschitz == TASK_DEFAULT else s.lipschitz
+            lipschitz = resolve_lipschitz(task, choice, expert)
+        certify = None if s.certify == TASK_DEFAULT else s.certify
         config = build_config(
             task, plant.seed, lipschitz, epsilon,
-            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=s.certify, rule=s.rule,
+            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=s.rule,  # type: ignore[arg-type]
         )  # fmt: skip
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -237,7 +250,7 @@ class SupervisorNode(Node):
             store=store,
             driver=RosRollouts(self, s.rollout_timeout) if s.rollouts else None,
             observers=[reporter],
-            expert_value=expert.value,
+            expert_value=spec.expert_value(expert),
             basis=value_basis(expert, lipschitz.value),
         )
         loop = self.loop
