@@ -131,8 +131,13 @@ def state_from_joint_state(msg: JointState, joint_names: Sequence[str]) -> Float
 
 def action_to_joint_state(action: ArrayLike, actuated_joint_names: Sequence[str], time: Time) -> JointState:
     """effort = the action, name = the actuated joints, stamp = the stamp of the state it answers."""
-    u = np.asarray(action, dtype=np.float64)
-    msg = JointState(name=list(actuated_joint_names), effort=float64_array(u))
+    return refill_action(JointState(name=list(actuated_joint_names)), action, time)
+
+
+def refill_action(msg: JointState, action: ArrayLike, time: Time) -> JointState:
+    """action_to_joint_state into a message built once: a publisher that answers every control step
+    saves the JointState construction, which costs several times these two assignments."""
+    msg.effort = float64_array(np.asarray(action, dtype=np.float64))
     msg.header.stamp = time
     return msg
 

@@ -47,7 +47,7 @@ from npp_ros_graph.common import (
     ThrottledWarnings,
     run_node,
 )
-from npp_ros_graph.convert import action_to_joint_state, state_from_joint_state, trajectory_from_msg
+from npp_ros_graph.convert import refill_action, state_from_joint_state, trajectory_from_msg
 from npp_ros_graph.parameters import declare_settings
 
 CATCH_UP_TIMEOUT_S = 5.0  # a catch-up request unanswered this long is withdrawn and sent again
@@ -80,6 +80,7 @@ class PolicyNode(Node):
         super().__init__("npp_policy")
         declare_settings(self, (), PolicySettings)
         self.plant: PlantDescription | None = None
+        self._action = JointState()
         self.dataset: Dataset | None = None
         self.policy: NonparametricPolicy | None = None
         self._catch_up_future = None
@@ -117,6 +118,7 @@ class PolicyNode(Node):
             return
         if self.plant is None:
             self.plant = msg
+            self._action = JointState(name=list(msg.actuated_joint_names))  # refilled for every answer
             self.dataset = Dataset(msg.state_dim, msg.action_dim)
             self.get_logger().info(f"plant {msg.task} seed {msg.seed}; catching up with the dataset")
 
@@ -261,10 +263,10 @@ class PolicyNode(Node):
             self._dropped_answering += 1
             return
         self._last_answered = arrival
-        assert self.policy is not None and self.plant is not None
+        assert self.policy is not None
         try:
             action = self.policy.act(state)
-            self.action_pub.publish(action_to_joint_state(action, self.plant.actuated_joint_names, stamp))
+            self.action_pub.publish(refill_action(self._action, action, stamp))
         except Exception as exc:  # neither the executor nor the worker may die of a single bad state
             self.get_logger().error(f"could not answer a state: {type(exc).__name__}: {exc}")
             return
