@@ -590,7 +590,7 @@ def ros_loop(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
     try:
         from npp_ros_graph.bench_loop import measure
     except ImportError as exc:
-        out: dict[str, Any] = {"error": f"--ros needs the ROS wing (npp_ros_graph and its ROS 2 packages): {exc}", "cases": []}
+        out: dict[str, Any] = {"error": f"--ros needs the ROS wing (npp_ros_graph and ROS 2): {exc}", "cases": []}
     else:
         try:
             out = measure(quick=args.quick)
