@@ -28,10 +28,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are
 
-from npp_ros.dataset import DatasetError, FloatArray
+from npp_ros.dataset import FloatArray
 from npp_ros.pendulum import wrap_angle
 from npp_ros.tasks import OptimizerTask
 from npp_ros.trajopt import MujocoDynamics, OptimizingExpert
+from npp_ros.vectors import finite_vector
 
 TASK = "cartpole_swingup"
 DEFAULT_HORIZON = 1000
@@ -101,24 +102,15 @@ class CartpolePlant:
         return twin
 
     def check_state(self, state: ArrayLike, what: str = "state") -> FloatArray:
-        arr = np.asarray(state, dtype=np.float64)
-        if arr.shape != (self.state_dim,):
-            raise DatasetError(
-                f"{what} must have {self.state_dim} entries for {self.task} (cart position, pole angle, "
-                f"cart velocity, pole angular velocity), got shape {arr.shape}"
-            )
-        if not np.isfinite(arr).all():
-            bad = int(np.argwhere(~np.isfinite(arr))[0, 0])
-            raise DatasetError(f"{what}[{bad}] is {float(arr[bad])}; states must be finite")
-        return arr
+        return finite_vector(
+            state,
+            self.state_dim,
+            what,
+            f"cart position, pole angle, cart velocity, pole angular velocity of {self.task}",
+        )
 
     def check_action(self, action: ArrayLike) -> FloatArray:
-        arr = np.asarray(action, dtype=np.float64).reshape(-1)
-        if arr.shape != (self.action_dim,):
-            raise DatasetError(f"action must have {self.action_dim} entries for {self.task}, got {arr.shape[0]}")
-        if not np.isfinite(arr).all():
-            raise DatasetError("action entries must be finite")
-        return arr
+        return finite_vector(np.ravel(action), self.action_dim, "action", f"one per actuator of {self.task}")
 
     def reset(self, state: ArrayLike) -> FloatArray:
         x = self.check_state(state)

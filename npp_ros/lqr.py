@@ -24,12 +24,13 @@ from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are, solve_discrete_lyapunov
 
 from npp_ros.certification import CheckedQuantity
-from npp_ros.dataset import DatasetError, FloatArray, Trajectory
+from npp_ros.dataset import FloatArray, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.tasks import DEFAULT_OPTIONS, Expert, ExpertOptions, Plant, Task, UnknownTaskError, check_horizon
 from npp_ros.tasks import MAX_HORIZON as MAX_HORIZON  # re-exported: callers of the lqr module use them
 from npp_ros.tasks import episode_rng as episode_rng
 from npp_ros.values import ValueBasis, theorem_34_condition
+from npp_ros.vectors import finite_vector
 
 TASKS: dict[str, tuple[int, int]] = {"lqr_2_1": (2, 1), "lqr_6_2": (6, 2)}
 """Task name -> (bodies, actuators)."""
@@ -123,24 +124,10 @@ class LQRPlant:
 
     # -------------------------------------------------------------- stepping
     def check_state(self, state: ArrayLike, what: str = "state") -> FloatArray:
-        arr = np.asarray(state, dtype=np.float64)
-        if arr.shape != (self.state_dim,):
-            raise DatasetError(
-                f"{what} must have {self.state_dim} entries for {self.task} "
-                f"(qpos then qvel of {self.bodies} joints), got shape {arr.shape}"
-            )
-        if not np.isfinite(arr).all():
-            bad = int(np.argwhere(~np.isfinite(arr))[0, 0])
-            raise DatasetError(f"{what}[{bad}] is {float(arr[bad])}; states must be finite")
-        return arr
+        return finite_vector(state, self.state_dim, what, f"qpos then qvel of {self.bodies} joints of {self.task}")
 
     def check_action(self, action: ArrayLike) -> FloatArray:
-        arr = np.asarray(action, dtype=np.float64).reshape(-1)
-        if arr.shape != (self.action_dim,):
-            raise DatasetError(f"action must have {self.action_dim} entries for {self.task}, got {arr.shape[0]}")
-        if not np.isfinite(arr).all():
-            raise DatasetError("action entries must be finite")
-        return arr
+        return finite_vector(np.ravel(action), self.action_dim, "action", f"one per actuator of {self.task}")
 
     def reset(self, state: ArrayLike) -> FloatArray:
         x = self.check_state(state)

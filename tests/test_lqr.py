@@ -55,10 +55,10 @@ def test_unknown_task_is_refused_by_name() -> None:
 @pytest.mark.parametrize(
     ("state", "message"),
     [
-        (np.zeros(3), r"must have 4 entries for lqr_2_1"),
+        (np.zeros(3), r"has 3 entries, expected 4 \(qpos then qvel of 2 joints of lqr_2_1\)"),
         (np.zeros((2, 2)), r"got shape \(2, 2\)"),
-        (np.array([0.0, np.nan, 0.0, 0.0]), r"requested state\[1\] is nan"),
-        (np.array([np.inf, 0.0, 0.0, 0.0]), r"requested state\[0\] is inf"),
+        (np.array([0.0, np.nan, 0.0, 0.0]), r"requested state\[1\] = nan"),
+        (np.array([np.inf, 0.0, 0.0, 0.0]), r"requested state\[0\] = inf"),
     ],
 )
 def test_expert_rejects_bad_states(expert_2_1: LQRExpert, state, message) -> None:

@@ -140,9 +140,9 @@ def test_identical_requests_give_identical_arrays() -> None:
 
 
 def test_bad_requests_and_settings_are_refused(expert: PendulumExpert) -> None:
-    with pytest.raises(DatasetError, match=r"^requested state must have 2 entries .* got shape \(3,\)$"):
+    with pytest.raises(DatasetError, match=r"^requested state has 3 entries, expected 2 \(hinge angle, .*\)$"):
         expert.trajectory(np.zeros(3))
-    with pytest.raises(DatasetError, match=r"^requested state\[1\] is nan; states must be finite$"):
+    with pytest.raises(DatasetError, match=r"^requested state must be finite: requested state\[1\] = nan$"):
         expert.trajectory(np.array([0.0, np.nan]))
     with pytest.raises(ValueError, match=r"^time_budget must be finite and > 0 seconds, got 0$"):
         PendulumExpert(time_budget=0)
