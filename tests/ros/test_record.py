@@ -214,7 +214,9 @@ def test_monitor_prints_the_bag_as_it_printed_the_live_run(recorded_run: Path) -
     assert [int(line.split()[2]) for line in gap_lines] == [row.episode for row in rows]
     assert sum(line.startswith("[episode]") for line in out.stdout.splitlines()) == len(rows)
     assert "[certificate] condition (i), epsilon 300" in out.stdout
-    assert out.stdout.rstrip().splitlines()[-1].strip().startswith("With probability")  # the statement closes it
+    closing = [line.strip() for line in out.stdout.rstrip().splitlines()][-8:]
+    assert any(line.startswith("With probability") for line in closing)  # the statement, then what it assumes
+    assert closing[-1].startswith("assumes:")
 
     refused = subprocess.run(
         [sys.executable, "-m", "npp_ros_graph.monitor", "--bag", str(recorded_run)], capture_output=True, text=True
