@@ -1,7 +1,9 @@
 """npp-record: records every /npp topic of a running graph into a rosbag2 bag in MCAP storage.
 
-Topics are found in the graph (their types too) and checked again every --discover-every seconds,
-so nodes started later are recorded from their first message. Each topic is subscribed with the
+The graph's own topics (common.py) are subscribed at start with the types and QoS their
+publishers use, so a node that starts later is recorded from its first message even when that
+message comes before discovery would have found the topic (a first GapReport, say). Any other
+topic under npp/ is found in the graph (its type too) every --discover-every seconds. Each topic is subscribed with the
 QoS its publishers offer (latched topics as TRANSIENT_LOCAL, so their last value is recorded even
 when it was published before the recorder started), and messages are written as the raw CDR bytes
 that came off the wire. The bag is flushed every --flush-every seconds: a recorder that is killed,
@@ -35,11 +37,21 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from npp_ros_graph import common
 from npp_ros_graph.bag import BagError, BagWriter, TopicInfo, repair
 
-# The graph's topics (common.py); every other topic under the same npp/ prefix is recorded too.
-KNOWN_TOPICS = (
-    common.STATE, common.ACTION, common.GAP, common.EPISODE, common.CERTIFICATE, common.PLANT,
-    common.ROLLOUT_DONE, common.DATASET_TOPIC, common.POLICY_STATUS, common.POLICY_DROPPED,
-)  # fmt: skip
+# The graph's topics with the type and QoS their publishers use (the nodes' create_publisher calls);
+# they are subscribed at start. Every other topic under the same npp/ prefix is recorded when found.
+GRAPH_TOPICS: dict[str, tuple[str, QoSProfile]] = {
+    common.STATE: ("sensor_msgs/msg/JointState", common.CONTROL_QOS),
+    common.ACTION: ("sensor_msgs/msg/JointState", common.CONTROL_QOS),
+    common.GAP: ("npp_interfaces/msg/GapReport", common.REPORT_QOS),
+    common.EPISODE: ("npp_interfaces/msg/EpisodeResult", common.REPORT_QOS),
+    common.CERTIFICATE: ("npp_interfaces/msg/Certificate", common.LATCHED_QOS),
+    common.PLANT: ("npp_interfaces/msg/PlantDescription", common.LATCHED_QOS),
+    common.ROLLOUT_DONE: ("npp_interfaces/msg/EpisodeResult", common.REPORT_QOS),
+    common.DATASET_TOPIC: ("npp_interfaces/msg/Trajectory", common.REPORT_QOS),
+    common.POLICY_STATUS: ("std_msgs/msg/UInt32", common.LATCHED_QOS),
+    common.POLICY_DROPPED: ("std_msgs/msg/UInt64", common.REPORT_QOS),
+}
+KNOWN_TOPICS = tuple(GRAPH_TOPICS)
 PREFIX = "npp"
 # Deep enough that a burst (a dataset republished to a restarted policy) is not cut short by the queue.
 RECORD_DEPTH = 1000
@@ -89,9 +101,8 @@ def _duration(value: Any) -> QosTime:
     return QosTime(ns // 10**9, ns % 10**9)
 
 
-def offered_qos(info: TopicEndpointInfo) -> Qos:
+def offered_qos(q: QoSProfile) -> Qos:
     """A publisher's QoS as rosbag2 records it (rclpy's and rosbag2's policy numbers are the same)."""
-    q = info.qos_profile
     return Qos(
         history=QosHistory(int(q.history)),
         depth=int(q.depth),
@@ -162,6 +173,13 @@ class RecorderNode(Node):
         self.exclude = {self.resolve_topic_name(t.strip("/")) for t in exclude}
         self.recorded: dict[str, TopicInfo] = {}
         self._refused: set[str] = set()
+        self._last_log_ns = 0
+        for relative, (msgtype, qos) in GRAPH_TOPICS.items():
+            name = self.resolve_topic_name(relative)
+            if name in self.exclude:
+                self._refuse(name, "excluded on the command line")
+            else:
+                self.record(name, msgtype, [offered_qos(qos)])
         self.discover()
         self.create_timer(discover_s, self.discover)
         self.create_timer(flush_s, self.flush)
@@ -178,24 +196,27 @@ class RecorderNode(Node):
                 continue
             publishers = self.get_publishers_info_by_topic(name)
             if publishers:  # until one appears, its QoS is unknown; it is looked at again next time
-                self.record(name, types[0], publishers)
+                self.record(name, types[0], [offered_qos(p.qos_profile) for p in publishers], type_hash(publishers))
 
     def _refuse(self, name: str, why: str) -> None:
         self._refused.add(name)
         self.get_logger().warning(f"not recording {name}: {why}")
 
-    def record(self, name: str, msgtype: str, publishers: list[TopicEndpointInfo]) -> None:
+    def record(self, name: str, msgtype: str, offered: list[Qos], hash_: str = "") -> None:
         try:
             cls = message_class(msgtype)
-            offered = [offered_qos(p) for p in publishers]
-            topic = self.bag.add_topic(name, msgtype, offered, type_hash(publishers))
+            topic = self.bag.add_topic(name, msgtype, offered, hash_)
         except (BagError, ImportError, AttributeError, ValueError) as exc:
             self._refuse(name, str(exc))
             return
         qos = subscription_qos(offered)
 
         def on_message(raw: bytes, info: Any) -> None:
-            received = int(info.get("received_timestamp", 0)) or time.time_ns()
+            # Log time: when the message arrived, but never before the last one written. Callbacks of
+            # different topics run in the executor's order, not in arrival order, and a reader of a
+            # bag whose recorder was killed (no index) needs the log times in the order of the file.
+            received = max(int(info.get("received_timestamp", 0)) or time.time_ns(), self._last_log_ns)
+            self._last_log_ns = received
             self.bag.write(topic, raw, received, int(info.get("source_timestamp", 0)) or received)
 
         self.create_subscription(cls, name, on_message, qos, raw=True)
