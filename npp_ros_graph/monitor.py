@@ -27,12 +27,13 @@ NOTICE_EVERY_S = 30.0  # then once per this much further silence
 
 
 def gap_line(msg: GapReport) -> str:
-    gap = "inf" if math.isinf(msg.gap) else f"{msg.gap:.2f}"
+    """One episode: the gap its certification mode checked against epsilon, and the current test's streak."""
+    checked = "inf" if math.isinf(msg.checked_gap) else f"{msg.checked_gap:.2f}"
     mark = "ORACLE" if msg.oracle_called else "quiet"
     return (
-        f"[gap]     episode {msg.episode:5d}  gap {gap:>8} / eps {msg.epsilon:g}  {mark:<6} "
+        f"[gap]     episode {msg.episode:5d}  {msg.certify or 'gap'} {checked:>8} / eps {msg.epsilon:g}  {mark:<6} "
         f"|D| {msg.dataset_size:8d}  oracle calls {msg.oracle_calls:4d}  "
-        f"quiet {msg.quiet_episodes}/{msg.quiet_required}"
+        f"test {msg.test} streak {msg.quiet_episodes}/{msg.quiet_required}"
     )
 
 
