@@ -181,6 +181,18 @@ class NPPLoop:
     def _passed(self, row: EpisodeRow) -> bool:
         return row.checked_gap is not None and row.checked_gap <= self.spec.epsilon
 
+    def held_back_after(self, episodes: int) -> int:
+        """Oracle mode: trajectories of the passed checks since the last failed one, among the first
+        ``episodes`` episodes; they were stored but not yet part of the policy."""
+        if self.config.certify != "oracle":
+            return 0
+        held = 0
+        for row in reversed(self.rows[:episodes]):
+            if not self._passed(row):
+                break
+            held += int(row.oracle_called)
+        return held
+
     def _resume(self, store: RunStore) -> None:
         problems = store.metadata.mismatches(self.config.metadata())
         if problems:
@@ -202,13 +214,7 @@ class NPPLoop:
         if stored is not None:
             self.certificate = Certificate.from_dict(stored)
         elif self.config.certify == "oracle":
-            # Trajectories of the passed checks since the last failed one are held back.
-            held = 0
-            for row in reversed(self.rows):
-                if not self._passed(row):
-                    break
-                held += int(row.oracle_called)
-            self._set_policy_prefix(self.dataset.num_trajectories - held)
+            self._set_policy_prefix(self.dataset.num_trajectories - self.held_back_after(len(self.rows)))
 
     def _set_policy_prefix(self, count: int) -> None:
         self.policy_data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)

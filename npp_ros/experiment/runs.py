@@ -121,15 +121,7 @@ def policy_trajectories_at(loop: NPPLoop, episodes: int) -> int:
         return 0
     if loop.certificate is not None and episodes == loop.certificate.episodes:
         return loop.certificate.policy_trajectories
-    calls = sum(row.oracle_called for row in loop.rows[:episodes])
-    if loop.config.certify != "oracle":
-        return calls
-    held = 0
-    for row in reversed(loop.rows[:episodes]):
-        if row.checked_gap > loop.config.epsilon:
-            break
-        held += int(row.oracle_called)
-    return calls - held
+    return sum(row.oracle_called for row in loop.rows[:episodes]) - loop.held_back_after(episodes)
 
 
 def read_record(
