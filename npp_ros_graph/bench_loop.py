@@ -59,6 +59,7 @@ from npp_ros_graph.convert import (
     state_to_joint_state,
     trajectory_to_msg,
 )
+from npp_ros_graph.seal import RunSeal
 
 CASES = (("lqr_2_1", 100), ("lqr_6_2", 1000))  # (task, trajectories): 10^5 points in 4-D, 10^6 in 12-D
 TARGETS = {"lqr_2_1": 0.8, "lqr_6_2": 0.5}
@@ -80,7 +81,8 @@ class EchoNode(Node):
 
 
 class Driver(Node):
-    """Plays the sim (states out, actions in) and the supervisor's dataset service."""
+    """Plays the sim (states out, actions in) and the supervisor's dataset service, seals included: the
+    graph's loop is measured with the checks every control step of a run makes."""
 
     def __init__(self, expert: LQRExpert, data: Dataset, task: str, seed: int, namespace: str) -> None:
         super().__init__("npp_bench_driver", namespace=namespace)
@@ -92,7 +94,9 @@ class Driver(Node):
         self.create_subscription(JointState, ACTION, self.on_action, CONTROL_QOS)
         self.create_subscription(UInt32, POLICY_STATUS, self.on_status, LATCHED_QOS)
         self.create_service(GetTrajectories, DATASET_SERVICE, self.on_dataset, qos_profile=SERVICE_QOS)
-        self.plant_pub.publish(plant_description(plant, seed, expert.horizon))
+        run_seal = RunSeal.from_environment()
+        self.seal = run_seal.for_plant(plant.model_sha256())
+        self.plant_pub.publish(run_seal.seal(plant_description(plant, seed, expert.horizon)))
         self.held = 0
         self.answer: JointState | None = None
         self.sent_ns = 0
@@ -107,15 +111,16 @@ class Driver(Node):
         response.lipschitz, response.lipschitz_source = lip.value, lip.source
         stop = min(total, request.start + (request.max_count or 50))
         for k in range(request.start, stop):
-            response.trajectories.append(trajectory_to_msg(k, self.data.trajectory(k)))
-        return response
+            response.trajectories.append(self.seal.seal(trajectory_to_msg(k, self.data.trajectory(k))))
+        return self.seal.seal(response, answering=request)
 
     def on_action(self, msg: JointState) -> None:
         if stamp_ns(msg.header.stamp) == self.sent_ns:
+            self.seal.check_header(msg, "the action")
             self.answer = msg
 
     def send(self, state: np.ndarray, step_ns: int) -> None:
-        msg = state_to_joint_state(state, self.joint_names, stamp(step_ns))
+        msg = self.seal.seal_header(state_to_joint_state(state, self.joint_names, stamp(step_ns)), "0")
         self.sent_ns = step_ns
         self.answer = None
         self.state_pub.publish(msg)

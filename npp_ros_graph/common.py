@@ -122,6 +122,18 @@ def run_node(factory: Callable[[], Node], argv: Sequence[str] | None = None, usa
     return int(getattr(node, "exit_code", 0))
 
 
+def node_name(namespace: str, name: str) -> str:
+    if name == "_NODE_NAME_UNKNOWN_":  # its endpoint is discovered, its node not yet
+        return "a node not yet named"
+    return f"{namespace.rstrip('/')}/{name}"
+
+
+def publishers_of(node: Node, topic: str) -> str:
+    """Who publishes a topic, by node name: what a refusal of foreign data can tell the user."""
+    names = sorted(node_name(i.node_namespace, i.node_name) for i in node.get_publishers_info_by_topic(topic))
+    return ", ".join(names) or "no publisher known"
+
+
 class ThrottledWarnings:
     """At most one warning per kind and second, with a count of what was suppressed: a flood of bad
     input must show up in the log without drowning it."""

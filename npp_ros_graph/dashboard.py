@@ -182,15 +182,22 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
     from rclpy.node import Node
 
     from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS
+    from npp_ros_graph.seal import RunSeal
 
     class DashboardNode(Node):
         """Feeds the hub: GapReports, the latched plant and certificate, and the graph's node names."""
 
         def __init__(self) -> None:
             super().__init__("npp_dashboard")
-            self.create_subscription(GapReport, GAP, lambda m: hub.add_episode(episode_entry(m)), REPORT_QOS)
+            seal = RunSeal.from_environment()  # given NPP_RUN_KEY (npp-run --dashboard), only that run's reports
             self.create_subscription(
-                Certificate, CERTIFICATE, lambda m: hub.set("certificate", certificate_entry(m)), LATCHED_QOS
+                GapReport, GAP, lambda m: seal.shows(m) and hub.add_episode(episode_entry(m)), REPORT_QOS
+            )
+            self.create_subscription(
+                Certificate,
+                CERTIFICATE,
+                lambda m: seal.shows(m) and hub.set("certificate", certificate_entry(m)),
+                LATCHED_QOS,
             )
             self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
             self.create_timer(1.0, self.look_at_nodes)

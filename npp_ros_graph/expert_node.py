@@ -36,10 +36,12 @@ from npp_ros_graph.common import (
     PLANT,
     SERVICE_QOS,
     Mailbox,
+    publishers_of,
     run_node,
 )
 from npp_ros_graph.convert import state_layout, trajectory_to_response
 from npp_ros_graph.parameters import Param, declare_settings, parameter_help
+from npp_ros_graph.seal import RunSeal, SealError
 
 PARAMETERS = (
     Param("gamma", 1.0, "discount, in (0, 1]; 1 = undiscounted H-step values V* = H - J*", 0.0, 1.0),
@@ -103,6 +105,8 @@ class ExpertNode(Node):
         self.expert: Expert | None = None
         self.description: PlantDescription | None = None
         self.refusal: str | None = None  # set when the described plant cannot be modelled
+        self.run_seal = RunSeal.from_environment()
+        self.seal: RunSeal | None = None  # the run's seal for the modelled plant
         self._plant_sub = self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
         # Reentrant: the next request is taken while earlier ones await the worker (a mutually exclusive
         # group would hold every request back until the one before it is answered).
@@ -122,6 +126,14 @@ class ExpertNode(Node):
     # ------------------------------------------------------------------ plant
     def on_plant(self, desc: PlantDescription) -> None:
         try:
+            self.run_seal.check(desc, "a plant description")
+        except SealError as exc:
+            self.get_logger().error(
+                f"ignored: {exc} (publishers of {self._plant_sub.topic_name}: {publishers_of(self, PLANT)})",
+                throttle_duration_sec=5.0,
+            )
+            return
+        try:
             self._adopt(desc)
         except Exception as exc:  # a callback must never take the node down
             self.expert, self.description = None, desc
@@ -137,6 +149,16 @@ class ExpertNode(Node):
             self.description.model_sha256,
         ):
             return  # the same plant again (e.g. a second latched delivery)
+        if self.expert is not None:
+            assert self.description is not None
+            self.get_logger().error(
+                f"ignored a description of another plant ({desc.task} seed {desc.seed}, fingerprint "
+                f"{desc.model_sha256[:12]}; publishers of {self._plant_sub.topic_name}: {publishers_of(self, PLANT)}): "
+                f"this expert keeps modelling {self.description.task} seed {self.description.seed}; restart it to "
+                "model another plant",
+                throttle_duration_sec=5.0,
+            )
+            return
         self.expert, self.description, self.refusal = None, desc, None
         expert = get_task(desc.task).make_expert(int(desc.seed), int(desc.horizon), self.options)
         mine = expert.plant.model_sha256()
@@ -147,7 +169,7 @@ class ExpertNode(Node):
             )
             self.get_logger().error(self.refusal)
             return
-        self.expert = expert
+        self.expert, self.seal = expert, self.run_seal.for_plant(mine)
         self.get_logger().info(
             f"modelling {desc.task} seed {desc.seed} (state_dim {expert.plant.state_dim}, "
             f"action_dim {expert.plant.action_dim}, default horizon {expert.horizon}, fingerprint {mine[:12]})"
@@ -168,16 +190,17 @@ class ExpertNode(Node):
         except Exception as exc:  # never let an exception escape into the executor
             problem = f"internal error while checking the request: {exc}"
         if problem is not None:
-            return self._refuse(response, problem)
+            return self._refuse(response, problem, request)
         if self.waiting >= self.max_queue:
             self.busy_refusals += 1
             return self._refuse(
                 response,
                 f"{BUSY} {self.waiting} requests are waiting (parameter max_queue {self.max_queue}); "
                 "nothing was computed, ask again later",
+                request,
             )
-        assert self.expert is not None
-        expert = self.expert
+        assert self.expert is not None and self.seal is not None and self.description is not None
+        expert, seal, fingerprint = self.expert, self.seal, self.description.model_sha256
         done = Future()
         self.waiting += 1
         try:
@@ -185,12 +208,13 @@ class ExpertNode(Node):
             traj: Trajectory = await done
         except Exception as exc:
             self.get_logger().error(f"expert request failed: {type(exc).__name__}: {exc}")
-            return self._refuse(response, f"internal error while computing the trajectory: {exc}")
+            return self._refuse(response, f"internal error while computing the trajectory: {exc}", request)
         finally:
             self.waiting -= 1
         response.success = True
         response.message = f"{len(traj)} steps of {expert.task} seed {expert.seed}"
-        return trajectory_to_response(traj, response)
+        response.plant = fingerprint
+        return seal.seal(trajectory_to_response(traj, response), answering=request)
 
     def _work(self) -> None:
         """Worker thread: one trajectory at a time, in arrival order; wakes the executor when one is done."""
@@ -228,11 +252,13 @@ class ExpertNode(Node):
             )
         return None
 
-    def _refuse(self, response: ExpertTrajectory.Response, message: str) -> ExpertTrajectory.Response:
+    def _refuse(
+        self, response: ExpertTrajectory.Response, message: str, request: ExpertTrajectory.Request
+    ) -> ExpertTrajectory.Response:
         self.get_logger().warning(f"refused a request: {message}", throttle_duration_sec=1.0)
         response.success = False
         response.message = message
-        return response
+        return response if self.seal is None else self.seal.seal(response, answering=request)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -20,6 +20,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from npp_ros_graph.common import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.seal import RunSeal
 
 TOPICS = {"gap": GAP, "episode": EPISODE}  # --topics names; the certificate is always shown
 FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
@@ -68,20 +69,23 @@ class MonitorNode(Node):
         self.topics = [TOPICS[name] for name in TOPICS if name in topics] + [CERTIFICATE]
         self.last_message = self.last_notice = time.monotonic()
         self.notices = 0
+        self.seal = RunSeal.from_environment()  # given NPP_RUN_KEY, only that run's reports are shown
         if "gap" in topics:
-            self.create_subscription(GapReport, GAP, lambda m: self.show(gap_line(m)), REPORT_QOS)
+            self.create_subscription(GapReport, GAP, lambda m: self.show(gap_line(m), m), REPORT_QOS)
         if "episode" in topics:
-            self.create_subscription(EpisodeResult, EPISODE, lambda m: self.show(episode_line(m)), REPORT_QOS)
+            self.create_subscription(EpisodeResult, EPISODE, lambda m: self.show(episode_line(m), m), REPORT_QOS)
         self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_QOS)
         self.create_timer(1.0, self.notice_if_silent)
 
-    def show(self, line: str) -> None:
+    def show(self, line: str, msg: GapReport | EpisodeResult | Certificate) -> bool:
+        if not self.seal.shows(msg):
+            return False
         self.last_message = time.monotonic()
         print(line, flush=True)
+        return True
 
     def on_certificate(self, msg: Certificate) -> None:
-        self.show(certificate_line(msg))
-        self.certified = True
+        self.certified = self.show(certificate_line(msg), msg) or self.certified
 
     def notice_if_silent(self) -> None:
         """A silent monitor looks like a hung one: after a while say what it waits for, and where."""

@@ -45,16 +45,18 @@ from npp_ros_graph.common import (
     STATE,
     Mailbox,
     ThrottledWarnings,
+    publishers_of,
     run_node,
 )
 from npp_ros_graph.convert import refill_action, state_from_joint_state, trajectory_from_msg
 from npp_ros_graph.parameters import declare_settings
+from npp_ros_graph.seal import RunSeal, SealError
 
 CATCH_UP_TIMEOUT_S = 5.0  # a catch-up request unanswered this long is withdrawn and sent again
 REPORT_EVERY_S = 1.0
 IDLE_S = 0.1  # no state for this long: the control loop is idle, the worker may bring the index up to date
 
-Pending = tuple[int, np.ndarray, Time]  # (arrival number, state, its stamp): a state to answer
+Pending = tuple[int, np.ndarray, Time, str]  # (arrival number, state, its stamp, its episode): a state to answer
 
 USAGE = f"""npp-policy: greedy NPP actions for every state (ROS 2 node "npp_policy").
 
@@ -66,7 +68,8 @@ publishes   /{ACTION} (sensor_msgs/JointState: effort = action, stamp = the answ
 calls       /{DATASET_SERVICE} to catch up with the supervisor's dataset
 parameters  none: L and the data come from the supervisor, the plant from the sim
 
-A state with wrong joint names or counts, or non-finite values, is refused with a log line.
+A state with wrong joint names or counts, or non-finite values, is refused with a log line, and so is
+anything (plant, state, trajectory, dataset answer) that does not carry the run's seal (NPP_RUN_KEY).
 """
 
 
@@ -80,6 +83,8 @@ class PolicyNode(Node):
         super().__init__("npp_policy")
         declare_settings(self, (), PolicySettings)
         self.plant: PlantDescription | None = None
+        self.run_seal = RunSeal.from_environment()
+        self.seal: RunSeal | None = None  # the run's seal for the plant, once described
         self._action = JointState()
         self.dataset: Dataset | None = None
         self.policy: NonparametricPolicy | None = None
@@ -112,19 +117,34 @@ class PolicyNode(Node):
         self._worker.start()
 
     # ---------------------------------------------------------------- dataset
+    def _foreign(self, topic: str, exc: SealError) -> None:
+        name = self.resolve_topic_name(topic)
+        self._warn(f"foreign {topic}", f"refused: {exc} (publishers of {name}: {publishers_of(self, topic)})")
+
     def on_plant(self, msg: PlantDescription) -> None:
+        try:
+            self.run_seal.check(msg, "a plant description")
+        except SealError as exc:
+            self._foreign(PLANT, exc)
+            return
         if self.plant is not None and (msg.task, msg.seed) != (self.plant.task, self.plant.seed):
             self.get_logger().error(f"plant changed from {self.plant.task} to {msg.task}; restart the policy")
             return
         if self.plant is None:
+            self.seal = self.run_seal.for_plant(msg.model_sha256)
             self.plant = msg
             self._action = JointState(name=list(msg.actuated_joint_names))  # refilled for every answer
             self.dataset = Dataset(msg.state_dim, msg.action_dim)
             self.get_logger().info(f"plant {msg.task} seed {msg.seed}; catching up with the dataset")
 
     def on_trajectory(self, msg: TrajectoryMsg) -> None:
-        if self.dataset is None or self.policy is None:
+        if self.dataset is None or self.policy is None or self.seal is None:
             self._catch_up_needed = True
+            return
+        try:
+            self.seal.check(msg, f"trajectory {msg.index}")
+        except SealError as exc:
+            self._foreign(DATASET_TOPIC, exc)
             return
         held = self.dataset.num_trajectories
         if msg.index < held:
@@ -164,15 +184,24 @@ class PolicyNode(Node):
         request = GetTrajectories.Request(start=self.dataset.num_trajectories, max_count=50)
         self._catch_up_sent = time.monotonic()
         self._catch_up_future = future = self.dataset_client.call_async(request)
-        future.add_done_callback(self.on_catch_up)
+        future.add_done_callback(lambda done: self.on_catch_up(done, request))
 
-    def on_catch_up(self, future) -> None:
+    def on_catch_up(self, future, request: GetTrajectories.Request) -> None:
         if future is not self._catch_up_future:
             return  # a withdrawn request answered late
         self._catch_up_future = None
         response = future.result()
         if response is None or not response.success:
             self.get_logger().warning(f"catch-up failed: {getattr(response, 'message', 'no response')}")
+            return
+        assert self.seal is not None
+        try:
+            self.seal.check(response, "the dataset service's answer", answering=request)
+            for msg in response.trajectories:
+                self.seal.check(msg, f"trajectory {msg.index} of the dataset service's answer")
+        except SealError as exc:
+            self._catch_up_needed = True
+            self._warn("foreign dataset", f"catch-up answer refused: {exc}")
             return
         if self.policy is None:
             assert self.dataset is not None
@@ -208,33 +237,37 @@ class PolicyNode(Node):
         elif self._inbox.put(pending) is not None:
             self._dropped_waiting += 1
 
-    def _newest_state(self, msg: JointState) -> tuple[np.ndarray, Time] | None:
+    def _newest_state(self, msg: JointState) -> tuple[np.ndarray, Time, str] | None:
         """The newest answerable state among `msg` and those already behind it on the wire."""
         newest = None
         sub = self._state_sub
         while msg is not None:
             try:
-                state = self._state(msg)
+                state, episode = self._state(msg)
+            except SealError as exc:
+                self._foreign(STATE, exc)
             except ValueError as exc:
                 problem = str(exc)
                 self._warn(problem.split(":")[0], f"state refused: {problem}")
             else:
                 if newest is not None:
                     self._dropped_waiting += 1
-                newest = (state, msg.header.stamp)
+                newest = (state, msg.header.stamp, episode)
             with sub.handle:
                 taken = sub.handle.take_message(sub.msg_type, sub.raw)
             msg = None if taken is None else taken[0]
         return newest
 
-    def _state(self, msg: JointState) -> np.ndarray:
-        """The state a message carries, if the policy can answer it; else a ValueError saying why not."""
-        plant = self.plant
-        if plant is None:
+    def _state(self, msg: JointState) -> tuple[np.ndarray, str]:
+        """The state a message carries and its episode, if the policy can answer it; else a ValueError
+        (a SealError for a state from outside the run) saying why not."""
+        plant, seal = self.plant, self.seal
+        if plant is None or seal is None:
             raise ValueError("no plant description yet: cannot read states")
+        episode = seal.check_header(msg, "a state")
         if self.policy is None or self.dataset is None or len(self.dataset) == 0:
             raise ValueError("no data yet: the policy has no action to give")
-        return state_from_joint_state(msg, plant.joint_names)
+        return state_from_joint_state(msg, plant.joint_names), episode
 
     def _work(self) -> None:
         """Worker thread: answers the states that came while it held the data; when the control loop
@@ -258,15 +291,17 @@ class PolicyNode(Node):
 
     def _answer(self, pending: Pending) -> None:
         """Publish the greedy action for a state, unless a newer one was answered first (data lock held)."""
-        arrival, state, stamp = pending
+        arrival, state, stamp, episode = pending
         if arrival <= self._last_answered:
             self._dropped_answering += 1
             return
         self._last_answered = arrival
-        assert self.policy is not None
+        assert self.policy is not None and self.seal is not None
         try:
-            action = self.policy.act(state)
-            self.action_pub.publish(refill_action(self._action, action, stamp))
+            action = refill_action(self._action, self.policy.act(state), stamp)
+            # The context says which episode it answers and which data chose it (the sim reports the latter).
+            held = self.policy.dataset.num_trajectories
+            self.action_pub.publish(self.seal.seal_header(action, f"{episode}/{held}"))
         except Exception as exc:  # neither the executor nor the worker may die of a single bad state
             self.get_logger().error(f"could not answer a state: {type(exc).__name__}: {exc}")
             return

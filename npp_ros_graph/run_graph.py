@@ -38,10 +38,11 @@ from rclpy.signals import SignalHandlerOptions
 
 from npp_ros.storage import RunFileError, _WriterLock
 from npp_ros.tasks import TASK_NAMES
-from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS
+from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS, node_name, publishers_of
 from npp_ros_graph.dashboard import start_dashboard
 from npp_ros_graph.monitor import certificate_line, gap_line
 from npp_ros_graph.record import start_recorder
+from npp_ros_graph.seal import KEY_ENV, RunSeal
 
 DISCOVERY_S = 2.0  # listened for before starting: discovery on one machine takes well under a second
 SECOND_GRAPH_WINDOW_S = 30.0  # a second graph seen this soon after the start stops this run
@@ -85,6 +86,7 @@ def parser() -> argparse.ArgumentParser:
 class Follower(Node):
     def __init__(self) -> None:
         super().__init__("npp_run")
+        self.seal = RunSeal.from_environment()  # main() has set the run's key
         self.last: GapReport | None = None
         self.certificate: Certificate | None = None
         self.create_subscription(GapReport, GAP, self.on_gap, REPORT_QOS)
@@ -93,6 +95,8 @@ class Follower(Node):
         self._printed = 0.0
 
     def on_gap(self, msg: GapReport) -> None:
+        if not self.seal.shows(msg):
+            return  # another run's report
         self.last = msg
         now = time.monotonic()
         text = gap_line(msg)
@@ -103,7 +107,8 @@ class Follower(Node):
             self._printed = now
 
     def on_certificate(self, msg: Certificate) -> None:
-        self.certificate = msg
+        if self.seal.shows(msg):
+            self.certificate = msg
 
     def other_graph(self, ours: int) -> str | None:
         """Who else publishes a graph's one-per-graph topics (the sim's plant, the supervisor's gaps), or None.
@@ -114,19 +119,12 @@ class Follower(Node):
         found = []
         for topic in GRAPH_TOPICS:
             if self.count_publishers(topic) > ours:
-                nodes = [_node_name(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
-                found.append(f"/{topic} is published by {', '.join(sorted(nodes))}")
+                found.append(f"/{topic} is published by {publishers_of(self, topic)}")
         if not found:
             return None
-        names = [_node_name(ns, n) for n, ns in self.get_node_names_and_namespaces() if n.startswith("npp_")]
+        names = [node_name(ns, n) for n, ns in self.get_node_names_and_namespaces() if n.startswith("npp_")]
         seen = ", ".join(f"{n} x{names.count(n)}" if names.count(n) > 1 else n for n in sorted(set(names)))
         return f"{'; '.join(found)} (npp nodes on the domain: {seen})"
-
-
-def _node_name(namespace: str, name: str) -> str:
-    if name == "_NODE_NAME_UNKNOWN_":  # its endpoint is discovered, its node not yet
-        return "a node not yet named"
-    return f"{namespace.rstrip('/')}/{name}"
 
 
 def say(text: str, end: str = "\n") -> None:
@@ -304,9 +302,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env[KEY_ENV] = env.get(KEY_ENV) or RunSeal.new_key()  # the run's seal: its nodes refuse what lacks it
     if args.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
-    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID") if k in env})
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", KEY_ENV) if k in env})
     params = {
         "sim": {"task": args.task, "seed": args.seed, "horizon": args.horizon},
         "expert": {"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},

@@ -33,6 +33,7 @@ from npp_ros_graph.common import (
     SERVICE_QOS,
     STATE,
     ThrottledWarnings,
+    publishers_of,
     run_node,
 )
 from npp_ros_graph.convert import (
@@ -44,6 +45,7 @@ from npp_ros_graph.convert import (
     state_to_joint_state,
 )
 from npp_ros_graph.parameters import Param, StartupError, declare_settings, parameter_help
+from npp_ros_graph.seal import RunSeal, SealError
 
 PARAMETERS = (
     Param("task", "lqr_2_1", "dm_control task (the registry in npp_ros.tasks)", choices=TASK_NAMES),
@@ -105,6 +107,10 @@ class SimNode(Node):
         self.episode_return = 0.0
         self.initial_state = np.zeros(0)
         self.state_stamp: Time | None = None
+        # Which data the policy drove the running episode with ("trajectories held", from each action's seal).
+        self.drivers: set[str] = set()
+        self.run_seal = RunSeal.from_environment()
+        self.seal: RunSeal | None = None  # the run's seal for this plant, once built
         self._last_state: JointState | None = None
         self._last_sent = 0.0
         self.ignored_actions = 0
@@ -125,9 +131,10 @@ class SimNode(Node):
             plant = self.spec.make_plant(self.seed)
         except Exception as exc:  # run_node turns this into a clean exit with the reason
             raise StartupError(f"cannot build the plant {self.task} seed {self.seed}: {exc}") from exc
+        self.seal = self.run_seal.for_plant(plant.model_sha256())
         self.plant = plant
         self.dt_ns = round(plant.dt * 1e9)
-        self.plant_pub.publish(plant_description(plant, self.seed, self.horizon))
+        self.plant_pub.publish(self.run_seal.seal(plant_description(plant, self.seed, self.horizon)))
         self.get_logger().info(
             f"plant {self.task} seed {self.seed} ready: joints {plant.joint_names}, "
             f"actuated {plant.actuated_joint_names}, dt {plant.dt} s, horizon {self.horizon}"
@@ -143,16 +150,20 @@ class SimNode(Node):
         if problem is not None:
             self.get_logger().warning(f"refused a reset: {problem}", throttle_duration_sec=1.0)
             response.success, response.message = False, problem
-            return response
-        response.success = True
-        response.message = f"episode {self.episode} started"
-        response.state = float64_array(self.initial_state)
-        return response
+        else:
+            response.success = True
+            response.message = f"episode {self.episode} started"
+            response.state = float64_array(self.initial_state)
+        return response if self.seal is None else self.seal.seal(response, answering=request)
 
     def _reset(self, request: ResetEpisode.Request) -> str | None:
-        plant = self.plant
-        if plant is None:
+        plant, seal = self.plant, self.seal
+        if plant is None or seal is None:
             return f"the plant {self.task} seed {self.seed} is still being built; retry shortly"
+        try:
+            seal.check(request, "the reset request")
+        except SealError as exc:
+            return f"{exc}; only this run's supervisor resets the sim"
         if len(request.state) == 0:
             s0 = self.spec.initial_state(self.seed, request.episode)
         else:
@@ -167,6 +178,7 @@ class SimNode(Node):
         self.episode = int(request.episode)
         self.steps = 0
         self.episode_return = 0.0
+        self.drivers.clear()
         self._publish_state()
         return None
 
@@ -179,13 +191,22 @@ class SimNode(Node):
             problem = f"internal error: {exc}"
         if problem is not None:
             self.ignored_actions += 1
-            self._warn(problem.split(":")[0], f"ignored an action: {problem}")
+            kind = problem.split(":")[0]
+            if kind == "foreign":
+                problem += f" (publishers of {self.resolve_topic_name(ACTION)}: {publishers_of(self, ACTION)})"
+            self._warn(kind, f"ignored an action: {problem}")
 
     def _step(self, msg: JointState) -> str | None:
         """Apply the action if it answers the current state; else say why not."""
-        plant = self.plant
-        if plant is None or self.state_stamp is None:
+        plant, seal = self.plant, self.seal
+        if plant is None or seal is None or self.state_stamp is None:
             return "no episode is running (reset the sim first)"
+        try:
+            episode, _, driver = seal.check_header(msg, "the action").partition("/")
+        except SealError as exc:
+            return f"foreign: {exc}"
+        if episode != str(self.episode):
+            return f"stale: it answers a state of episode {episode}, the current one is {self.episode}"
         got = (msg.header.stamp.sec, msg.header.stamp.nanosec)
         want = (self.state_stamp.sec, self.state_stamp.nanosec)
         if got != want:
@@ -197,6 +218,7 @@ class SimNode(Node):
         except ValueError as exc:
             return str(exc)
         self.episode_return += plant.step(u)
+        self.drivers.add(driver)
         self.steps += 1
         if self.steps >= self.horizon:
             self._finish()
@@ -205,9 +227,10 @@ class SimNode(Node):
         return None
 
     def _publish_state(self) -> None:
-        assert self.plant is not None
+        assert self.plant is not None and self.seal is not None
         self.state_stamp = stamp(self.steps * self.dt_ns)
-        self._send(state_to_joint_state(self.plant.state(), self.plant.joint_names, self.state_stamp))
+        msg = state_to_joint_state(self.plant.state(), self.plant.joint_names, self.state_stamp)
+        self._send(self.seal.seal_header(msg, str(self.episode)))
 
     def _send(self, msg: JointState) -> None:
         self._last_state, self._last_sent = msg, time.monotonic()
@@ -229,7 +252,9 @@ class SimNode(Node):
             self.episode, self.episode_return, self.steps, self.initial_state, stamp(self.steps * self.dt_ns)
         )
         self.state_stamp = None  # no more states until the next reset
-        self.done_pub.publish(result)
+        assert self.seal is not None
+        # The context names the data the policy drove with: a return counts only for the policy it certifies.
+        self.done_pub.publish(self.seal.seal_header(result, ",".join(sorted(self.drivers))))
         self.get_logger().info(
             f"episode {self.episode} done: {self.steps} steps, return {self.episode_return:.3f}"
             + (f", {self.ignored_actions} actions ignored so far" if self.ignored_actions else "")

@@ -65,6 +65,7 @@ from npp_ros_graph.common import (
     ROLLOUT_DONE,
     SERVICE_QOS,
     Mailbox,
+    publishers_of,
     run_node,
 )
 from npp_ros_graph.convert import (
@@ -76,6 +77,7 @@ from npp_ros_graph.convert import (
     trajectory_to_msg,
 )
 from npp_ros_graph.parameters import Param, declare_settings, parameter_help
+from npp_ros_graph.seal import RunSeal, SealError
 
 TASK_DEFAULT = "task"  # a choice the task decides, once the sim names it
 
@@ -151,6 +153,10 @@ serves      /{DATASET_SERVICE}
 
 
 RETRY_PAUSE_S = 0.25  # first pause between expert attempts; doubles each time, capped at expert_timeout
+# A sim or policy that was paused (SIGSTOP, a debugger, an overloaded host) may have lost what was sent to
+# it meanwhile: a reset unanswered this long is sent again, and trajectories the policy still lacks after
+# this long are published again, so an episode never waits its whole rollout_timeout for data already stored.
+RESEND_S = 2.0
 
 
 class ExpertUnavailable(RuntimeError):
@@ -163,6 +169,8 @@ class SupervisorNode(Node):
         self.settings = declare_settings(self, PARAMETERS, SupervisorSettings)
         self.loop: NPPLoop | None = None
         self.plant: PlantDescription | None = None
+        self.run_seal = RunSeal.from_environment()
+        self.seal: RunSeal | None = None  # the run's seal for its plant, once described
         self.stop = threading.Event()
         self._plants: Mailbox[PlantDescription] = Mailbox(keep=1)
         self.handshake = RolloutHandshake()
@@ -173,7 +181,7 @@ class SupervisorNode(Node):
         self.expert = self.create_client(ExpertTrajectory, EXPERT_SERVICE)
         self.reset = self.create_client(ResetEpisode, RESET_SERVICE)
         self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
-        self.create_subscription(EpisodeResult, ROLLOUT_DONE, self.handshake.on_rollout, REPORT_QOS)
+        self.create_subscription(EpisodeResult, ROLLOUT_DONE, self.on_rollout, REPORT_QOS)
         self.create_subscription(UInt32, POLICY_STATUS, self.handshake.on_policy_status, LATCHED_QOS)
         self.create_service(GetTrajectories, DATASET_SERVICE, self.serve_dataset, qos_profile=SERVICE_QOS)
         self.exit_code = 0
@@ -182,13 +190,43 @@ class SupervisorNode(Node):
         self.get_logger().info("waiting for the sim's plant description")
 
     # ---------------------------------------------------------------- graph inputs
+    def refuse_foreign(self, topic: str, exc: SealError) -> None:
+        self.get_logger().error(
+            f"refused: {exc} (publishers of /{topic}: {publishers_of(self, topic)}); nothing of it enters this run",
+            throttle_duration_sec=5.0,
+        )
+
     def on_plant(self, msg: PlantDescription) -> None:
+        try:
+            self.run_seal.check(msg, "a plant description")
+        except SealError as exc:
+            self.refuse_foreign(PLANT, exc)
+            return
         if self.plant is not None:
             if msg.model_sha256 != self.plant.model_sha256:
-                self.get_logger().error("the sim now describes another plant; this run keeps its own")
+                self.get_logger().error(
+                    f"the sim now describes another plant ({msg.task} seed {msg.seed}; publishers of /{PLANT}: "
+                    f"{publishers_of(self, PLANT)}); this run keeps its own, and refuses data for any other"
+                )
             return
+        self.seal = self.run_seal.for_plant(msg.model_sha256)
         self.plant = msg
         self._plants.put(msg)
+
+    def on_rollout(self, msg: EpisodeResult) -> None:
+        """The sim's rollout results, this run's only; the context names the data the policy drove with."""
+        if self.seal is None:
+            return
+        try:
+            driven_with = self.seal.check_header(msg, f"the rollout result of episode {msg.episode}")
+        except SealError as exc:
+            self.refuse_foreign(ROLLOUT_DONE, exc)
+            return
+        self.handshake.on_rollout(msg, driven_with)
+
+    def trajectory_msg(self, index: int, trajectory: Trajectory) -> TrajectoryMsg:
+        assert self.seal is not None
+        return self.seal.seal(trajectory_to_msg(index, trajectory))
 
     def serve_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
         loop = self.loop
@@ -204,9 +242,10 @@ class SupervisorNode(Node):
         response.lipschitz = loop.config.lipschitz.value
         response.lipschitz_source = loop.config.lipschitz.source
         response.trajectories = [
-            trajectory_to_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
+            self.trajectory_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
         ]
-        return response
+        assert self.seal is not None
+        return self.seal.seal(response, answering=request)
 
     # ---------------------------------------------------------------- Algorithm 1
     def run_algorithm(self) -> None:
@@ -258,8 +297,7 @@ class SupervisorNode(Node):
             f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
             f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
         )
-        for k in range(loop.dataset.num_trajectories):  # a restarted policy may also listen here
-            self.trajectory_pub.publish(trajectory_to_msg(k, loop.dataset.trajectory(k)))
+        self.publish_trajectories(0, loop.dataset.num_trajectories)  # a restarted policy may also listen here
         if loop.certificate is not None:
             reporter.on_certificate(loop.certificate)
         while not self.stop.is_set() and loop.certificate is None and loop.next_episode < s.max_episodes:
@@ -267,6 +305,11 @@ class SupervisorNode(Node):
         if loop.certificate is None:
             self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
         store.close()
+
+    def publish_trajectories(self, start: int, stop: int) -> None:
+        assert self.loop is not None
+        for k in range(start, stop):
+            self.trajectory_pub.publish(self.trajectory_msg(k, self.loop.dataset.trajectory(k)))
 
     def call(self, client: Client, request, timeout: float):
         """One service call with a deadline; an unanswered request is withdrawn, not left pending forever."""
@@ -306,7 +349,8 @@ class RosExpert:
         """One attempt: a trajectory within expert_timeout, or why not.
 
         "busy:" and "not ready:" refusals (an expert with a full queue, or just restarted and still
-        waiting for the plant) are asked again within the attempt, after growing pauses.
+        waiting for the plant) are asked again within the attempt, after growing pauses, and so are
+        answers that are not this run's expert's (another server on the domain won the race).
         """
         deadline = time.monotonic() + self.timeout
         pause = RETRY_PAUSE_S
@@ -318,15 +362,37 @@ class RosExpert:
             response = self.node.call(self.node.expert, request, remaining)
             if response is None:
                 return None, f"no answer within {self.timeout:g} s"
-            if response.success:
+            refusal, retry = self._refusal(response, request)
+            if refusal is None:
                 return response, ""
-            refusal = f"expert refused: {response.message}"
-            if not response.message.startswith((BUSY, NOT_READY)) or deadline - time.monotonic() <= pause:
+            if not retry or deadline - time.monotonic() <= pause:
                 return None, refusal
             self.node.get_logger().info(refusal + "; asking again", throttle_duration_sec=5.0)
             if self.node.stop.wait(pause):
                 return None, refusal
             pause = min(2 * pause, 2.0)
+
+    def _refusal(
+        self, response: ExpertTrajectory.Response, request: ExpertTrajectory.Request
+    ) -> tuple[str | None, bool]:
+        """(None, _) for a trajectory from this run's expert for this run's plant; else why not, and
+        whether asking again may help."""
+        if not response.success and response.message.startswith((BUSY, NOT_READY)):
+            return f"expert refused: {response.message}", True
+        if response.success and response.plant != self.plant.model_sha256:
+            return (
+                f"refused an answer for another plant (fingerprint {response.plant[:12] or 'none'}, this run's is "
+                f"{self.plant.model_sha256[:12]}): a second sim or expert on the domain?"
+            ), True
+        assert self.node.seal is not None
+        try:
+            self.node.seal.check(response, "the expert's answer", answering=request)
+        except SealError as exc:
+            servers = self.node.count_services(EXPERT_SERVICE)
+            return f"refused: {exc} ({servers} servers of /{EXPERT_SERVICE} on the domain)", True
+        if not response.success:
+            return f"expert refused: {response.message}", False
+        return None, False
 
 
 class RolloutHandshake:
@@ -338,20 +404,24 @@ class RolloutHandshake:
     def __init__(self) -> None:
         self._changed = threading.Condition()
         self._policy_holds = -1  # trajectories the policy reported last (-1: no report yet)
-        self._results: dict[int, EpisodeResult] = {}
+        self._results: dict[int, tuple[EpisodeResult, str]] = {}  # episode -> (result, data it was driven with)
 
     def on_policy_status(self, msg: UInt32) -> None:
         with self._changed:
             self._policy_holds = int(msg.data)
             self._changed.notify_all()
 
-    def on_rollout(self, msg: EpisodeResult) -> None:
+    def on_rollout(self, msg: EpisodeResult, driven_with: str) -> None:
         with self._changed:
-            self._results[int(msg.episode)] = msg
+            self._results[int(msg.episode)] = (msg, driven_with)
             self._changed.notify_all()
 
     def policy_holds(self, trajectories: int) -> bool:
         return self._policy_holds >= trajectories
+
+    @property
+    def policy_reported(self) -> int:
+        return self._policy_holds
 
     def wait_for_policy(self, trajectories: int, deadline: float) -> bool:
         """Whether the policy holds at least `trajectories` by the deadline (time.monotonic)."""
@@ -360,9 +430,9 @@ class RolloutHandshake:
                 lambda: self._policy_holds >= trajectories, max(deadline - time.monotonic(), 0.0)
             )
 
-    def wait_for_rollout(self, episode: int, deadline: float) -> EpisodeResult | None:
-        """The sim's result for `episode`, or None when the deadline passes first; results of earlier
-        episodes that finish late (skipped ones) are discarded."""
+    def wait_for_rollout(self, episode: int, deadline: float) -> tuple[EpisodeResult, str] | None:
+        """The sim's result for `episode` and the data it was driven with, or None when the deadline passes
+        first; results of earlier episodes that finish late (skipped ones) are discarded."""
         with self._changed:
             self._changed.wait_for(lambda: episode in self._results, max(deadline - time.monotonic(), 0.0))
             result = self._results.pop(episode, None)
@@ -378,27 +448,73 @@ class RosRollouts:
         self.node, self.timeout = node, timeout
 
     def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None:
-        node, log, handshake = self.node, self.node.get_logger(), self.node.handshake
+        log, handshake = self.node.get_logger(), self.node.handshake
         held = policy.dataset.num_trajectories
         deadline = time.monotonic() + self.timeout
-        if not handshake.policy_holds(held):
-            log.info(f"waiting for the policy to hold {held} trajectories", throttle_duration_sec=10.0)
-            if not handshake.wait_for_policy(held, deadline):
-                log.warning(f"episode {episode}: the policy is not up to date; no rollout this episode")
-                return None
-        if not node.reset.wait_for_service(timeout_sec=self.timeout):
-            log.warning(f"episode {episode}: sim reset service unavailable; no rollout this episode")
+        if not self._policy_up_to_date(held, deadline):
+            log.warning(f"episode {episode}: the policy is not up to date; no rollout this episode")
             return None
-        request = ResetEpisode.Request(state=float64_array(initial_state), episode=episode)
-        response = node.call(node.reset, request, self.timeout)
-        if response is None or not response.success:
-            log.warning(f"episode {episode}: sim reset failed: {getattr(response, 'message', 'no answer')}")
+        problem = self._reset(episode, initial_state, deadline)
+        if problem is not None:
+            log.warning(f"episode {episode}: {problem}; no rollout this episode")
             return None
-        result = handshake.wait_for_rollout(episode, max(deadline, time.monotonic() + 1.0))
-        if result is None:
+        outcome = handshake.wait_for_rollout(episode, max(deadline, time.monotonic() + 1.0))
+        if outcome is None:
             log.warning(f"episode {episode}: the policy's episode did not finish in time; no return recorded")
             return None
+        result, driven_with = outcome
+        if driven_with != str(held):
+            log.error(
+                f"episode {episode}: the return was earned by a policy over {driven_with or 'unknown'} trajectories, "
+                f"not the {held} under test; no return recorded"
+            )
+            return None
         return float(result.policy_return)
+
+    def _policy_up_to_date(self, held: int, deadline: float) -> bool:
+        """Wait until the policy holds `held` trajectories; what it still lacks is sent again every RESEND_S."""
+        node, handshake = self.node, self.node.handshake
+        while not handshake.policy_holds(held):
+            now = time.monotonic()
+            if now >= deadline:
+                return False
+            if handshake.wait_for_policy(held, min(deadline, now + RESEND_S)):
+                return True
+            reported = handshake.policy_reported
+            node.get_logger().info(
+                f"the policy holds {max(reported, 0)} of {held} trajectories; sending the missing ones again",
+                throttle_duration_sec=10.0,
+            )
+            node.publish_trajectories(max(reported, 0), held)
+        return True
+
+    def _reset(self, episode: int, initial_state: FloatArray, deadline: float) -> str | None:
+        """Reset the sim for `episode`, asking again every RESEND_S: a paused sim loses requests, and an
+        answer that is not this run's sim's (a second sim on the domain) does not count. None once done."""
+        node = self.node
+        assert node.seal is not None
+        request = node.seal.seal(ResetEpisode.Request(state=float64_array(initial_state), episode=episode))
+        problem = "sim reset service unavailable"
+        while (remaining := deadline - time.monotonic()) > 0:
+            if not node.reset.wait_for_service(timeout_sec=min(remaining, RESEND_S)):
+                continue
+            response = node.call(node.reset, request, min(remaining, RESEND_S))
+            if response is None:
+                problem = "no answer to the sim reset"
+                continue
+            try:
+                node.seal.check(response, "the sim's reset answer", answering=request)
+            except SealError as exc:
+                problem = f"refused: {exc} (servers of /{RESET_SERVICE}: a second sim on the domain?)"
+                node.get_logger().warning(problem, throttle_duration_sec=5.0)
+                node.stop.wait(0.05)  # the other sim's answer may win every race; let ours arrive
+                continue
+            if response.success:
+                return None
+            problem = f"sim reset failed: {response.message}"
+            if node.stop.wait(min(RESEND_S, max(deadline - time.monotonic(), 0.0))):
+                break
+        return problem
 
 
 class GraphReporter(Observer):
@@ -422,8 +538,8 @@ class GraphReporter(Observer):
         node = self.node
         stamp = node.get_clock().now().to_msg()
         gap = gap_report(row, self.config, stamp)
-        node.gap_pub.publish(gap)
-        node.episode_pub.publish(episode_result(row, self.config.horizon, stamp))
+        node.gap_pub.publish(node.run_seal.seal_header(gap))
+        node.episode_pub.publish(node.run_seal.seal_header(episode_result(row, self.config.horizon, stamp)))
         self._append(
             self.gap_log,
             ["episode", "gap", "v_lb", "v_ub", "epsilon", "oracle_called", "dataset_size", "oracle_calls", "quiet"],
@@ -438,10 +554,13 @@ class GraphReporter(Observer):
         )  # fmt: skip
 
     def on_trajectory(self, index: int, trajectory: Trajectory) -> None:
-        self.node.trajectory_pub.publish(trajectory_to_msg(index, trajectory))
+        self.node.trajectory_pub.publish(self.node.trajectory_msg(index, trajectory))
 
     def on_certificate(self, certificate: Certificate) -> None:
-        self.node.certificate_pub.publish(certificate_to_msg(certificate, self.node.get_clock().now().to_msg()))
+        node = self.node
+        node.certificate_pub.publish(
+            node.run_seal.seal_header(certificate_to_msg(certificate, node.get_clock().now().to_msg()))
+        )
         self.node.get_logger().info("\n" + certificate.summary())
 
 

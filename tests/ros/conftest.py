@@ -151,13 +151,19 @@ class Launcher:
         self.procs: list[tuple[subprocess.Popen[bytes], Path, IO[bytes]]] = []
 
     def __call__(
-        self, target: str, params: dict[str, Any] | None = None, namespace: str = "", domain: int | None = None
+        self,
+        target: str,
+        params: dict[str, Any] | None = None,
+        namespace: str = "",
+        domain: int | None = None,
+        extra_env: dict[str, str] | None = None,
     ) -> subprocess.Popen[bytes]:
         """Start `target` (console script or module); `namespace` isolates it from other graphs, `domain`
-        (another free id from domain_coordinator) puts it on another ROS_DOMAIN_ID, still localhost-only."""
+        (another free id from domain_coordinator) puts it on another ROS_DOMAIN_ID, still localhost-only;
+        `extra_env` adds to the environment (a run's NPP_RUN_KEY)."""
         label = target.rsplit(".", 1)[-1]
         log = self.log_dir / f"{len(self.procs):02d}-{label}.log"
-        env = dict(os.environ)
+        env = {**os.environ, **(extra_env or {})}
         if domain is not None:
             env["ROS_DOMAIN_ID"] = str(domain)
         assert_confined(env, self.domain if domain is None else domain)

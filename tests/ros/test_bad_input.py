@@ -42,7 +42,7 @@ from rclpy.client import Client
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 
-from npp_ros.lqr import LQRExpert
+from npp_ros.lqr import LQRExpert, LQRPlant
 from npp_ros.run_setup import build_config, resolve_lipschitz
 from npp_ros.storage import RunStore
 from npp_ros_graph.common import (
@@ -57,6 +57,7 @@ from npp_ros_graph.common import (
     ROLLOUT_DONE,
     STATE,
 )
+from npp_ros_graph.seal import RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -71,6 +72,9 @@ FUZZ = settings(
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 tried: Counter[str] = Counter()
+# The test plays this run's sim and supervisor, so what it sends carries the run's seal: the malformed
+# content is what is tested (what lacks the seal is refused before it is read: tests/ros/test_cross_talk.py).
+SEAL = RunSeal.from_environment().for_plant(LQRPlant("lqr_2_1", 0).model_sha256())
 
 
 def sha256(path: Path) -> str:
@@ -211,8 +215,8 @@ def test_policy_refuses_malformed_states_and_keeps_answering(
     bad.header.stamp = Time(sec=1000 + n)
     probe = JointState(name=JOINTS, position=[0.1, 0.2], velocity=[0.0, -0.1])
     probe.header.stamp = Time(sec=100_000 + n)
-    publisher.publish(bad)
-    publisher.publish(probe)  # answered only after the bad one was handled: same writer, in order
+    publisher.publish(SEAL.seal_header(bad, "0"))
+    publisher.publish(SEAL.seal_header(probe, "0"))  # answered only after the bad one was handled: in order
     graph.client.wait_for(lambda: any(a.header.stamp.sec == 100_000 + n for a in actions), TIMEOUT, "the probe")
     tried["policy states"] += 1
     tried[f"policy states: {kind}"] += 1
@@ -227,7 +231,7 @@ def test_policy_logged_each_kind_and_still_drives_an_episode(
         assert f"state refused: {kind}" in log
     results = graph.client.collect(EpisodeResult, ROLLOUT_DONE, REPORT_QOS)
     reset = graph.client.client(ResetEpisode, RESET_SERVICE, TIMEOUT)
-    answer = graph.client.call(reset, ResetEpisode.Request(state=[0.2, 0.1, 0.0, 0.0], episode=9999))
+    answer = graph.client.call(reset, SEAL.seal(ResetEpisode.Request(state=[0.2, 0.1, 0.0, 0.0], episode=9999)))
     assert answer.success, answer.message
     graph.client.wait_for(lambda: any(r.episode == 9999 for r in results), TIMEOUT, "the policy's episode")
     graph.all_alive()
@@ -251,7 +255,8 @@ class SimAlone:
         client.wait_for(lambda: self.actions.get_subscription_count() > 0, TIMEOUT, "the sim's action subscription")
         while True:  # reset, and make sure our subscription got the first state
             seen = len(self.states)
-            assert client.call(self.reset, ResetEpisode.Request(state=[0.4, -0.3, 0.2, 0.1], episode=0)).success
+            reset = SEAL.seal(ResetEpisode.Request(state=[0.4, -0.3, 0.2, 0.1], episode=0))
+            assert client.call(self.reset, reset).success
             try:
                 client.wait_for(lambda s=seen: len(self.states) > s, 3.0)
                 break
@@ -295,8 +300,8 @@ def test_sim_ignores_malformed_actions_and_the_plant_does_not_move(
     good = JointState(name=["joint_0"], effort=[0.05])
     good.header.stamp = now
     seen = len(sim.states)
-    sim.actions.publish(bad)
-    sim.actions.publish(good)  # in order: if the bad one had moved the plant, this one would be stale
+    sim.actions.publish(SEAL.seal_header(bad, "0/0"))
+    sim.actions.publish(SEAL.seal_header(good, "0/0"))  # in order: had the bad one moved the plant, this is stale
     sim.client.wait_for(lambda: len(sim.states) > seen, TIMEOUT, "the state after the good action")
     nxt = sim.states[seen]
     tried["sim actions"] += 1
@@ -404,7 +409,7 @@ def test_supervisor_refuses_a_run_file_for_other_dimensions(graph: Graph, tmp_pa
     expert = LQRExpert("lqr_2_1", 0, horizon=HORIZON)
     config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "analytic", expert), 50.0, horizon=HORIZON)
     path = tmp_path / "run" / "run.sqlite"
-    RunStore.create(path, replace(config.metadata(), state_dim=12, action_dim=2)).close()
+    RunStore.create(path, replace(config, state_dim=12, action_dim=2).metadata()).close()
     before = sha256(path)
     launch_module = graph.launch
     proc = launch_module(

@@ -16,6 +16,7 @@ from rclpy.client import Client
 
 from npp_ros.lqr import LQRExpert, LQRPlant
 from npp_ros_graph.common import EXPERT_SERVICE, LATCHED_QOS, PLANT
+from npp_ros_graph.seal import RunSeal, SealError
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -115,17 +116,36 @@ def test_expert_waits_for_the_plant_and_refuses_a_foreign_model(
         model_sha256="0" * 64,
     )
     publisher = client.node.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
-    publisher.publish(desc)
+    publisher.publish(desc)  # without the run's seal: not this run's sim, ignored
     deadline = time.monotonic() + TIMEOUT
+    client.wait_for(lambda: "does not carry this run's seal" in launch.log(proc), TIMEOUT, "the refusal in the log")
+    assert client.call(service, request(s0)).message.startswith("not ready:")
+
+    run_seal = RunSeal.from_environment()
+    publisher.publish(run_seal.seal(desc))
     while "model mismatch" not in (answer := client.call(service, request(s0))).message:
         assert time.monotonic() < deadline, answer.message
         time.sleep(0.05)
     assert not answer.success and "refusing" in answer.message
 
     desc.model_sha256 = plant.model_sha256()
-    publisher.publish(desc)
-    while not (answer := client.call(service, request(s0, 10))).success:
+    publisher.publish(run_seal.seal(desc))
+    while not (answer := client.call(service, ask := request(s0, 10))).success:
         assert time.monotonic() < deadline, answer.message
         time.sleep(0.05)
     check_good(answer, expert_2_1, np.array(s0), 10)
+    # The answer names its plant and carries the run's seal for it, bound to the request it answers.
+    assert answer.plant == plant.model_sha256()
+    seal = run_seal.for_plant(answer.plant)
+    seal.check(answer, "the expert's answer", answering=ask)
+    with pytest.raises(SealError):
+        seal.check(answer, "the expert's answer", answering=request(s0, 11))
+
+    # Once modelling a plant, a description of another (a second sim on the domain) changes nothing.
+    other = LQRPlant("lqr_2_1", 1)
+    desc.seed, desc.model_sha256 = 1, other.model_sha256()
+    publisher.publish(run_seal.seal(desc))
+    client.wait_for(lambda: "ignored a description of another plant" in launch.log(proc), TIMEOUT, "the refusal")
+    answer = client.call(service, request(s0, 10))
+    assert answer.success and answer.plant == plant.model_sha256(), answer.message
     launch.assert_alive(proc)

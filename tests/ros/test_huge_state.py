@@ -30,6 +30,7 @@ from npp_ros_graph.common import (
     STATE,
 )
 from npp_ros_graph.convert import trajectory_to_msg
+from npp_ros_graph.seal import RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -43,16 +44,20 @@ DATA = Trajectory(
 )
 
 
-def serve_dataset(_request: Any, response: Any) -> Any:
+RUN_SEAL = RunSeal.from_environment()
+SEAL = RUN_SEAL.for_plant("test")  # the test plays this run's sim and supervisor
+
+
+def serve_dataset(request: Any, response: Any) -> Any:
     response.success, response.total, response.lipschitz, response.lipschitz_source = True, 1, 1.0, "user"
-    response.trajectories = [trajectory_to_msg(0, DATA)] if _request.start == 0 else []
-    return response
+    response.trajectories = [SEAL.seal(trajectory_to_msg(0, DATA))] if request.start == 0 else []
+    return SEAL.seal(response, answering=request)
 
 
 def state(position: list[float], velocity: list[float], sec: int) -> JointState:
     msg = JointState(name=JOINTS, position=position, velocity=velocity)
     msg.header.stamp = Time(sec=sec)
-    return msg
+    return SEAL.seal_header(msg, "0")
 
 
 def test_policy_node_refuses_a_huge_finite_state(launch: Launcher, ros_client: Callable[..., RosClient]) -> None:
@@ -62,7 +67,7 @@ def test_policy_node_refuses_a_huge_finite_state(launch: Launcher, ros_client: C
         task="lqr_2_1", seed=0, horizon=50, timestep=0.03, state_dim=4, action_dim=1,
         joint_names=JOINTS, actuated_joint_names=["joint_0"], model_sha256="test",
     )  # fmt: skip
-    node.create_publisher(PlantDescription, PLANT, LATCHED_QOS).publish(plant)
+    node.create_publisher(PlantDescription, PLANT, LATCHED_QOS).publish(RUN_SEAL.seal(plant))
     node.create_service(GetTrajectories, DATASET_SERVICE, serve_dataset, qos_profile=SERVICE_QOS)
     held = client.collect(UInt32, POLICY_STATUS, LATCHED_QOS)
     actions = client.collect(JointState, ACTION, CONTROL_QOS)

@@ -41,6 +41,7 @@ from npp_ros_graph.common import (
     STATE,
 )
 from npp_ros_graph.convert import trajectory_to_msg
+from npp_ros_graph.seal import RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -124,20 +125,22 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
     node = tester.node
     plant = LQRPlant("lqr_2_1", 0)
     plant_pub = node.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
+    run_seal = RunSeal.from_environment()  # the test plays this run's sim and supervisor
+    seal = run_seal.for_plant(plant.model_sha256())
     plant_pub.publish(
-        PlantDescription(
+        run_seal.seal(PlantDescription(
             task="lqr_2_1", seed=0, horizon=1000, timestep=plant.dt, state_dim=4, action_dim=1,
             joint_names=plant.joint_names, actuated_joint_names=plant.actuated_joint_names,
             model_sha256=plant.model_sha256(),
-        )
+        ))
     )  # fmt: skip
 
     def serve(req: GetTrajectories.Request, res: GetTrajectories.Response) -> GetTrajectories.Response:
         res.success, res.total = True, data.num_trajectories
         res.lipschitz, res.lipschitz_source = lipschitz, "lqr-analytic"
         stop = min(req.start + (req.max_count or 50), data.num_trajectories)
-        res.trajectories = [trajectory_to_msg(k, data.trajectory(k)) for k in range(req.start, stop)]
-        return res
+        res.trajectories = [seal.seal(trajectory_to_msg(k, data.trajectory(k))) for k in range(req.start, stop)]
+        return seal.seal(res, answering=req)
 
     node.create_service(GetTrajectories, DATASET_SERVICE, serve)
     held = tester.collect(UInt32, POLICY_STATUS, LATCHED_QOS)
@@ -153,7 +156,7 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
     for k, x in enumerate(states):  # as fast as Python can publish, never waiting for an answer
         msg = JointState(name=plant.joint_names, position=x[:2].tolist(), velocity=x[2:].tolist())
         msg.header.stamp = Time(sec=k // 1000, nanosec=(k % 1000) * 1_000_000)
-        state_pub.publish(msg)
+        state_pub.publish(seal.seal_header(msg, "0"))
         if k % 100 == 0:
             tester.executor.spin_once(timeout_sec=0)  # keep our inboxes drained
 

@@ -20,6 +20,7 @@ from sensor_msgs.msg import JointState
 
 from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
 from npp_ros_graph.common import ACTION, CONTROL_QOS, LATCHED_QOS, PLANT, REPORT_QOS, RESET_SERVICE, ROLLOUT_DONE, STATE
+from npp_ros_graph.seal import RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -42,13 +43,18 @@ class SimHandle:
     states: list[JointState]
     results: list[EpisodeResult]
     plant: PlantDescription
+    seal: RunSeal  # the run's seal for the plant: the test plays this run's supervisor and policy
+    episode: int = 0
 
     def reset_to(self, state: list[float], episode: int = 0) -> ResetEpisode.Response:
         """Reset and wait for the episode's first state (re-sent if our subscription matched late)."""
         deadline = time.monotonic() + TIMEOUT
+        self.episode = episode
         while True:
             seen = len(self.states)
-            answer = self.client.call(self.reset, ResetEpisode.Request(state=state, episode=episode), TIMEOUT)
+            request = self.seal.seal(ResetEpisode.Request(state=state, episode=episode))
+            answer = self.client.call(self.reset, request, TIMEOUT)
+            self.seal.check(answer, "the reset answer", answering=request)
             if not answer.success:
                 return answer
             try:
@@ -58,10 +64,12 @@ class SimHandle:
                 if time.monotonic() > deadline:
                     raise
 
-    def act(self, effort: list[float], stamp: Time, names: list[str] | None = None) -> None:
+    def act(self, effort: list[float], stamp: Time, names: list[str] | None = None, seal: RunSeal | None = None,
+            context: str | None = None) -> None:  # fmt: skip
+        """Publish an action answering `stamp`, sealed as this run's policy would (or with `seal`, `context`)."""
         msg = JointState(effort=effort, name=self.plant.actuated_joint_names if names is None else names)
         msg.header.stamp = stamp
-        self.action_pub.publish(msg)
+        self.action_pub.publish((seal or self.seal).seal_header(msg, context or f"{self.episode}/0"))
 
     def next_state(self, seen: int) -> JointState:
         self.client.wait_for(lambda: len(self.states) > seen, TIMEOUT, "the next state")
@@ -95,7 +103,10 @@ def sim(launch_module: Launcher, ros_client_module: Callable[..., RosClient]) ->
     client.wait_for(lambda: bool(plants), TIMEOUT, "the latched plant description")
     client.wait_for(lambda: action_pub.get_subscription_count() > 0, TIMEOUT, "the sim to subscribe to actions")
     launch.assert_alive(proc)
-    return SimHandle(launch, proc, client, reset, action_pub, states, results, plants[-1])
+    run_seal = RunSeal.from_environment()
+    run_seal.check(plants[-1], "the plant description")
+    seal = run_seal.for_plant(plants[-1].model_sha256)
+    return SimHandle(launch, proc, client, reset, action_pub, states, results, plants[-1], seal)
 
 
 def test_plant_description(sim: SimHandle) -> None:
@@ -191,3 +202,35 @@ def test_resets(sim: SimHandle) -> None:
     np.testing.assert_array_equal(answer.state, expected)
     np.testing.assert_array_equal(as_state(sim.states[-1]), expected)
     assert ns(sim.states[-1].header.stamp) == 0
+
+
+def test_only_this_runs_resets_and_actions_move_the_plant(sim: SimHandle) -> None:
+    """A stray publisher or another run's supervisor on the domain cannot reset or drive the plant."""
+    answer = sim.reset_to([0.3, 0.0, 0.0, 0.0], episode=3)
+    assert answer.success, answer.message
+    first, seen = sim.states[-1], len(sim.states)
+    assert sim.seal.check_header(first, "the state") == "3"
+
+    stray = ResetEpisode.Request(state=[0.9, 0.9, 0.9, 0.9], episode=4)  # unsealed: a user's hand-made call
+    refused = sim.client.call(sim.reset, stray, TIMEOUT)
+    assert not refused.success and "seal" in refused.message, refused.message
+    other_run = RunSeal(b"another run's key", private=True).for_plant(sim.plant.model_sha256)
+    refused = sim.client.call(sim.reset, other_run.seal(stray), TIMEOUT)
+    assert not refused.success and "seal" in refused.message, refused.message
+
+    unsealed = JointState(effort=[5.0], name=list(sim.plant.actuated_joint_names))
+    unsealed.header.stamp = first.header.stamp
+    sim.action_pub.publish(unsealed)  # the state's own stamp, no seal
+    sim.act([5.0], first.header.stamp, seal=other_run)  # another run's key
+    sim.act([5.0], first.header.stamp, context="2/0")  # this run's key, an earlier episode with the same stamp
+    fragment = "does not carry this run's seal"
+    sim.client.wait_for(lambda: fragment in sim.launcher.log(sim.proc), 10.0, f"a warning about {fragment!r}")
+    deadline = time.monotonic() + QUIET_S
+    sim.client.wait_for(lambda: time.monotonic() > deadline, QUIET_S + 5)
+    # Nothing moved: at most the unanswered first state was sent again.
+    assert all(ns(msg.header.stamp) == 0 for msg in sim.states[seen:])
+    assert "episode 3 abandoned" not in sim.launcher.log(sim.proc)  # the stray resets were refused
+
+    seen = len(sim.states)
+    sim.act([0.1], first.header.stamp)  # this run's answer still moves the plant
+    sim.client.wait_for(lambda: any(ns(m.header.stamp) == DT_NS for m in sim.states[seen:]), TIMEOUT, "step 1")

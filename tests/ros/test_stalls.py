@@ -1,0 +1,93 @@
+"""A paused node catches up by itself: SIGSTOP for longer than the middleware's liveliness limit (Fast
+DDS drops a silent participant after its 20 s lease), then SIGCONT.
+
+Reproduced as found: the supervisor stopped right after it handed the policy a new trajectory (the
+gap report of an oracle episode comes just after), so that the trajectory is lost on its way; then the
+sim stopped in the middle of an episode; then the policy and the expert together. Before, every
+episode after the supervisor's pause waited the whole rollout_timeout for a trajectory already stored,
+and the sim's lost reset did the same. Here rollout_timeout is long (600 s): an episode that waited it
+out would run the test past its deadline. The run must also end exactly as the in-process run does,
+with a return for every episode.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pytest
+from npp_interfaces.msg import Certificate, GapReport
+from reference import ROLLOUT_FREE, decisions, uninterrupted_run
+
+from npp_ros.storage import RunStore
+from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.seal import KEY_ENV, RunSeal
+
+if TYPE_CHECKING:
+    from tests.ros.conftest import Launcher, RosClient
+
+pytestmark = pytest.mark.slow
+
+HORIZON = 50
+MAX_EPISODES = 400
+PAUSE_S = 25.0  # longer than Fast DDS's default participant lease (20 s)
+TIMEOUT = 900.0
+
+
+def test_paused_nodes_catch_up_by_themselves(
+    launch: Launcher, ros_client: Callable[..., RosClient], tmp_path: Path
+) -> None:
+    run_dir = tmp_path / "run"
+    key = {KEY_ENV: RunSeal.new_key()}
+    client = ros_client("stall_watcher")
+    gaps: list[GapReport] = client.collect(GapReport, GAP, REPORT_QOS)
+    certificates = client.collect(Certificate, CERTIFICATE, LATCHED_QOS)
+    params: dict[str, dict[str, Any]] = {
+        "sim": {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON},
+        "expert": {},
+        "policy": {},
+        "supervisor": {"run_dir": str(run_dir), "max_episodes": MAX_EPISODES, "rollout_timeout": 600.0,
+                       **ROLLOUT_FREE},
+    }  # fmt: skip
+    procs = {name: launch(f"npp_ros_graph.{name}_node", values, extra_env=key) for name, values in params.items()}
+
+    def pause(names: list[str], when: Callable[[], bool], label: str) -> float:
+        """SIGSTOP the nodes once `when` holds, SIGCONT after PAUSE_S; seconds from SIGCONT to the next episode."""
+        client.wait_for(when, TIMEOUT, label)
+        for name in names:
+            os.kill(procs[name].pid, signal.SIGSTOP)
+        stopped_at = len(gaps)
+        deadline = time.monotonic() + PAUSE_S
+        client.wait_for(lambda: time.monotonic() > deadline, PAUSE_S + 10)
+        for name in names:
+            os.kill(procs[name].pid, signal.SIGCONT)
+        resumed = time.monotonic()
+        client.wait_for(lambda: len(gaps) > stopped_at + 1 or bool(certificates), TIMEOUT, f"episodes after {label}")
+        return time.monotonic() - resumed
+
+    recovery = {
+        "supervisor": pause(
+            ["supervisor"], lambda: len(gaps) >= 5 and gaps[-1].oracle_called, "an oracle episode after the fifth"
+        ),
+        "sim": pause(["sim"], lambda: len(gaps) >= 25, "episode 25"),
+        "policy and expert": pause(["policy", "expert"], lambda: len(gaps) >= 40, "episode 40"),
+    }
+    client.wait_for(lambda: bool(certificates), TIMEOUT, "the certificate")
+    print(f"\nseconds from SIGCONT to the next episode after a {PAUSE_S:g} s pause: {recovery}")
+    for proc in procs.values():
+        launch.assert_alive(proc)
+
+    time.sleep(0.5)  # the supervisor's worker closes the run file after certifying
+    with RunStore.open(run_dir / "run.sqlite") as store:
+        data, rows, certificate = store.load_dataset(), store.episodes(), store.certificate()
+    local_loop, local = uninterrupted_run(horizon=HORIZON, max_episodes=MAX_EPISODES, **ROLLOUT_FREE)
+    assert local.certificate is not None and certificate == local.certificate.record()
+    assert decisions(rows) == decisions(local.rows)
+    np.testing.assert_array_equal(data.states, local_loop.dataset.states)
+    missing = [row.episode for row in rows if row.policy_return is None]
+    assert not missing, f"episodes without the policy's return: {missing}"
