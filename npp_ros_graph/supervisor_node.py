@@ -312,15 +312,38 @@ class SupervisorNode(Node):
             self.trajectory_pub.publish(self.trajectory_msg(k, self.loop.dataset.trajectory(k)))
 
     def call(self, client: Client, request, timeout: float):
-        """One service call with a deadline; an unanswered request is withdrawn, not left pending forever."""
-        future = client.call_async(request)
-        done = threading.Event()
-        future.add_done_callback(lambda _f: done.set())
-        if not done.wait(timeout):
+        """One service call with a deadline; an unanswered request is withdrawn, not left pending forever.
+
+        A request or its answer is lost when either end was paused past the middleware's lease (a
+        SIGSTOP, a debugger, a starved host): the server leaves the graph and comes back, or this
+        process finds that far more time passed than it waited. Then the request is sent again
+        (services here answer a repeated request the same way) instead of waiting out the deadline.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            future = client.call_async(request)
+            done = threading.Event()
+            future.add_done_callback(lambda _f, done=done: done.set())
+            left = False
+            while True:
+                before = time.monotonic()
+                if done.wait(min(RESEND_S, max(deadline - before, 0.0))):
+                    return future.result()
+                now = time.monotonic()
+                if now >= deadline:
+                    client.remove_pending_request(future)
+                    future.cancel()
+                    return None
+                ready = client.service_is_ready()
+                left = left or not ready
+                if ready and (left or now - before > 3 * RESEND_S):
+                    break
             client.remove_pending_request(future)
             future.cancel()
-            return None
-        return future.result()
+            self.get_logger().info(
+                f"{client.srv_name}: the request may have been lost in a pause; sending it again",
+                throttle_duration_sec=5.0,
+            )
 
     def destroy_node(self) -> None:
         self._plants.close()
