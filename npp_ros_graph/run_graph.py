@@ -50,8 +50,8 @@ GRAPH_TOPICS = (PLANT, GAP)  # one publisher each per graph: its sim and its sup
 LOG_HEADER = "==== npp-run: this start of the node at"
 STALL_NOTICE_S = 2.0  # a node stopped this long is named
 TWO_GRAPHS = (
-    "Two graphs on one domain mix their states, actions and datasets: stop the other one, or give this run "
-    "its own domain (--domain-id N)"
+    "Two graphs on one domain answer each other's service calls (their seals keep their data apart, at the cost "
+    "of retries): stop the other one, or give this run its own domain (--domain-id N)"
 )
 
 
@@ -114,7 +114,7 @@ class Follower(Node):
         """Who else publishes a graph's one-per-graph topics (the sim's plant, the supervisor's gaps), or None.
 
         ``ours`` is how many of those publishers this run owns on each topic: 0 before its nodes start,
-        1 after. Two graphs on one domain mix their states, actions and datasets, so either is refused.
+        1 after. Two graphs on one domain answer each other's service calls, so either is refused.
         """
         found = []
         for topic in GRAPH_TOPICS:

@@ -18,6 +18,8 @@ from pathlib import Path
 import pytest
 from domain_coordinator import domain_id
 
+from npp_ros_graph.run_graph import SECOND_GRAPH_WINDOW_S
+
 START_TIMEOUT_S = 180.0  # four Python processes importing rclpy and MuJoCo on a shared 2-core machine
 GONE_TIMEOUT_S = 30.0  # the children get SIGTERM at once; a loaded machine may take a while to run them
 NODES = ("sim", "expert", "policy", "supervisor")
@@ -153,6 +155,7 @@ def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp
 # ----------------------------------------------------------------------------- 3. a second npp-run
 def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_domain: int) -> None:
     run_dir, out = tmp_path / "run", tmp_path / "first.out"
+    first_started = time.monotonic()
     with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), log=out)) as first:
         nodes_up(run_dir, first.pid)
         lock = run_dir / "run.lock"
@@ -177,7 +180,10 @@ def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_d
         assert not (run_dir / "logs" / "sim.1.log").exists()  # no node of the second run ever started
         assert (run_dir / "logs" / "sim.log").read_text().startswith(sim_log)
 
-        # Same domain, another folder: the other graph's sim and supervisor are seen and named.
+        # Same domain, another folder: the other graph's sim and supervisor are seen and named. The first run is
+        # past the window in which a second graph stops it, so however slow discovery is on a loaded machine
+        # (the second may start its nodes before it sees the first, and then stops), the first goes on.
+        wait_until(lambda: time.monotonic() - first_started > SECOND_GRAPH_WINDOW_S, 120, "the first run's window")
         started = time.monotonic()
         same_domain = subprocess.run(
             [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(tmp_path / "other"), "--domain-id",
@@ -194,7 +200,7 @@ def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_d
         assert first.poll() is None, out.read_text()
         first.send_signal(signal.SIGINT)
         assert first.wait(120) == 130
-    assert "another graph" not in out.read_text()
+    assert "stopping. Two graphs" not in out.read_text()  # at most a warning, if the second started its nodes
 
 
 # ----------------------------------------------------------------------------- 4. npp-monitor
