@@ -31,11 +31,13 @@ When to stop (``rule``):
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Literal, get_args
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any, Literal, get_args
 
 import numpy as np
+
+from npp_ros.lipschitz import LipschitzConstant
 
 Condition = Literal["i", "ii"]
 CheckedQuantity = Literal["rollout", "oracle", "surrogate"]
@@ -53,13 +55,13 @@ QUANTITY = {
 
 @dataclass(frozen=True)
 class CertificationSpec:
-    """What the run must certify. ``diameter`` is diam(S0), needed by condition (ii) only."""
+    """What the run must certify, and the L it rests on. ``diameter`` is diam(S0), needed by condition (ii) only."""
 
     condition: Condition
     epsilon: float
     p: float
     delta: float
-    lipschitz: float
+    lipschitz: LipschitzConstant
     diameter: float | None = None
     certify: CheckedQuantity = "rollout"
     rule: StoppingRule = "sequential"
@@ -77,8 +79,6 @@ class CertificationSpec:
             raise ValueError(f"p must lie in (0, 1), got {self.p!r}")
         if not 0 < self.delta < 1:
             raise ValueError(f"delta must lie in (0, 1), got {self.delta!r}")
-        if not (math.isfinite(self.lipschitz) and self.lipschitz > 0):
-            raise ValueError(f"the Lipschitz constant must be finite and > 0, got {self.lipschitz!r}")
         if self.condition == "ii" and (self.diameter is None or not self.diameter > 0):
             raise ValueError("condition (ii) needs diam(S0) > 0")
         if self.condition == "ii" and self.certify != "surrogate":
@@ -111,7 +111,7 @@ class CertificationSpec:
             return math.inf
         assert self.diameter is not None
         spend = self.delta if delta is None else delta
-        return 2 * self.lipschitz**2 * self.diameter**2 * math.log(1 / spend) / margin**2
+        return 2 * self.lipschitz.value**2 * self.diameter**2 * math.log(1 / spend) / margin**2
 
     def statement(self, episodes_used: int, value: str, policy_trajectories: int, test: int) -> str:
         """The claim in words: about which value, for which policy, at which confidence."""
@@ -129,6 +129,11 @@ class CertificationSpec:
             f"{confidence}, E_(s0~rho)[{gap}] <= {self.epsilon:.6g} for {policy}, where V is {value} (mean of "
             f"{QUANTITY[self.certify]} over {episodes_used} episodes, {how}, diam(S0) = {self.diameter:.6g})."
         )
+
+    def record(self) -> dict[str, Any]:
+        """The spec as run files and messages name it: L by value and source; diam(S0) is the task's."""
+        named = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("lipschitz", "diameter")}
+        return {**named, "lipschitz": self.lipschitz.value, "lipschitz_source": self.lipschitz.source}
 
 
 @dataclass(frozen=True)
@@ -231,42 +236,34 @@ class Certifier:
 
 @dataclass(frozen=True)
 class Certificate:
-    """The run's certificate, with everything needed to judge it."""
+    """The run's certificate: what it certifies (``spec``, for ``task``), what the run found, what it rests on."""
 
     task: str
-    condition: Condition
-    epsilon: float
-    p: float
-    delta: float
-    lipschitz: float
-    lipschitz_source: str
+    spec: CertificationSpec
     episodes: int
     oracle_calls: int
     dataset_size: int
+    policy_trajectories: int
     window: int
     required: int
+    test: int
+    delta_spent: float
+    value: str
     statement: str
-    certify: CheckedQuantity = "surrogate"
-    rule: StoppingRule = "paper"
-    quantity: str = QUANTITY["surrogate"]
-    value: str = ""
-    test: int = 0
-    delta_spent: float = 0.0
-    lipschitz_margin: float = 0.0
-    policy_trajectories: int = 0
-    proven: bool = False
-    assumptions: tuple[str, ...] = ()
+    proven: bool
+    assumptions: tuple[str, ...]
 
     def summary(self) -> str:
+        spec, lipschitz = self.spec, self.spec.lipschitz
         proof = "yes" if self.proven else "NO: it rests on a step that does not hold here (see assumptions)"
         lines = [
-            f"CERTIFICATE ({self.task}, condition ({self.condition}), certify={self.certify}, rule={self.rule})",
+            f"CERTIFICATE ({self.task}, condition ({spec.condition}), certify={spec.certify}, rule={spec.rule})",
             f"  episodes        {self.episodes}",
             f"  oracle calls    {self.oracle_calls}",
             f"  policy          greedy over {self.policy_trajectories} trajectories ({self.dataset_size} triplets)",
-            f"  L used          {self.lipschitz:.6g} ({self.lipschitz_source}, margin {self.lipschitz_margin:g})",
-            f"  epsilon, p, delta  {self.epsilon:g}, {self.p:g}, {self.delta:g}",
-            f"  checked         {self.quantity}",
+            f"  L used          {lipschitz.value:.6g} ({lipschitz.source}, margin {lipschitz.margin:g})",
+            f"  epsilon, p, delta  {spec.epsilon:g}, {spec.p:g}, {spec.delta:g}",
+            f"  checked         {QUANTITY[spec.certify]}",
             f"  value           {self.value}",
             f"  test            {self.test}, spent delta {self.delta_spent:.4g}",
             f"  window          {self.window} episodes (required {self.required})",
@@ -277,12 +274,18 @@ class Certificate:
         lines += [f"    - {text}" for text in self.assumptions]
         return "\n".join(lines)
 
+    def record(self) -> dict[str, Any]:
+        """One flat record of plain values: what the run file stores and the message carries."""
+        found = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "spec"}
+        spec = self.spec
+        certified = {**spec.record(), "lipschitz_margin": spec.lipschitz.margin, "quantity": QUANTITY[spec.certify]}
+        return {**found, **certified, "assumptions": list(self.assumptions)}
+
     @classmethod
-    def from_dict(cls, data: dict) -> Certificate:
-        """Rebuild from a stored dict (JSON turns the assumptions tuple into a list)."""
-        values = {name: data[name] for name in cls.__dataclass_fields__ if name in data}
-        values["assumptions"] = tuple(values.get("assumptions", ()))
-        return cls(**values)
+    def from_record(cls, record: Mapping[str, Any], spec: CertificationSpec) -> Certificate:
+        """Rebuild from a stored record, for the run ``spec`` describes (a resume has checked they agree)."""
+        found = {f.name: record[f.name] for f in fields(cls) if f.name != "spec"}
+        return cls(spec=spec, **{**found, "assumptions": tuple(found["assumptions"])})
 
 
 def false_certificate_rate(

@@ -23,25 +23,14 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Protocol
 
 import numpy as np
 
 from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import (
-    QUANTITY,
-    Certificate,
-    CertificationSpec,
-    CertificationStatus,
-    Certifier,
-    CheckedQuantity,
-    Condition,
-    StoppingRule,
-    assumption_list,
-)
+from npp_ros.certification import Certificate, CertificationSpec, CertificationStatus, Certifier, assumption_list
 from npp_ros.dataset import Dataset, FloatArray, Trajectory
-from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.storage import EpisodeRow, RunFileError, RunMetadata, RunStore, state_tuple
 from npp_ros.values import ValueBasis
 
@@ -73,40 +62,23 @@ class Observer:
 
 @dataclass(frozen=True)
 class RunConfig:
-    """Everything that defines a run; two runs with equal configs give equal numbers."""
+    """Everything that defines a run: the task and its plant, and what the run certifies (``spec``).
+
+    Two runs with equal configs give equal numbers. ``run_setup.build_config`` builds one for a task.
+    """
 
     task: str
     seed: int
     state_dim: int
     action_dim: int
-    lipschitz: LipschitzConstant
-    epsilon: float
-    condition: Condition = "i"
-    p: float = 0.9
-    delta: float = 0.1
+    spec: CertificationSpec
     horizon: int = 1000
     gamma: float = 1.0
-    diameter: float | None = None
-    certify: CheckedQuantity = "rollout"
-    rule: StoppingRule = "sequential"
-
-    def __post_init__(self) -> None:
-        self.spec()  # refuses a bad combination when the run is defined, not episodes later
-
-    def spec(self) -> CertificationSpec:
-        return CertificationSpec(
-            self.condition, self.epsilon, self.p, self.delta, self.lipschitz.value, self.diameter,
-            certify=self.certify, rule=self.rule,
-        )  # fmt: skip
 
     def metadata(self) -> RunMetadata:
-        return RunMetadata(
-            task=self.task, seed=self.seed, state_dim=self.state_dim, action_dim=self.action_dim,
-            lipschitz=self.lipschitz.value, lipschitz_source=self.lipschitz.source,
-            lipschitz_detail=self.lipschitz.detail, gamma=self.gamma, horizon=self.horizon,
-            epsilon=self.epsilon, condition=self.condition, p=self.p, delta=self.delta,
-            certify=self.certify, rule=self.rule,
-        )  # fmt: skip
+        """What the run file records of this config: its own fields, the spec's record, where L came from."""
+        own = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "spec"}
+        return RunMetadata(**own, **self.spec.record(), lipschitz_detail=self.spec.lipschitz.detail)
 
 
 @dataclass
@@ -142,10 +114,11 @@ class NPPLoop:
         basis: ValueBasis | None = None,
     ) -> None:
         self.config = config
-        self.spec = config.spec()
-        if config.certify != "surrogate" and driver is None:
-            raise ValueError(f"certify={config.certify} checks the policy's own return: it needs the policy's rollouts")
-        if config.certify == "rollout" and (basis is None or basis.tail is None):
+        self.spec = config.spec
+        certify = self.spec.certify
+        if certify != "surrogate" and driver is None:
+            raise ValueError(f"certify={certify} checks the policy's own return: it needs the policy's rollouts")
+        if certify == "rollout" and (basis is None or basis.tail is None):
             detail = basis.tail_detail if basis is not None else "the expert states no value basis"
             raise ValueError(f"certify=rollout needs an upper bound on the H-step value at s0 ({detail}); use oracle")
         self.oracle = oracle
@@ -162,7 +135,7 @@ class NPPLoop:
         self.policy_data = self.dataset  # the prefix the policy acts on (shorter only while checks hold data back)
         if store is not None:
             self._resume(store)
-        self.policy = NonparametricPolicy(self.policy_data, config.lipschitz.value)
+        self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
 
     # ------------------------------------------------------------------ state
     @property
@@ -184,7 +157,7 @@ class NPPLoop:
     def held_back_after(self, episodes: int) -> int:
         """Oracle mode: trajectories of the passed checks since the last failed one, among the first
         ``episodes`` episodes; they were stored but not yet part of the policy."""
-        if self.config.certify != "oracle":
+        if self.spec.certify != "oracle":
             return 0
         held = 0
         for row in reversed(self.rows[:episodes]):
@@ -212,8 +185,8 @@ class NPPLoop:
             )
         stored = store.certificate()
         if stored is not None:
-            self.certificate = Certificate.from_dict(stored)
-        elif self.config.certify == "oracle":
+            self.certificate = Certificate.from_record(stored, self.spec)
+        elif self.spec.certify == "oracle":
             self._set_policy_prefix(self.dataset.num_trajectories - self.held_back_after(len(self.rows)))
 
     def _set_policy_prefix(self, count: int) -> None:
@@ -229,7 +202,7 @@ class NPPLoop:
     def _ask_oracle(self, s0: FloatArray) -> Trajectory:
         answer = self.oracle.trajectory(s0)
         trajectory = self.dataset.validate(answer.states, answer.actions, answer.values)
-        if self.config.certify == "oracle":
+        if self.spec.certify == "oracle":
             ret = answer.expert_return
             if ret is None or not math.isfinite(ret):
                 raise ValueError("certify=oracle needs the expert's own return at s0, and the expert gave none")
@@ -238,9 +211,9 @@ class NPPLoop:
 
     def _check(self, s0: FloatArray, v_ub: float, policy_return: float | None, answer: Trajectory | None) -> float:
         """The checked quantity at s0; +inf when it cannot be computed (no policy yet, no return)."""
-        if len(self.policy_data) == 0 or (self.config.certify != "surrogate" and policy_return is None):
+        if len(self.policy_data) == 0 or (self.spec.certify != "surrogate" and policy_return is None):
             return math.inf
-        if self.config.certify == "rollout":
+        if self.spec.certify == "rollout":
             assert self.basis is not None and self.basis.tail is not None and policy_return is not None
             return v_ub + self.basis.tail(s0) - policy_return
         assert answer is not None and answer.expert_return is not None and policy_return is not None
@@ -253,7 +226,7 @@ class NPPLoop:
         s0 = np.asarray(self.initial_state(episode), dtype=np.float64)
         v_lb, v_ub = float(self.policy.lower(s0).value[0]), float(self.policy.upper(s0).value[0])
         gap = v_ub - v_lb if len(self.policy_data) else math.inf
-        mode, epsilon = self.config.certify, self.spec.epsilon
+        mode, epsilon = self.spec.certify, self.spec.epsilon
         trajectory: Trajectory | None = None
         policy_return: float | None = None
         if mode == "surrogate":
@@ -319,7 +292,7 @@ class NPPLoop:
         if status.certified and self.certificate is None:
             self.certificate = self._make_certificate(status)
             if self.store is not None:
-                self.store.set_certificate(asdict(self.certificate))
+                self.store.set_certificate(self.certificate.record())
             for observer in self.observers:
                 observer.on_certificate(self.certificate)
             if self.held_back:
@@ -330,7 +303,7 @@ class NPPLoop:
         """The first held trajectory splits the policy's data from the stored data."""
         if self.policy_data is self.dataset:
             self._set_policy_prefix(self.dataset.num_trajectories - 1)
-            self.policy = NonparametricPolicy(self.policy_data, self.config.lipschitz.value)
+            self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
 
     def _joined(self, index: int | None) -> None:
         if index is None:
@@ -342,25 +315,25 @@ class NPPLoop:
         """The streak ended: held trajectories join the policy, in stored order."""
         first = self.policy_data.num_trajectories
         self.policy_data = self.dataset
-        self.policy = NonparametricPolicy(self.policy_data, self.config.lipschitz.value)
+        self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
         for index in range(first, self.dataset.num_trajectories):
             self._joined(index)
 
     def _assumptions(self) -> tuple[str, ...]:
-        cfg, basis = self.config, self.basis
+        spec, basis = self.spec, self.basis
         lipschitz = (
-            f"L = {cfg.lipschitz.value:.6g} ({cfg.lipschitz.source}) bounds the slope of the stored value function "
+            f"L = {spec.lipschitz.value:.6g} ({spec.lipschitz.source}) bounds the slope of the stored value function "
             f"on every segment between an initial state and a data point"
         )
         common = [
             "initial states are independent draws from rho, independent of the run so far",
             "the plant is deterministic, so one rollout's return is the policy's value at s0",
         ]
-        if cfg.certify == "rollout":
+        if spec.certify == "rollout":
             assert basis is not None
             items = [lipschitz, "the expert's stored values equal its value function at the data points",
                      basis.tail_detail, *common]  # fmt: skip
-        elif cfg.certify == "oracle":
+        elif spec.certify == "oracle":
             items = ["the expert's reported return at s0 is the return of the trajectory it gives", *common,
                      "no Lipschitz constant is needed; the claim is relative to the expert's own return"]  # fmt: skip
         else:
@@ -368,49 +341,39 @@ class NPPLoop:
                      basis.theorem_34 if basis is not None and basis.theorem_34 else
                      "Theorem 3.4's condition was not checked for this plant",
                      "initial states are independent draws from rho"]  # fmt: skip
-        if cfg.rule == "paper":
+        if spec.rule == "paper":
             items.append("the paper's one-shot test, though it is checked after every episode (not sequentially valid)")
         return assumption_list(items)
 
     def _proven(self) -> bool:
-        cfg = self.config
-        if cfg.rule == "paper":
+        if self.spec.rule == "paper":
             return False
-        if cfg.certify == "surrogate":
+        if self.spec.certify == "surrogate":
             return bool(self.basis is not None and self.basis.theorem_34_holds)
         return True
 
     def _make_certificate(self, status: CertificationStatus) -> Certificate:
-        cfg = self.config
-        if cfg.certify == "oracle":
-            value = f"the expert's own H-step return V^E_H (H = {cfg.horizon}), as the oracle reports it"
-        elif cfg.certify == "rollout" and self.basis is not None:
+        certify = self.spec.certify
+        if certify == "oracle":
+            value = f"the expert's own H-step return V^E_H (H = {self.config.horizon}), as the oracle reports it"
+        elif certify == "rollout" and self.basis is not None:
             value = self.basis.value
         else:
             value = "V*, the value function the expert's stored values describe"
         policy_trajectories = self.policy_data.num_trajectories
         return Certificate(
-            task=cfg.task,
-            condition=cfg.condition,
-            epsilon=cfg.epsilon,
-            p=cfg.p,
-            delta=cfg.delta,
-            lipschitz=cfg.lipschitz.value,
-            lipschitz_source=cfg.lipschitz.source,
+            task=self.config.task,
+            spec=self.spec,
             episodes=len(self.rows),
             oracle_calls=self.oracle_calls,
             dataset_size=len(self.policy_data),
+            policy_trajectories=policy_trajectories,
             window=status.window,
             required=status.required,
-            statement=self.spec.statement(status.window, value, policy_trajectories, status.test),
-            certify=cfg.certify,
-            rule=cfg.rule,
-            quantity=QUANTITY[cfg.certify],
-            value=value,
             test=status.test,
             delta_spent=status.test_delta,
-            lipschitz_margin=cfg.lipschitz.margin,
-            policy_trajectories=policy_trajectories,
+            value=value,
+            statement=self.spec.statement(status.window, value, policy_trajectories, status.test),
             proven=self._proven(),
             assumptions=self._assumptions(),
         )

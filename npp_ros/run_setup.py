@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import CheckedQuantity, Condition, StoppingRule
+from npp_ros.certification import CertificationSpec, CheckedQuantity, Condition, StoppingRule
 from npp_ros.dataset import FloatArray
 from npp_ros.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
 from npp_ros.loop import NPPLoop, Observer, RunConfig
@@ -47,13 +47,16 @@ def build_config(
     certify: CheckedQuantity | None = None,
     rule: StoppingRule = "sequential",
 ) -> RunConfig:
-    """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts)."""
-    spec = get_task(task)
-    return RunConfig(
-        task=task, seed=seed, state_dim=spec.state_dim, action_dim=spec.action_dim, lipschitz=lipschitz,
-        epsilon=epsilon, condition=condition, p=p, delta=delta, horizon=horizon, gamma=gamma,
-        diameter=spec.initial_state_diameter, certify=certify or spec.default_certify, rule=rule,
+    """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts).
+
+    Refuses a bad combination (ValueError) when the run is defined, not episodes later.
+    """
+    definition = get_task(task)
+    spec = CertificationSpec(
+        condition, epsilon, p, delta, lipschitz, definition.initial_state_diameter,
+        certify=certify or definition.default_certify, rule=rule,
     )  # fmt: skip
+    return RunConfig(task, seed, definition.state_dim, definition.action_dim, spec, horizon=horizon, gamma=gamma)
 
 
 def initial_state_fn(task: str, seed: int) -> Callable[[int], FloatArray]:
@@ -85,7 +88,7 @@ def build_loop(
 ) -> NPPLoop:
     """The loop for ``config`` with this expert; the sound modes always let the policy drive."""
     store = RunStore.open_or_create(store_path, config.metadata()) if store_path is not None else None
-    drive = rollouts or config.certify != "surrogate"
+    drive = rollouts or config.spec.certify != "surrogate"
     task = get_task(config.task)
     driver = PolicyRollouts(task.make_plant(config.seed), config.horizon) if drive else None
     return NPPLoop(
@@ -96,7 +99,7 @@ def build_loop(
         driver=driver,
         observers=observers,
         expert_value=task.expert_value(expert),
-        basis=value_basis(expert, config.lipschitz.value),
+        basis=value_basis(expert, config.spec.lipschitz.value),
     )
 
 
@@ -119,4 +122,4 @@ def lipschitz_checks(loop: NPPLoop, expert: Expert, rollout_slope: float = 0.0) 
         slopes.append((estimate_global(loop.dataset), "data-estimated (global)"))
     if rollout_slope and math.isfinite(rollout_slope):  # NaN: the expert knows no closed-form slope
         slopes.append((rollout_slope, "exact |grad V| over the evaluation rollouts"))
-    return [check_lipschitz(loop.config.lipschitz.value, slope, source) for slope, source in slopes]
+    return [check_lipschitz(loop.spec.lipschitz.value, slope, source) for slope, source in slopes]

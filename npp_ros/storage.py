@@ -3,8 +3,8 @@
 The file is SQLite (format "npp_ros.run", version FORMAT_VERSION), readable by the sqlite3 shell, pandas,
 R or any language; no pickle. Tables (see README, "Run file format"):
 
-- ``meta(key, value)``: format, format_version, task, seed, dims, L and its source, gamma,
-  horizon, epsilon, condition, p, delta, created, and the certificate (JSON) once issued;
+- ``meta(key, value)``: format, format_version, created, the run's metadata (``RunConfig.metadata()``:
+  task, seed, dims, horizon, gamma, what it certifies, L with its source), and the certificate (JSON) once issued;
 - ``trajectories(id, episode, steps, sha256)``: one row per expert trajectory, ids from 0;
 - ``points(trajectory, step, s_0.., a_0.., q)``: the (s, a, Q) triplets, one row per step;
 - ``episodes(episode, ...)``: Algorithm 1's decision per episode, and the policy's return.
@@ -51,8 +51,9 @@ import sys
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager, suppress
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -61,6 +62,7 @@ from npp_ros.dataset import Dataset, DatasetError, FloatArray, Trajectory
 
 FORMAT_NAME = "npp_ros.run"
 FORMAT_VERSION = 2  # 2: certification mode, stopping rule, checked gap and test per episode
+_FILE_KEYS = ("format", "format_version", "created", "certificate")  # meta keys that are not the run's metadata
 
 # How long a write waits for another connection's write transaction (a user's sqlite3 shell
 # writing to the file, say) before it gives up. Readers never make a writer wait (WAL).
@@ -74,37 +76,19 @@ class RunFileError(RuntimeError):
     """The run file is missing, damaged, of another version, or made for another run."""
 
 
-@dataclass(frozen=True)
-class RunMetadata:
-    """What a run file was made for; a resume must ask for the same."""
+class RunMetadata(SimpleNamespace):
+    """What a run file was made for: the meta table's values by name, as ``RunConfig.metadata()`` gives them.
 
-    task: str
-    seed: int
-    state_dim: int
-    action_dim: int
-    lipschitz: float
-    lipschitz_source: str
-    lipschitz_detail: str
-    gamma: float
-    horizon: int
-    epsilon: float
-    condition: str
-    p: float
-    delta: float
-    certify: str
-    rule: str
+    A resumed run must ask for the same values; only where L came from (its detail) may differ.
+    """
 
-    # Fields a resumed run must match exactly; the rest is provenance.
-    IDENTITY = (
-        "task", "seed", "state_dim", "action_dim", "lipschitz", "lipschitz_source",
-        "gamma", "horizon", "epsilon", "condition", "p", "delta", "certify", "rule",
-    )  # fmt: skip
+    PROVENANCE = ("lipschitz_detail",)
 
-    def mismatches(self, other: RunMetadata) -> list[str]:
+    def mismatches(self, asked: RunMetadata) -> list[str]:
         return [
-            f"{name}: file has {getattr(self, name)!r}, this run asks for {getattr(other, name)!r}"
-            for name in self.IDENTITY
-            if getattr(self, name) != getattr(other, name)
+            f"{name}: file has {getattr(self, name, None)!r}, this run asks for {value!r}"
+            for name, value in vars(asked).items()
+            if name not in self.PROVENANCE and getattr(self, name, None) != value
         ]
 
 
@@ -234,7 +218,7 @@ class RunStore:
                 "checked_gap REAL, test INTEGER NOT NULL, test_delta REAL NOT NULL)"
             )
             rows = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "created": str(time.time())}
-            rows.update({k: json.dumps(v) for k, v in asdict(metadata).items()})
+            rows.update({k: json.dumps(v) for k, v in vars(metadata).items()})
             conn.executemany("INSERT INTO meta VALUES (?, ?)", rows.items())
 
     @classmethod
@@ -261,10 +245,12 @@ class RunStore:
                 f"{FORMAT_VERSION}; convert it or use the npp_ros that wrote it"
             )
         try:
-            fields = {k: json.loads(meta[k]) for k in RunMetadata.__dataclass_fields__}
-            metadata = RunMetadata(**fields)
-        except (KeyError, ValueError, TypeError) as exc:
-            raise RunFileError(f"{path} has incomplete metadata: {exc}") from exc
+            metadata = RunMetadata(**{k: json.loads(v) for k, v in meta.items() if k not in _FILE_KEYS})
+        except (ValueError, TypeError) as exc:
+            raise RunFileError(f"{path} has unreadable metadata: {exc}") from exc
+        missing = {"state_dim", "action_dim"} - vars(metadata).keys()  # the tables' shape
+        if missing:
+            raise RunFileError(f"{path} has incomplete metadata: no {' or '.join(sorted(missing))}")
         return cls(path, conn, metadata)
 
     @classmethod

@@ -178,14 +178,14 @@ def gap_report(row: EpisodeRow, config: RunConfig, time: Time) -> GapReport:
         v_lb=row.v_lb,
         v_ub=row.v_ub,
         gap=row.gap,
-        epsilon=config.epsilon,
+        epsilon=config.spec.epsilon,
         oracle_called=row.oracle_called,
         dataset_size=row.dataset_size,
         oracle_calls=row.oracle_calls,
         quiet_episodes=row.quiet_episodes,
         quiet_required=row.required,
-        condition=config.condition,
-        certify=config.certify,
+        condition=config.spec.condition,
+        certify=config.spec.certify,
         checked_gap=row.checked_gap,
         test=row.test,
         test_delta=row.test_delta,
@@ -226,33 +226,16 @@ def rollout_result(
 
 
 # ----------------------------------------------------------------------------- certificate
+CERTIFICATE_RENAMED = {"window": "quiet_episodes", "required": "episodes_required"}  # record name -> message field
+
+
 def certificate_to_msg(certificate: Certificate, time: Time) -> CertificateMsg:
-    """Field by field: a field the message gains stays at its default until it is mapped here.
+    """The certificate's record (``Certificate.record``) under the message's names, so the two never drift.
 
     Not carried: ``task`` (the plant description names it) and ``rule`` (the statement says it).
     """
-    msg = CertificateMsg(
-        condition=certificate.condition,
-        epsilon=certificate.epsilon,
-        p=certificate.p,
-        delta=certificate.delta,
-        lipschitz=certificate.lipschitz,
-        lipschitz_source=certificate.lipschitz_source,
-        episodes=certificate.episodes,
-        dataset_size=certificate.dataset_size,
-        oracle_calls=certificate.oracle_calls,
-        quiet_episodes=certificate.window,
-        episodes_required=certificate.required,
-        statement=certificate.statement,
-        certify=certificate.certify,
-        quantity=certificate.quantity,
-        value=certificate.value,
-        test=certificate.test,
-        delta_spent=certificate.delta_spent,
-        lipschitz_margin=certificate.lipschitz_margin,
-        policy_trajectories=certificate.policy_trajectories,
-        proven=certificate.proven,
-        assumptions=list(certificate.assumptions),
-    )
+    named = {CERTIFICATE_RENAMED.get(name, name): value for name, value in certificate.record().items()}
+    carried = CertificateMsg.get_fields_and_field_types()
+    msg = CertificateMsg(**{name: value for name, value in named.items() if name in carried})
     msg.header.stamp = time
     return msg

@@ -137,7 +137,7 @@ class SupervisorSettings:
         object.__setattr__(self, "lipschitz", lipschitz)
         CertificationSpec(
             self.condition, self.epsilon or 1.0, self.p, self.delta,
-            lipschitz.value if isinstance(lipschitz, LipschitzConstant) else 1.0,
+            lipschitz if isinstance(lipschitz, LipschitzConstant) else LipschitzConstant(1.0, "user"),
             1.0, certify="rollout" if self.certify == TASK_DEFAULT else self.certify, rule=self.rule,  # type: ignore[arg-type]
         )  # fmt: skip
 
@@ -239,8 +239,8 @@ class SupervisorNode(Node):
         count = min(request.max_count or 50, 200, max(total - request.start, 0))
         response.success = True
         response.total = total
-        response.lipschitz = loop.config.lipschitz.value
-        response.lipschitz_source = loop.config.lipschitz.source
+        response.lipschitz = loop.spec.lipschitz.value
+        response.lipschitz_source = loop.spec.lipschitz.source
         response.trajectories = [
             self.trajectory_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
         ]

@@ -5,6 +5,7 @@ import math
 import pytest
 
 from npp_ros.certification import CertificationSpec, Certifier
+from npp_ros.lipschitz import LipschitzConstant
 
 
 def spec(condition: str = "i", **kw) -> CertificationSpec:
@@ -12,7 +13,7 @@ def spec(condition: str = "i", **kw) -> CertificationSpec:
     base = {"epsilon": 50.0, "p": 0.9, "delta": 0.1, "lipschitz": 10.0, "diameter": 2.0}
     base.update({"certify": "surrogate", "rule": "paper"})
     base.update(kw)
-    return CertificationSpec(condition, **base)
+    return CertificationSpec(condition, **{**base, "lipschitz": LipschitzConstant(base["lipschitz"], "user")})
 
 
 def test_condition_i_needs_24_quiet_episodes_for_p_09_delta_01() -> None:

@@ -43,10 +43,10 @@ def test_certifies_lqr_2_1_with_a_valid_lipschitz_constant(certified_run) -> Non
     config, _, loop, result, recorder = certified_run
     cert = result.certificate
     assert cert is not None and recorder.certificates == [cert]
-    assert cert.lipschitz_source == "lqr-analytic" and cert.lipschitz == config.lipschitz.value
+    assert cert.spec == config.spec and cert.spec.lipschitz.source == "lqr-analytic"
     # The default: the rollout check under the sequentially valid rule; test k needs ln(1/delta_k) / (1 - p).
-    assert (cert.certify, cert.rule, cert.proven) == ("rollout", "sequential", True)
-    assert cert.window == cert.required == config.spec().streak_required(cert.test)
+    assert (cert.spec.certify, cert.spec.rule, cert.proven) == ("rollout", "sequential", True)
+    assert cert.window == cert.required == config.spec.streak_required(cert.test)
     assert cert.delta_spent == pytest.approx(0.1 / (cert.test * (cert.test + 1)))
     assert cert.episodes == result.episodes == len(recorder.rows)
     assert cert.oracle_calls == sum(r.oracle_called for r in result.rows) == loop.dataset.num_trajectories
@@ -96,7 +96,7 @@ def test_resuming_a_certified_run_reports_its_certificate_without_new_episodes(c
 def test_resume_with_other_settings_is_refused_and_the_file_is_untouched(certified_run, expert_2_1) -> None:
     config, path, _, _, _ = certified_run
     before = path.read_bytes()
-    other = build_config("lqr_2_1", 0, config.lipschitz, 40.0)
+    other = build_config("lqr_2_1", 0, config.spec.lipschitz, 40.0)
     with pytest.raises(RunFileError, match=r"epsilon: file has 50.0, this run asks for 40.0"):
         build_loop(other, expert_2_1, store_path=path)
     assert path.read_bytes() == before
@@ -104,7 +104,7 @@ def test_resume_with_other_settings_is_refused_and_the_file_is_untouched(certifi
 
 def test_paper_lipschitz_is_flagged(expert_2_1: LQRExpert) -> None:
     config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "paper", expert_2_1), 50.0)
-    assert config.lipschitz.value == 50.0 and config.lipschitz.source == "paper"
+    assert config.spec.lipschitz.value == 50.0 and config.spec.lipschitz.source == "paper"
     loop = build_loop(config, expert_2_1)
     loop.run(max_episodes=30)
     with warnings.catch_warnings(record=True) as caught:

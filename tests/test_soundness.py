@@ -61,10 +61,8 @@ def basis() -> ValueBasis:
 
 
 def loop(certify: str) -> NPPLoop:
-    config = RunConfig(
-        task="integrator", seed=0, state_dim=1, action_dim=1, lipschitz=LipschitzConstant(L, "user"),
-        epsilon=EPSILON, gamma=GAMMA, certify=certify, rule="sequential",
-    )  # fmt: skip
+    spec = CertificationSpec("i", EPSILON, 0.9, 0.1, LipschitzConstant(L, "user"), certify=certify)
+    config = RunConfig(task="integrator", seed=0, state_dim=1, action_dim=1, spec=spec, gamma=GAMMA)
     states = lambda episode: np.array([1.0 if episode == 0 else 0.1])  # noqa: E731
     return NPPLoop(config, IntegratorExpert(), states, driver=IntegratorRollouts(), basis=basis())
 
@@ -111,7 +109,8 @@ def test_sequential_rule_keeps_false_certificates_below_delta(q: float) -> None:
     repetitions, delta = 2000, 0.1
     # One-sided margin: 3 standard errors of a frequency at delta (sampling error over 2,000 runs).
     margin = 3 * math.sqrt(delta * (1 - delta) / repetitions)
-    rule = {name: CertificationSpec("i", EPSILON, 0.9, delta, L, certify="rollout", rule=name) for name in RULES}
+    lipschitz = LipschitzConstant(L, "user")
+    rule = {name: CertificationSpec("i", EPSILON, 0.9, delta, lipschitz, rule=name) for name in RULES}
     sequential = false_certificate_rate(rule["sequential"], q, repetitions, seed=7)
     paper = false_certificate_rate(rule["paper"], q, repetitions, seed=7)
     assert sequential + margin < delta, f"sequential rule: {sequential:.3%} false certificates"

@@ -9,7 +9,6 @@ import subprocess
 import sys
 import textwrap
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -80,7 +79,7 @@ def test_resume_requires_the_same_run(tmp_path: Path) -> None:
     with RunStore.open_or_create(path, META) as store:
         assert store.num_trajectories() == 0
     with pytest.raises(RunFileError, match=r"lipschitz: file has 263.0, this run asks for 50.0"):
-        RunStore.open_or_create(path, replace(META, lipschitz=50.0))
+        RunStore.open_or_create(path, RunMetadata(**(vars(META) | {"lipschitz": 50.0})))
     with pytest.raises(RunFileError, match="already exists"):
         RunStore.create(path, META)
 

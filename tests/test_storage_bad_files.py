@@ -13,7 +13,6 @@ import shutil
 import sqlite3
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -21,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_storage import META, fill
 
-from npp_ros.storage import FORMAT_VERSION, RunFileError, RunStore
+from npp_ros.storage import FORMAT_VERSION, RunFileError, RunMetadata, RunStore
 
 FILES = settings(max_examples=25, deadline=None, derandomize=True, database=None)
 tried: Counter[str] = Counter()
@@ -98,7 +97,7 @@ def test_files_for_other_dimensions_are_refused_unchanged(tmp_path_factory, dims
     """A file made for other state/action sizes, resumed as lqr_2_1 (4 and 1): the run refuses it."""
     n, m = dims
     path = tmp_path_factory.mktemp("dims") / "run.sqlite"
-    RunStore.create(path, replace(META, state_dim=n, action_dim=m)).close()
+    RunStore.create(path, RunMetadata(**(vars(META) | {"state_dim": n, "action_dim": m}))).close()
     before = digest(path)
     field = "state_dim" if n != 4 else "action_dim"
     expected = f"{field}: file has {n if n != 4 else m}, this run asks for {4 if n != 4 else 1}"

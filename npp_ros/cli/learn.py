@@ -103,7 +103,6 @@ def main(argv: list[str] | None = None) -> int:
             condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
             certify=args.certify, rule=args.rule,
         )  # fmt: skip
-        config.spec()  # validates epsilon, p, delta, L before any work
         status = StatusLine(epsilon, args.condition)
         loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", rollouts=args.rollouts, observers=[status])
     except (ValueError, RunFileError) as exc:
@@ -138,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
             policy = NonparametricPolicy(loop.dataset.prefix(certificate.policy_trajectories), lipschitz.value)
         evaluation = check_policy(
             policy, task, task.make_plant(args.seed), expert, states, args.horizon,
-            epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.certify == "oracle",
+            epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.spec.certify == "oracle",
             progress=Counter("evaluating"),
         )  # fmt: skip
     with warnings.catch_warnings():
@@ -152,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
         "oracle_calls": result.oracle_calls,
         "dataset_size": result.dataset_size,
         "lipschitz": asdict(lipschitz),
-        "certificate": asdict(result.certificate) if result.certificate else None,
+        "certificate": result.certificate.record() if result.certificate else None,
         "lipschitz_checks": [{"slope": c.slope, "source": c.source, "ok": c.ok} for c in checks],
         "wall_time_s": elapsed,
     }

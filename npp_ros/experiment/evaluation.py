@@ -171,11 +171,12 @@ def check_certificate(
     task = get_task(arm.task)
     rng = np.random.default_rng([seed, HELD_OUT_STREAM])
     states = np.array([task.sample_initial_state(rng) for _ in range(count)])
-    policy = NonparametricPolicy(dataset.prefix(certificate.policy_trajectories), certificate.lipschitz)
+    spec = certificate.spec
+    policy = NonparametricPolicy(dataset.prefix(certificate.policy_trajectories), spec.lipschitz.value)
     return check_policy(
         policy, task, task.make_plant(seed), expert, states, settings.horizon,
-        epsilon=certificate.epsilon, p=certificate.p, delta=certificate.delta,
-        against_expert=certificate.certify == "oracle" or arm.expert != task.experts[0],
+        epsilon=spec.epsilon, p=spec.p, delta=spec.delta,
+        against_expert=spec.certify == "oracle" or arm.expert != task.experts[0],
     )  # fmt: skip
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import fields
 
 import numpy as np
 import pytest
@@ -11,13 +10,14 @@ from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.srv import ExpertTrajectory
 from sensor_msgs.msg import JointState
 
-from npp_ros.certification import Certificate
+from npp_ros.certification import Certificate, CertificationSpec
 from npp_ros.dataset import DatasetError, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.lqr import LQRExpert
 from npp_ros.run_setup import build_config
 from npp_ros.storage import EpisodeRow
 from npp_ros_graph.convert import (
+    CERTIFICATE_RENAMED,
     MessageError,
     action_from_joint_state,
     action_to_joint_state,
@@ -170,25 +170,21 @@ def test_an_episode_the_policy_did_not_drive_reports_nan_and_no_steps() -> None:
 
 
 def test_every_certificate_field_reaches_the_message() -> None:
-    """A field the core certificate gains must be mapped (or named here as not carried)."""
+    """Every entry of the certificate's record is carried (or named here as not carried)."""
     not_carried = {"task", "rule"}  # the message is per run and names no task; the rule shows in the statement
-    renamed = {"window": "quiet_episodes", "required": "episodes_required"}
+    lipschitz = LipschitzConstant(263.3, "lqr-analytic", margin=0.01)
     cert = Certificate(
-        task="lqr_2_1", condition="i", epsilon=50.0, p=0.9, delta=0.1, lipschitz=263.3,
-        lipschitz_source="lqr-analytic", episodes=178, oracle_calls=52, dataset_size=52000, window=22, required=22,
-        statement="claim", certify="oracle", rule="sequential", quantity="V^E(s0) - R^pi(s0)", value="the return",
-        test=3, delta_spent=0.1 / 12, lipschitz_margin=0.01, policy_trajectories=40, proven=True,
-        assumptions=("one", "two"),
+        task="lqr_2_1", spec=CertificationSpec("i", 50.0, 0.9, 0.1, lipschitz, certify="oracle"), episodes=178,
+        oracle_calls=52, dataset_size=52000, policy_trajectories=40, window=22, required=22, test=3,
+        delta_spent=0.1 / 12, value="the return", statement="claim", proven=True, assumptions=("one", "two"),
     )  # fmt: skip
     msg = certificate_to_msg(cert, stamp(0))
     message_fields = set(CertificateMsg.get_fields_and_field_types())
-    for f in fields(Certificate):
-        if f.name in not_carried:
+    for name, expected in cert.record().items():
+        if name in not_carried:
             continue
-        target = renamed.get(f.name, f.name)
-        assert target in message_fields, f"Certificate.{f.name} has no message field"
+        target = CERTIFICATE_RENAMED.get(name, name)
+        assert target in message_fields, f"the certificate's {name} has no message field"
         sent = getattr(msg, target)
-        expected = getattr(cert, f.name)
-        assert (list(sent) if isinstance(expected, tuple) else sent) == (
-            list(expected) if isinstance(expected, tuple) else expected
-        ), f.name
+        assert (list(sent) if isinstance(expected, list) else sent) == expected, name
+    assert (msg.quiet_episodes, msg.lipschitz_margin, msg.quantity) == (22, 0.01, "V^E(s0) - R^pi(s0)")

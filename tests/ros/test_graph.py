@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 from reference import decisions, uninterrupted_run
 
-from npp_ros.certification import Certificate
 from npp_ros.storage import RunStore
 
 
@@ -49,8 +48,8 @@ def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: P
     local_loop, local = uninterrupted_run()
     assert decisions(graph_rows) == decisions(local.rows)
     assert local.certificate is not None and certificate["episodes"] == local.certificate.episodes
-    assert Certificate.from_dict(certificate) == local.certificate  # the same certificate, field by field
+    assert certificate == local.certificate.record()  # the same certificate, field by field
     cert = local.certificate
-    assert (cert.certify, cert.rule, cert.proven) == ("rollout", "sequential", True)
+    assert (cert.spec.certify, cert.spec.rule, cert.proven) == ("rollout", "sequential", True)
     np.testing.assert_array_equal(graph_data.states, local_loop.dataset.states)
     np.testing.assert_array_equal(graph_data.values, local_loop.dataset.values)
