@@ -5,22 +5,28 @@ L setting) and seed, evaluates the policy at checkpoints with N rollouts from s0
 the expert from the same s0, and writes Figure-4 and Figure-5 style PNGs and a results table
 (results.md, results.csv, results.json). Runs are stored under OUT/runs/ and resume: a repeated
 command recomputes nothing and gives the same numbers.
+
+The runs go to a Dask cluster: by default a local one with --jobs single-threaded worker processes,
+or an existing one given by its scheduler's address. Each worker returns its run's record and this
+process writes the tables and figures from them.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import os
 import platform
 import queue
 import sys
 import time
+import uuid
 from collections import defaultdict
-from concurrent.futures import Future, ProcessPoolExecutor
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+
+from distributed import Client, Future, LocalCluster, get_worker
 
 from npp_ros.certification import CERTIFY_MODES
 from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints
@@ -110,13 +116,67 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--out", type=Path, default=Path("results/experiment"), help="output folder")
     ap.add_argument(
-        "--jobs", type=positive_int, default=min(2, os.cpu_count() or 1), help="runs in parallel (processes)"
+        "--jobs",
+        type=positive_int,
+        default=min(2, os.cpu_count() or 1),
+        help="runs in parallel: worker processes of the local cluster (--scheduler local only)",
+    )
+    ap.add_argument(
+        "--scheduler",
+        default="local",
+        metavar="local|ADDRESS",
+        help="where the runs go: 'local' (a Dask cluster on this machine, --jobs single-threaded workers) or "
+        "an existing Dask scheduler's address, e.g. tcp://host:8786",
+    )
+    ap.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=10.0,
+        metavar="SECONDS",
+        help="give up on a scheduler address that does not answer within this time",
     )
     return ap
 
 
-def _worker(arm: Arm, seed: int, settings: ExperimentSettings, out: Path, messages: Any) -> RunRecord:
-    return run_arm_seed(arm, seed, settings, out, lambda text: messages.put(text))
+PROGRESS_TOPIC = "npp-experiment"  # one scheduler event topic; each command filters on its own token
+
+
+def _run_on_worker(arm: Arm, seed: int, settings: ExperimentSettings, out: Path, token: str) -> tuple[str, RunRecord]:
+    """One run on a Dask worker; progress lines go to the client as scheduler events."""
+    worker = get_worker()
+    name = f"worker {worker.name}"  # its address unless started with --name
+    key = f"{arm.name} seed {seed}"
+
+    def report(text: str) -> None:
+        worker.log_event(PROGRESS_TOPIC, {"token": token, "run": key, "text": f"[{name}] {text}"})
+
+    report(f"{key}: started")
+    return name, run_arm_seed(arm, seed, settings, out, report)
+
+
+class SchedulerUnreachable(RuntimeError):
+    """The scheduler address did not answer: a one-line reason for the terminal."""
+
+
+@contextmanager
+def dask_client(scheduler: str, jobs: int, connect_timeout: float) -> Iterator[Client]:
+    """A client of a local cluster (single-threaded worker processes on loopback) or of a running one."""
+    if scheduler == "local":
+        # no memory limit: like a plain process, a run's growing data set must not get its worker paused or killed;
+        # the scheduler's web server on a free loopback port: commands side by side never collide on 8787
+        with LocalCluster(
+            n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1", memory_limit=0,
+            dashboard_address="127.0.0.1:0",
+        ) as cluster, Client(cluster) as client:  # fmt: skip
+            yield client
+        return
+    try:
+        client = Client(scheduler, timeout=connect_timeout)
+    except (OSError, ValueError, TypeError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SchedulerUnreachable(f"cannot reach the Dask scheduler at {scheduler}: {reason}") from None
+    with client:
+        yield client
 
 
 class Status:
@@ -126,17 +186,19 @@ class Status:
         self.total = total
         self.done = 0
         self.latest: dict[str, str] = {}
+        self._finished: set[str] = set()  # a worker's last line may arrive after its result
         self.tty = sys.stderr.isatty()
         self._last = 0.0
         self.started = time.monotonic()
 
-    def update(self, text: str) -> None:
-        key = text.split(":", 1)[0]
-        self.latest[key] = text
+    def update(self, key: str, text: str) -> None:
+        if key not in self._finished:
+            self.latest[key] = text
         self.show()
 
     def finished(self, key: str, line: str) -> None:
         self.done += 1
+        self._finished.add(key)
         self.latest.pop(key, None)
         self._write(f"[{self.done}/{self.total}] {line}", permanent=True)
 
@@ -157,11 +219,10 @@ class Status:
         sys.stderr.flush()
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
+def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
+    """The settings and arms a command line asks for; ValueError names what is wrong."""
     if not 0 < args.p < 1 or not 0 < args.delta < 1:
-        print("npp-experiment: p and delta must lie in (0, 1)", file=sys.stderr)
-        return 2
+        raise ValueError("p and delta must lie in (0, 1)")
     settings = ExperimentSettings(
         max_episodes={task: args.max_episodes for task in args.tasks},
         evaluations=args.evaluate,
@@ -174,10 +235,15 @@ def main(argv: list[str] | None = None) -> int:
         time_budget=args.time_budget,
         held_out=args.held_out,
     )
+    for task in args.tasks:
+        settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
+    return settings, default_arms(args.tasks, args.lipschitz, args.experts, args.certify)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
     try:
-        for task in args.tasks:
-            settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
-        arms = default_arms(args.tasks, args.lipschitz, args.experts, args.certify)
+        settings, arms = plan(args)
     except ValueError as exc:
         print(f"npp-experiment: {exc}", file=sys.stderr)
         return 2
@@ -188,34 +254,11 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     started = time.perf_counter()
-    status = Status(len(jobs))
-    records: list[RunRecord] = []
-    context = multiprocessing.get_context("spawn")
-    with context.Manager() as manager, ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
-        messages = manager.Queue()
-        futures: dict[Future[RunRecord], tuple[Arm, int]] = {
-            pool.submit(_worker, arm, seed, settings, args.out, messages): (arm, seed) for arm, seed in jobs
-        }
-        pending = set(futures)
-        failures = []
-        while pending:
-            try:
-                status.update(messages.get(timeout=0.5))
-            except queue.Empty:
-                status.show()
-            for future in [f for f in pending if f.done()]:
-                pending.discard(future)
-                arm, seed = futures[future]
-                key = f"{arm.name} seed {seed}"
-                try:
-                    record = future.result()
-                except Exception as exc:  # one run failing must not lose the others' results
-                    failures.append(f"{key}: {type(exc).__name__}: {exc}")
-                    status.finished(key, f"{key}: FAILED: {exc}")
-                    continue
-                records.append(record)
-                cert = f"certified at {record.certified_episode}" if record.certified_episode else "not certified"
-                status.finished(key, f"{key}: {cert}, {len(record.episodes)} episodes, {record.wall_time:.0f} s")
+    try:
+        records, failures = run_on_cluster(jobs, settings, args)
+    except SchedulerUnreachable as exc:
+        print(f"npp-experiment: {exc}", file=sys.stderr)
+        return 1
     wall = time.perf_counter() - started
 
     rows = report(records, settings, args.out)
@@ -230,6 +273,56 @@ def main(argv: list[str] | None = None) -> int:
     for failure in failures:
         print(f"npp-experiment: run failed: {failure}", file=sys.stderr)
     return 1 if failures else 0
+
+
+def run_on_cluster(
+    jobs: list[tuple[Arm, int]], settings: ExperimentSettings, args: argparse.Namespace
+) -> tuple[list[RunRecord], list[str]]:
+    """Every (arm, seed) as one Dask task; the workers write OUT/runs/ at OUT's absolute path and return records."""
+    out = args.out.resolve()
+    token = uuid.uuid4().hex
+    status = Status(len(jobs))
+    messages: queue.Queue[tuple[str, str]] = queue.Queue()
+    records: list[RunRecord] = []
+    failures: list[str] = []
+
+    def on_event(event: tuple[float, dict[str, str]]) -> None:  # on the client's event loop thread
+        msg = event[1]
+        if isinstance(msg, dict) and msg.get("token") == token:
+            messages.put((msg["run"], msg["text"]))
+
+    with dask_client(args.scheduler, args.jobs, args.connect_timeout) as client:
+        if not client.scheduler_info().get("workers"):
+            print(f"npp-experiment: {args.scheduler} has no workers yet; runs start when one joins", file=sys.stderr)
+        client.subscribe_topic(PROGRESS_TOPIC, on_event)
+        futures: dict[Future, tuple[Arm, int]] = {
+            client.submit(
+                _run_on_worker, arm, seed, settings, out, token, key=f"npp-{arm.name}-seed{seed}-{token[:8]}"
+            ): (arm, seed)
+            for arm, seed in jobs
+        }
+        pending = set(futures)
+        while pending:
+            try:
+                status.update(*messages.get(timeout=0.5))
+            except queue.Empty:
+                status.show()
+            for future in [f for f in pending if f.done()]:
+                pending.discard(future)
+                arm, seed = futures[future]
+                key = f"{arm.name} seed {seed}"
+                try:
+                    worker, record = future.result()
+                except Exception as exc:  # one run failing must not lose the others' results
+                    failures.append(f"{key}: {type(exc).__name__}: {exc}")
+                    status.finished(key, f"{key}: FAILED: {exc}")
+                    continue
+                records.append(record)
+                cert = f"certified at {record.certified_episode}" if record.certified_episode else "not certified"
+                status.finished(
+                    key, f"{key} on {worker}: {cert}, {len(record.episodes)} episodes, {record.wall_time:.0f} s"
+                )
+    return records, failures
 
 
 def record_invocation(path: Path, argv: list[str] | None, wall: float, runs: int, failures: list[str]) -> None:
