@@ -298,13 +298,17 @@ def test_a_sigkilled_recorder_leaves_every_flushed_message(ros_client: Any, tmp_
             recorder.wait()
         log.close()
     assert recorder.returncode == -signal.SIGKILL
-    final = metadata_counts(bag)  # what the last flush wrote before the kill
+    final = metadata_counts(bag)  # what the last completed flush counted before the kill
     assert final["/killed/npp/gap"] >= counts["/killed/npp/gap"] >= 50
     messages = list(read_messages(bag))
     recorded_gaps = [m.msg.episode for m in messages if m.topic == "/killed/npp/gap"]
-    assert recorded_gaps == list(range(final["/killed/npp/gap"]))  # in order, none missing, none torn
+    # A flush commits the file, then metadata.yaml: a kill between the two leaves the file one flush ahead
+    # of the counts, never behind. Every counted message is readable, in order, none missing, none torn.
+    assert recorded_gaps == list(range(len(recorded_gaps)))
+    assert len(recorded_gaps) >= final["/killed/npp/gap"]
     assert [m.msg.statement for m in messages if m.topic == "/killed/npp/certificate"] == [
         "latched before the recorder started"
     ]
-    assert Counter(m.topic for m in messages) == Counter(final)
-    assert mcap_count(bag)[0] == sum(final.values())
+    readable = Counter(m.topic for m in messages)
+    assert all(readable[topic] >= count for topic, count in final.items()), (readable, final)
+    assert mcap_count(bag)[0] == len(messages)
