@@ -1,13 +1,17 @@
-"""npp-bench --quick runs end to end, writes its table and JSON, and reports exactness (never speed)."""
+"""npp-bench --quick runs end to end, writes its table and JSON, and reports exactness (never speed); the expert
+part reports each request and whether it held the pole upright (never how fast)."""
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from npp_ros.cli.bench import main
+from npp_ros.cli.bench import UPRIGHT_DEGREES, Progress, machine_info, main, time_expert
+from npp_ros.tasks import get_task
 
 
 def test_quick_bench_writes_markdown_and_json_with_exactness(tmp_path: Path, capsys) -> None:
@@ -44,3 +48,59 @@ def test_help_names_the_outputs(capsys) -> None:
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert "--quick" in out and "bench.json" in out and "results/bench" in out
+    assert "--only {experts}" in out and "--expert-requests" in out and "pendulum_swingup" in out
+
+
+def test_only_experts_reports_each_request_and_keeps_the_rest_of_the_file(tmp_path: Path, capsys) -> None:
+    (tmp_path / "bench.json").write_text(json.dumps({
+        "command": "npp-bench", "date": "then", "machine": machine_info(), "load_average_end": None,
+        "targets": [{"case": "kept row", "metric": "ratio", "value": 1.0, "target": "<= 2x", "met": True}],
+    }))  # fmt: skip
+    argv = ["--only", "experts", "--expert-requests", "2", "--expert-horizon", "40", "--out", str(tmp_path)]
+    for _ in range(2):  # a second run replaces the first one's section and target rows
+        assert main(argv) == 0
+    result = json.loads((tmp_path / "bench.json").read_text())
+    table = (tmp_path / "bench.md").read_text()
+    assert result["command"] == "npp-bench" and result["targets"][0]["case"] == "kept row"
+    assert [row["case"] for row in result["targets"]] == [
+        "kept row",
+        "iLQR expert pendulum_swingup, H = 40, 2 requests",
+    ]
+    experts = result["experts"]
+    assert experts["command"] == "npp-bench " + " ".join(argv)
+    assert [t["task"] for t in experts["tasks"]] == ["pendulum_swingup", "cartpole_swingup"]
+    for t in experts["tasks"]:
+        assert t["horizon"] == 40 and t["requests"] == len(t["detail"]) == 2
+        assert t["options"]["time_budget_s"] == 5.0 and t["options"]["values"] == "window"  # the task's defaults
+        s = t["seconds"]
+        assert s["min_s"] <= s["q25_s"] <= s["median_s"] <= s["q75_s"] <= s["max_s"] and len(s["samples_s"]) == 2
+        assert set(t["phases_s"]) == {"derivatives", "backward", "line_search", "rollout", "optimizer_other",
+                                      "warm_start_and_replays"}  # fmt: skip
+        assert sum(t["phase_shares"].values()) == pytest.approx(1.0)
+        assert t["succeeded"] == sum(r["success"] for r in t["detail"])
+        for r in t["detail"]:
+            assert r["success"] == (r["worst_angle_deg"] <= UPRIGHT_DEGREES)
+            assert r["stop_reason"] in {"converged", "max iterations", "time budget", "regularisation limit",
+                                        "no improving step"}  # fmt: skip
+    # s0 of episodes 0 and 1 of seed 0: the stream a run with that seed sees
+    pendulum = get_task("pendulum_swingup")
+    assert experts["tasks"][0]["detail"][1]["s0"] == pendulum.initial_state(0, 1).tolist()
+    assert experts["tasks"][0]["met"] is not None and experts["tasks"][1]["target_s"] is None
+    assert "## iLQR experts" in table and "kept row" in table and table.count("iLQR expert pendulum_swingup") == 1
+    assert "## iLQR experts" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("task", "upright", "hanging"),
+    [
+        ("pendulum_swingup", [0.02, 0.0], [np.pi, 0.0]),
+        ("cartpole_swingup", [0.0, 0.02, 0.0, 0.0], [0.0, np.pi, 0.0, 0.0]),
+    ],
+)
+def test_expert_success_means_the_pole_was_held_upright(task: str, upright: list[float], hanging: list[float]) -> None:
+    """Started upright, the expert holds the pole; hanging, 60 steps are too few to swing it up."""
+    progress = Progress(2, stream=io.StringIO())
+    report = time_expert(task, [np.array(upright), np.array(hanging)], 60, 0, progress)
+    assert [r["success"] for r in report["detail"]] == [True, False]
+    assert report["detail"][0]["worst_angle_deg"] <= UPRIGHT_DEGREES < report["detail"][1]["worst_angle_deg"]
+    assert report["succeeded"] == 1 and report["success_rule"].endswith("last 30 steps")

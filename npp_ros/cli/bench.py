@@ -9,7 +9,10 @@ Measures side by side, on real LQR expert trajectories (``LQRExpert.trajectory``
 * exactness against the brute force on every run: same values and same indices, ties included
   (a tie-heavy grid case runs every time);
 * the first-call cost of the compiled kernels with a cold and a warm numba cache;
-* optionally the compression of stored runs (``--runs``) and the ROS loop rate (``--ros``).
+* optionally the compression of stored runs (``--runs``) and the ROS loop rate (``--ros``);
+* optionally the iLQR experts of the nonlinear tasks (``--experts``; ``--only experts`` runs that
+  part alone): seconds per H-step trajectory from s0 ~ rho with each task's default expert
+  options and time budget, where the time goes, and whether the pole was held upright.
 
 Everything is single-threaded (OMP_NUM_THREADS=1 for pykdtree), so the ratios compare
 algorithms, not core counts. Writes ``bench.md`` and ``bench.json`` into the output folder.
@@ -41,14 +44,19 @@ from npp_ros.compression import compression_report, index_report
 from npp_ros.dataset import Dataset, FloatArray
 from npp_ros.kdtree import BoundIndex
 from npp_ros.lqr import PAPER_LIPSCHITZ, LQRExpert, sample_initial_state
+from npp_ros.tasks import get_task
 
 try:  # the registry's fastest plain 1-NN tree; the benchmark still runs without it
     from pykdtree.kdtree import KDTree as PyKDTree
 except ImportError:  # pragma: no cover - pykdtree is pinned in the dev set
     PyKDTree = None
 
-TARGETS = {"policy": 2.0, "both": 3.0, "4d": 3.0, "brute": 20.0}
+TARGETS = {"policy": 2.0, "both": 3.0, "4d": 3.0, "brute": 20.0, "pendulum_expert_s": 5.0}
 DEFAULT_OUT = Path("results/bench")
+EXPERT_TASKS = ("pendulum_swingup", "cartpole_swingup")
+POLE_ANGLE = {"pendulum_swingup": 0, "cartpole_swingup": 1}  # the pole angle's entry in the stored state
+EXPERT_TARGET_KEY = {"pendulum_swingup": "pendulum_expert_s"}
+UPRIGHT_DEGREES = 8.0  # dm_control's pendulum rewards 1 within 8 degrees of upright
 
 
 # ----------------------------------------------------------------------------- progress and stats
@@ -365,6 +373,142 @@ def compression_of_runs(run_dirs: list[Path], progress: Progress) -> list[dict[s
     return rows
 
 
+# ----------------------------------------------------------------------------- iLQR experts
+def seconds_summary(samples: list[float]) -> dict[str, Any]:
+    """Median, quartiles and range of per-request seconds."""
+    arr = np.asarray(samples, dtype=float)
+    q25, q50, q75 = (float(x) for x in np.percentile(arr, [25, 50, 75]))
+    return {"median_s": q50, "q25_s": q25, "q75_s": q75, "min_s": float(arr.min()), "max_s": float(arr.max()),
+            "samples_s": [float(x) for x in arr]}  # fmt: skip
+
+
+def worst_angle_degrees(states: FloatArray, angle: int, steps: int) -> float:
+    """Largest |pole angle| (degrees from upright) over the last ``steps`` stored states (wrapped angles)."""
+    return float(np.degrees(np.max(np.abs(states[-steps:, angle]))))
+
+
+def time_expert(name: str, starts: list[FloatArray], horizon: int, seed: int, progress: Progress) -> dict[str, Any]:
+    """Seconds per request of the task's default expert (options and budget), one request at a time.
+
+    A request is the whole answer the expert node gives: warm-start rollout, iLQR, and the replays
+    on the plant for the true rewards. The optimizer's own phase timings say where its part went;
+    the rest of a request is the warm start and the replays. A request succeeded when the pole
+    stays within 8 degrees of upright over the last half of the horizon (500 steps at H = 1000).
+    """
+    task = get_task(name)
+    expert: Any = task.make_expert(seed, horizon)
+    expert.solve(starts[0], min(horizon, 50))  # warm-up: lazy loads and first-call costs stay out of the timings
+    hold = max(1, horizon // 2)
+    phases = {"derivatives": 0.0, "backward": 0.0, "line_search": 0.0, "rollout": 0.0, "optimizer_other": 0.0,
+              "warm_start_and_replays": 0.0}  # fmt: skip
+    rows, wall, cpu = [], [], []
+    for k, s0 in enumerate(starts):
+        tick, cpu_tick = time.perf_counter(), time.process_time()
+        solution = expert.solve(s0)
+        wall.append(time.perf_counter() - tick)
+        cpu.append(time.process_time() - cpu_tick)
+        opt = solution.optimization
+        for key in ("derivatives", "backward", "line_search", "rollout"):
+            phases[key] += opt.timings[key]
+        phases["optimizer_other"] += opt.wall_time - sum(opt.timings.values())
+        phases["warm_start_and_replays"] += wall[-1] - opt.wall_time
+        worst = worst_angle_degrees(solution.trajectory.states, POLE_ANGLE[name], hold)
+        rows.append({
+            "s0": [float(x) for x in s0], "seconds": wall[-1], "cpu_seconds": cpu[-1], "iterations": opt.iterations,
+            "stop_reason": opt.stop_reason, "expert_return": solution.expert_return,
+            "kept_warm_start": solution.kept_warm_start, "worst_angle_deg": worst,
+            "success": bool(worst <= UPRIGHT_DEGREES),
+        })  # fmt: skip
+        progress.step(f"{name} request {k + 1}/{len(starts)}: {wall[-1]:.2f}s, {opt.stop_reason} after "
+                      f"{opt.iterations} iterations, return {solution.expert_return:.0f}, "
+                      f"held upright: {'yes' if rows[-1]['success'] else 'no'}")  # fmt: skip
+    total = float(sum(wall))
+    target = TARGETS.get(EXPERT_TARGET_KEY.get(name, ""))
+    timing = seconds_summary(wall)
+    return {
+        "task": name, "horizon": horizon, "requests": len(starts), "seed": seed,
+        "options": {"time_budget_s": expert.time_budget, "max_iterations": expert.max_iterations,
+                    "values": expert.values},
+        "derivatives_by": "batched one-step rollouts (mujoco.rollout, RK4)" if expert.optimizer.dynamics.batched_fd
+        else "mujoco.mjd_transitionFD",
+        "success_rule": f"pole within {UPRIGHT_DEGREES:g} degrees of upright over the last {hold} steps",
+        "seconds": timing, "cpu_seconds": seconds_summary(cpu),
+        "phases_s": phases, "phase_shares": {k: v / total for k, v in phases.items()},
+        "succeeded": sum(r["success"] for r in rows), "target_s": target,
+        "met": None if target is None else timing["max_s"] <= target, "detail": rows,
+    }  # fmt: skip
+
+
+def expert_section(args: argparse.Namespace, progress: Progress, command: str) -> dict[str, Any]:
+    """Every expert task timed on the s0 of episodes 0 .. N-1 of ``--seed`` (the stream a run sees)."""
+    started = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+    load_start = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    tasks = []
+    for name in args.expert_tasks:
+        task = get_task(name)
+        starts = [task.initial_state(args.seed, k) for k in range(args.expert_requests)]
+        tasks.append(time_expert(name, starts, args.expert_horizon, args.seed, progress))
+    return {"command": command, "date": started, "load_average_start": load_start,
+            "load_average_end": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+            "tasks": tasks}  # fmt: skip
+
+
+def with_experts(result: dict[str, Any], experts: dict[str, Any]) -> None:
+    """Puts an expert measurement into a bench result, its target rows replacing any earlier ones."""
+    result["experts"] = experts
+    rows = [row for row in result.get("targets", []) if not row["case"].startswith("iLQR expert")]
+    for t in experts["tasks"]:
+        if t["target_s"] is not None:
+            rows.append({"case": f"iLQR expert {t['task']}, H = {t['horizon']}, {t['requests']} requests",
+                         "metric": "slowest request (s per trajectory)", "value": t["seconds"]["max_s"],
+                         "unit": " s", "target": f"<= {t['target_s']:g} s", "met": t["met"]})  # fmt: skip
+    result["targets"] = rows
+
+
+def expert_markdown(experts: dict[str, Any]) -> list[str]:
+    lines = ["## iLQR experts (seconds per H-step trajectory, s0 ~ rho)", ""]
+    lines += [f"Command: `{experts['command']}`, {experts['date']}; load average at start "
+              f"{experts['load_average_start']}, at end {experts['load_average_end']}.", ""]  # fmt: skip
+    lines += ["| task | H | requests | median s | quartiles | min - max | CPU s (median) | iterations | stop reasons "
+              "| held upright | target | met |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for t in experts["tasks"]:
+        w, c = t["seconds"], t["cpu_seconds"]
+        iterations = [r["iterations"] for r in t["detail"]]
+        reasons = ", ".join(sorted({r["stop_reason"] for r in t["detail"]}))
+        kept = sum(r["kept_warm_start"] for r in t["detail"])
+        reasons += f"; warm start kept {kept}x" if kept else ""
+        target = "-" if t["target_s"] is None else f"slowest <= {t['target_s']:g} s"
+        met = "-" if t["met"] is None else ("yes" if t["met"] else "**no**")
+        lines.append(
+            f"| {t['task']} | {t['horizon']} | {t['requests']} | {w['median_s']:.2f} | {w['q25_s']:.2f} - "
+            f"{w['q75_s']:.2f} | {w['min_s']:.2f} - {w['max_s']:.2f} | {c['median_s']:.2f} | "
+            f"{int(np.median(iterations))} ({min(iterations)} - {max(iterations)}) | {reasons} | "
+            f"{t['succeeded']}/{t['requests']} | {target} | {met} |"
+        )
+    lines += ["", "Where the time goes (sum over the requests, share of their wall time):", ""]
+    lines += ["| task | derivatives | backward pass | line search | first rollout | rest of iLQR "
+              "| warm start and replays | derivatives by |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for t in experts["tasks"]:
+        cells = " | ".join(f"{t['phases_s'][k]:.2f}s ({100 * t['phase_shares'][k]:.0f}%)" for k in
+                           ("derivatives", "backward", "line_search", "rollout", "optimizer_other",
+                            "warm_start_and_replays"))  # fmt: skip
+        lines.append(f"| {t['task']} | {cells} | {t['derivatives_by']} |")
+    lines += [""]
+    for t in experts["tasks"]:
+        o = t["options"]
+        lines.append(f"- {t['task']}: default expert (time budget {o['time_budget_s']:g} s per request, at most "
+                     f"{o['max_iterations']} iterations, {o['values']} values); held upright = "
+                     f"{t['success_rule']}.")  # fmt: skip
+    lines += [
+        "",
+        "A request is what the expert node answers: the warm-start controller's rollout, iLQR, and the replays of "
+        "the actions on the plant for the true rewards (warm start and replays). Line search = the closed-loop "
+        "rollouts of the candidate steps.",
+        "",
+    ]
+    return lines
+
+
 # ----------------------------------------------------------------------------- report
 def fmt_us(t: dict[str, Any]) -> str:
     return f"{t['median_us']:.1f} ±{100 * t['spread']:.0f}%"
@@ -380,10 +524,15 @@ def markdown(result: dict[str, Any]) -> str:
         f"Machine: {m['cpu']}, {m['cores']} cores ({m['usable_cores']} usable), {m['system']}; Python {m['python']}, "
         f"numpy {m['numpy']}, numba {m['numba']}, scipy {m['scipy']}, pykdtree {m['pykdtree']}; {m['threads']}.  ",
         f"Load average at start: {m['load_average_start']}, at end: {result.get('load_average_end')}.  ",
-        f"All exact: **{result['all_exact']}** (same index and same value as brute force on every checked query).",
-        "",
-        "Times are microseconds per query: median over repeats, ± the half-range (max - min) / 2 as a "
-        "fraction of the median.",
+    ]
+    if "all_exact" in result:  # a folder first written by `--only experts` has no index figures
+        lines += [
+            f"All exact: **{result['all_exact']}** (same index and same value as brute force on every checked query).",
+            "",
+            "Times are microseconds per query: median over repeats, ± the half-range (max - min) / 2 as a "
+            "fraction of the median.",
+        ]
+    lines += [
         "",
         "## Targets",
         "",
@@ -391,8 +540,11 @@ def markdown(result: dict[str, Any]) -> str:
         "|---|---|---|---|---|",
     ]
     for row in result["targets"]:
-        lines.append(f"| {row['case']} | {row['metric']} | {row['value']:.2f}x | {row['target']} | "
+        unit = row.get("unit", "x")  # the index and ROS rows are ratios
+        lines.append(f"| {row['case']} | {row['metric']} | {row['value']:.2f}{unit} | {row['target']} | "
                      f"{'yes' if row['met'] else '**no**'} |")  # fmt: skip
+    if "cases" not in result:  # only `--only experts` has written to this folder
+        return "\n".join([*lines, "", *expert_markdown(result["experts"])])
     lines += ["", "## Index vs 1-NN trees (same points, same queries)", ""]
     lines += [
         "| case | points | L | mode | V_lb | V_ub | pykdtree 1-NN | cKDTree 1-NN | V_lb / 1-NN | both / 1-NN |",
@@ -478,6 +630,8 @@ def markdown(result: dict[str, Any]) -> str:
             "node that answers at once, in its own process, same messages, QoS and executor.",
             "",
         ]
+    if result.get("experts"):
+        lines += expert_markdown(result["experts"])
     return "\n".join(lines) + "\n"
 
 
@@ -487,7 +641,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         prog="npp-bench",
         description=(
             "npp-bench: the exact V_lb/V_ub index against pykdtree and cKDTree 1-NN and against brute force, "
-            "on real LQR expert trajectories; exactness is checked on every run. Writes bench.md and bench.json."
+            "on real LQR expert trajectories; exactness is checked on every run. With --experts, also the iLQR "
+            "experts of pendulum_swingup and cartpole_swingup: seconds per H-step trajectory (median, quartiles, "
+            "range) from s0 ~ rho with each task's default options and time budget, where the time goes, and "
+            "whether the pole was held upright; --only experts measures just that (minutes), keeping the rest of "
+            "OUT's bench.json and bench.md. Writes bench.md and bench.json."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -503,29 +661,73 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--runs", type=Path, nargs="*", default=[], help="run folders whose compression to report")
     parser.add_argument("--ros", action="store_true", help="also measure the ROS loop rate (npp-bench-ros)")
     parser.add_argument("--no-compile", action="store_true", help="skip the cold-cache compile measurement")
+    parser.add_argument("--experts", action="store_true", help="also time the iLQR experts (see --expert-requests)")
+    parser.add_argument(
+        "--only",
+        choices=["experts"],
+        default=None,
+        help="run only this part; its section and target rows go into OUT/bench.json and bench.md, replacing an "
+        "earlier run's, and the rest of those files is kept",
+    )
+    parser.add_argument(
+        "--expert-requests", type=int, default=10, help="expert requests per task, from the s0 of episodes 0 .. N-1"
+    )
+    parser.add_argument("--expert-horizon", type=int, default=1000, help="steps per expert trajectory (H)")
+    parser.add_argument(
+        "--expert-tasks", nargs="+", choices=EXPERT_TASKS, default=list(EXPERT_TASKS), help="tasks whose expert to time"
+    )
     args = parser.parse_args(argv)
+    if args.expert_requests < 1 or args.expert_horizon < 2:
+        parser.error("--expert-requests must be >= 1 and --expert-horizon >= 2")
     if args.quick:
         args.trajectories = min(args.trajectories, 12)
         args.queries, args.single, args.check, args.repeats = 200, 50, 50, 2
         args.brute_budget = 2e5
+        args.expert_requests, args.expert_horizon = min(args.expert_requests, 2), min(args.expert_horizon, 200)
     return args
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    n = args.trajectories * 1000
-    sizes = [s for s in (10_000, 100_000, 1_000_000) if s <= n] or [n]
-    tasks = [("lqr_6_2", "analytic"), ("lqr_2_1", "analytic"), ("lqr_2_1", "paper")]
-    total = 2 + 3 * len(tasks) + 2 * len(sizes) + 1 + (not args.no_compile) + len(args.runs) + args.ros + 1
-    progress = Progress(total)
-    result: dict[str, Any] = {
-        "command": "npp-bench " + " ".join(sys.argv[1:] if argv is None else argv),
+def header(args: argparse.Namespace, command: str) -> dict[str, Any]:
+    return {
+        "command": command,
         "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
         "machine": machine_info(),
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "runs"},
         "targets_spec": TARGETS,
     }
+
+
+def write(result: dict[str, Any], out: Path) -> None:
+    (out / "bench.json").write_text(json.dumps(result, indent=2) + "\n")
+    (out / "bench.md").write_text(markdown(result))
+
+
+def experts_only(args: argparse.Namespace, command: str) -> int:
+    """``--only experts``: the expert section into OUT's bench files, the index (and ROS) figures kept."""
+    progress = Progress(len(args.expert_tasks) * args.expert_requests + 1)
+    path = args.out / "bench.json"
+    result = json.loads(path.read_text()) if path.exists() else header(args, command)
+    with_experts(result, expert_section(args, progress, command))
+    result.setdefault("load_average_end", result["experts"]["load_average_end"])
+    write(result, args.out)
+    progress.step(f"wrote the experts into {path} and {args.out / 'bench.md'}")
+    sys.stdout.write("\n".join(expert_markdown(result["experts"])))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    command = "npp-bench " + " ".join(sys.argv[1:] if argv is None else argv)
+    if args.only == "experts":
+        return experts_only(args, command)
+    n = args.trajectories * 1000
+    sizes = [s for s in (10_000, 100_000, 1_000_000) if s <= n] or [n]
+    tasks = [("lqr_6_2", "analytic"), ("lqr_2_1", "analytic"), ("lqr_2_1", "paper")]
+    experts = len(args.expert_tasks) * args.expert_requests if args.experts else 0
+    total = 2 + 3 * len(tasks) + 2 * len(sizes) + 1 + (not args.no_compile) + len(args.runs) + args.ros + experts + 1
+    progress = Progress(total)
+    result = header(args, command)
     datasets = {}
     for task in ("lqr_6_2", "lqr_2_1"):
         t = time.perf_counter()
@@ -561,11 +763,12 @@ def main(argv: list[str] | None = None) -> int:
     result["targets"] = targets(cases, scaling)
     if args.ros:
         with_ros(result, ros_loop(args, progress))
+    if args.experts:
+        with_experts(result, expert_section(args, progress, command))
     checks = [c.exact["exact"] for c in cases] + [r["exact"]["exact"] for r in scaling] + [ties["exact"]]
     result["all_exact"] = bool(all(checks))
     result["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
-    (args.out / "bench.json").write_text(json.dumps(result, indent=2) + "\n")
-    (args.out / "bench.md").write_text(markdown(result))
+    write(result, args.out)
     progress.step(f"wrote {args.out / 'bench.md'} and {args.out / 'bench.json'}; all exact: {result['all_exact']}")
     sys.stdout.write(markdown(result))
     return 0 if result["all_exact"] else 1
