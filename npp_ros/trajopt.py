@@ -351,6 +351,7 @@ class ILQR:
         initial_actions: ArrayLike | None = None,
         initial_policy: Callable[[FloatArray], ArrayLike] | None = None,
         max_iterations: int = 100,
+        min_iterations: int = 0,
         tolerance: float = 1e-7,
     ) -> TrajOptResult:
         """Optimise the actions from x0; warm start from an action sequence or a feedback policy.
@@ -359,7 +360,9 @@ class ILQR:
         feedforward is negligible (converged), at ``max_iterations``, when no step helps even at
         the largest regularisation, or when the budget would be exceeded by another iteration
         (the returned trajectory is then the best so far, and its W_x is from its own backward
-        pass: the search stops early enough to leave time for that pass).
+        pass: the search stops early enough to leave time for that pass). The budget cannot stop
+        the first ``min_iterations`` iterations: a caller that must improve on the warm start even
+        on a slow machine asks for them, and overruns the budget by their time.
         """
         start = time.perf_counter()
         budget = check_time_budget(time_budget)
@@ -367,6 +370,8 @@ class ILQR:
             raise ValueError("give initial_actions or initial_policy, not both")
         if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 0:
             raise ValueError(f"max_iterations must be an integer >= 0, got {max_iterations!r}")
+        if isinstance(min_iterations, bool) or not isinstance(min_iterations, (int, np.integer)) or min_iterations < 0:
+            raise ValueError(f"min_iterations must be an integer >= 0, got {min_iterations!r}")
         x, horizon = self.check_request(x0, horizon, initial_actions)
         dyn = self.dynamics
         timings = {"rollout": 0.0, "derivatives": 0.0, "backward": 0.0, "line_search": 0.0}
@@ -423,7 +428,7 @@ class ILQR:
                 stop_reason = "max iterations"
                 break
             # Another iteration costs a line search and the next pass; leave time for both.
-            if time.perf_counter() - start + search_time + pass_time > budget:
+            if iterations >= min_iterations and time.perf_counter() - start + search_time + pass_time > budget:
                 stop_reason = "time budget"
                 break
 
@@ -551,10 +556,10 @@ VALUE_MODES = ("return-to-go", "window")
 class OptimizingExpert:
     """An expert oracle from a plant, a smooth cost, a warm-start controller and a state map.
 
-    Each request: roll the warm-start controller out from s0, refine with :class:`ILQR` within
-    ``time_budget`` seconds (less the slowest replay seen, so the whole request fits), then
-    replay the actions on the plant for the task's true rewards, keeping the warm start's actions
-    if they score better. Q_0 is the trajectory's H-step
+    Each request: roll the warm-start controller out from s0 and replay its actions on the plant,
+    refine with :class:`ILQR` in what is left of ``time_budget`` seconds (see
+    :meth:`optimizer_budget`), then replay the optimised actions on the plant for the task's true
+    rewards, keeping the warm start's actions if they score better. Q_0 is the trajectory's H-step
     return in both value modes; they differ for t > 0:
 
     - ``"return-to-go"``: Q_t = r_t + ... + r_{H-1}. Q then depends on the time left, not only
@@ -565,7 +570,15 @@ class OptimizingExpert:
       lqr expert (V*(s_t) = H - J*(s_t)).
 
     Stored states are ``represent(raw state)``.
+
+    The time budget covers the whole request and is wall-clock, so it is met when the machine
+    leaves iLQR at least ``min_optimizer_share`` of it; on a slower machine iLQR still gets that
+    share and ``min_iterations`` iterations, and the request overruns by them. No timing carries
+    over from one request to the next.
     """
+
+    min_optimizer_share = 0.2  # of time_budget: iLQR's at least, whatever the warm start and replays take
+    min_iterations = 1  # iLQR iterations the budget cannot cut (convergence and max_iterations can)
 
     def __init__(
         self,
@@ -595,7 +608,7 @@ class OptimizingExpert:
         self.max_slope_seen = 0.0
         self.max_transition_norm = 0.0
         self.requests = 0
-        self._replay_seconds = 0.1  # grows to the slowest replay seen; kept out of the optimizer's budget
+        self.clock: Callable[[], float] = time.perf_counter  # times the request's phases (a test may fake it)
         self.task = "mujoco"
         self.reward_lipschitz = math.inf  # a task that knows its reward's slope says so
         self.reward_lipschitz_detail = "not known for this task"
@@ -603,37 +616,59 @@ class OptimizingExpert:
     def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
         """One request. The answer is never worse than the warm start under the true reward: when
         the surrogate's optimum replays to a lower H-step return, the warm start's actions are
-        kept (with W_x from a backward pass at them) and ``kept_warm_start`` says so."""
+        kept (with W_x from a backward pass at them) and ``kept_warm_start`` says so.
+
+        The plant is replayed twice: the warm start's H actions (before iLQR, so their time is
+        known when iLQR's budget is set), and the optimised actions, in window mode continued by
+        the warm-start controller for H - 1 more steps. The first H rewards of that continued
+        replay are the H-step return compared with the warm start's (a replay starts from a reset
+        plant, so its first H steps do not depend on what follows them).
+        """
         x0 = self.plant.check_state(initial_state, "requested state")
         steps = self.horizon if horizon is None or horizon == 0 else int(horizon)
-        start = time.perf_counter()
+        window = self.values == "window"
+        start = self.clock()
         _, warm = self.optimizer.dynamics.rollout(x0, steps, policy=self.warm_start)
+        rolled = self.clock()
+        warm_raw, warm_rewards = replay_rewards(self.plant, x0, warm)
+        replayed = self.clock()
         result = self.optimizer.solve(
             x0,
             steps,
-            time_budget=max(self.time_budget - self._replay_seconds - (time.perf_counter() - start), 1e-3),
+            time_budget=self.optimizer_budget(rolled - start, replayed - rolled, replayed - start),
             initial_actions=warm,
             max_iterations=self.max_iterations,
+            min_iterations=self.min_iterations,
         )
-        tick = time.perf_counter()
-        _, rewards = replay_rewards(self.plant, x0, result.actions)
-        _, warm_rewards = replay_rewards(self.plant, x0, warm)
-        kept_warm_start = float(warm_rewards.sum()) > float(rewards.sum())
+        extra = steps - 1 if window else 0
+        raw, rewards = replay_rewards(self.plant, x0, result.actions, self.warm_start if window else None, extra)
+        kept_warm_start = float(warm_rewards.sum()) > float(rewards[:steps].sum())
         if kept_warm_start:
             result = self.optimizer.solve(x0, steps, time_budget=60.0, initial_actions=warm, max_iterations=0)
-        if self.values == "window":
-            raw, rewards = replay_rewards(self.plant, x0, result.actions, self.warm_start, steps - 1)
-            values = window_values(rewards, steps)
-        else:
-            raw, rewards = replay_rewards(self.plant, x0, result.actions)
-            values = return_to_go(rewards)
-        self._replay_seconds = max(self._replay_seconds, time.perf_counter() - tick)
+            if window:
+                raw, rewards = replay_rewards(self.plant, x0, result.actions, self.warm_start, extra)
+            else:  # result.actions == warm (the rollout clamped them; clamping again changes nothing)
+                raw, rewards = warm_raw, warm_rewards
+        values = window_values(rewards, steps) if window else return_to_go(rewards)
         self.max_slope_seen = max(self.max_slope_seen, result.max_value_slope)
         self.max_transition_norm = max(self.max_transition_norm, result.max_transition_norm)
         self.requests += 1
         # Q_0 is the replayed H-step return in both value modes: the expert's own return at s0 (oracle mode).
         trajectory = Trajectory(self.represent(raw), result.actions.copy(), values, expert_return=float(values[0]))
         return ExpertSolution(trajectory, result, raw, kept_warm_start)
+
+    def optimizer_budget(self, rollout_seconds: float, replay_seconds: float, spent: float) -> float:
+        """iLQR's seconds: the budget less what this request has spent and its replay still to come.
+
+        The replay to come is predicted from this request's own, at this moment's machine load: the
+        optimised actions' replay takes the warm start's (``replay_seconds``, H plant steps); window
+        mode's H - 1 continued steps add as much plus the controller, whose time is within the warm
+        start's rollout (``rollout_seconds``, controller and model steps). Never below
+        ``min_optimizer_share`` of the budget, so a loaded machine gets a shorter optimisation, not
+        none. (A kept warm start's backward pass and replay are not predicted: they are rare.)
+        """
+        to_come = replay_seconds + (replay_seconds + rollout_seconds if self.values == "window" else 0.0)
+        return max(self.time_budget - spent - to_come, self.min_optimizer_share * self.time_budget)
 
     def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:
         return self.solve(initial_state, horizon).trajectory

@@ -6,7 +6,18 @@ import numpy as np
 import pytest
 
 from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
-from npp_ros.trajopt import ILQR, MujocoDynamics, lqr_task_cost, replay_return_to_go, time_trajectories
+from npp_ros.trajopt import (
+    ILQR,
+    MujocoDynamics,
+    OptimizingExpert,
+    TrajOptResult,
+    lqr_task_cost,
+    replay_return_to_go,
+    replay_rewards,
+    return_to_go,
+    time_trajectories,
+    window_values,
+)
 
 TASK, SEED, HORIZON = "lqr_2_1", 0, 1000
 
@@ -122,6 +133,14 @@ def test_a_spent_budget_returns_the_best_so_far_and_says_so(optimizer: ILQR) -> 
     assert result.value_gradient.shape == (1000, 4)
 
 
+def test_min_iterations_are_not_cut_by_the_budget(optimizer: ILQR) -> None:
+    """The budget is spent before the first pass ends; the iterations asked for still run, then it stops."""
+    s0 = sample_initial_state(TASK, episode_rng(SEED, 5))
+    result = optimizer.solve(s0, 1000, time_budget=1e-6, min_iterations=1)
+    assert result.stop_reason == "time budget" and result.iterations == 1
+    assert result.cost < result.cost_history[0]
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
@@ -137,6 +156,8 @@ def test_a_spent_budget_returns_the_best_so_far_and_says_so(optimizer: ILQR) -> 
         ({"initial_actions": np.zeros((10, 2))}, r"warm-start actions must have shape \(10, 1\), got \(10, 2\)"),
         ({"initial_actions": np.r_[np.zeros(9), np.inf][:, None]}, r"warm-start actions\[9, 0\] is not finite"),
         ({"max_iterations": -1}, r"max_iterations must be an integer >= 0, got -1"),
+        ({"min_iterations": -1}, r"min_iterations must be an integer >= 0, got -1"),
+        ({"min_iterations": True}, r"min_iterations must be an integer >= 0, got True"),
         (
             {"initial_actions": np.zeros((10, 1)), "initial_policy": lambda x: np.zeros(1)},
             r"give initial_actions or initial_policy, not both",
@@ -175,3 +196,177 @@ def test_batched_fd_equals_mjd_transition_fd() -> None:
     a2, b2 = dyn._batched_jacobians(states, actions)
     np.testing.assert_allclose(a2, a, rtol=0, atol=1e-9)
     np.testing.assert_allclose(b2, b, rtol=0, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- the swing-up experts' requests
+SHORT = 200  # steps: enough for the pole to come up from some s0, cheap enough for many requests
+
+
+def swingup_expert(task: str, values: str, **kwargs: object) -> OptimizingExpert:
+    """A swing-up expert whose requests stop by their iteration cap (a budget never reached)."""
+    from npp_ros.cartpole import CartpoleExpert
+    from npp_ros.pendulum import PendulumExpert
+
+    make = PendulumExpert if task == "pendulum" else CartpoleExpert
+    options = {"horizon": SHORT, "time_budget": 600.0, "max_iterations": 5, "values": values} | kwargs
+    return make(**options)
+
+
+def start_of(task: str, k: int) -> np.ndarray:
+    pendulum = [np.array([0.3, 0.0]), np.array([2.0, 0.0]), np.array([0.5, 0.5])]
+    return pendulum[k] if task == "pendulum" else np.array([0.0, np.pi, 0.0, 0.0])
+
+
+def separate_replays(expert: OptimizingExpert, s0: np.ndarray) -> tuple[np.ndarray, np.ndarray, TrajOptResult, bool]:
+    """The request with one replay per purpose: the optimised actions' H rewards, the warm start's,
+    and the optimised (or kept) actions again for the values, window mode continuing them."""
+    x0, steps = np.asarray(s0, dtype=np.float64), expert.horizon
+    _, warm = expert.optimizer.dynamics.rollout(x0, steps, policy=expert.warm_start)
+    result = expert.optimizer.solve(
+        x0, steps, time_budget=600.0, initial_actions=warm, max_iterations=expert.max_iterations
+    )
+    _, rewards = replay_rewards(expert.plant, x0, result.actions)
+    _, warm_rewards = replay_rewards(expert.plant, x0, warm)
+    kept = float(warm_rewards.sum()) > float(rewards.sum())
+    if kept:
+        result = expert.optimizer.solve(x0, steps, time_budget=60.0, initial_actions=warm, max_iterations=0)
+    if expert.values == "window":
+        raw, rewards = replay_rewards(expert.plant, x0, result.actions, expert.warm_start, steps - 1)
+        return raw, window_values(rewards, steps), result, kept
+    raw, rewards = replay_rewards(expert.plant, x0, result.actions)
+    return raw, return_to_go(rewards), result, kept
+
+
+@pytest.mark.parametrize("task", ["pendulum", "cartpole"])
+def test_a_continued_replay_begins_with_the_plain_one(task: str) -> None:
+    """A replay starts from a reset plant, so its first H steps are the same whatever follows them or
+    whichever replay ran before: bit for bit, on optimised, warm-start and random actions."""
+    expert = swingup_expert(task, "window")
+    x0 = start_of(task, 0)
+    _, warm = expert.optimizer.dynamics.rollout(x0, SHORT, policy=expert.warm_start)
+    low, high = expert.optimizer.dynamics.lower, expert.optimizer.dynamics.upper
+    noise = np.random.default_rng(0).uniform(low, high, (SHORT, len(low)))
+    optimised = expert.solve(x0).trajectory.actions
+    for actions in (optimised, warm, noise):
+        raw, rewards = replay_rewards(expert.plant, x0, actions)
+        replay_rewards(expert.plant, x0, noise[::-1], expert.warm_start, 50)  # something else in between
+        long_raw, long_rewards = replay_rewards(expert.plant, x0, actions, expert.warm_start, SHORT - 1)
+        np.testing.assert_array_equal(long_raw, raw)
+        np.testing.assert_array_equal(long_rewards[:SHORT], rewards)
+        assert float(long_rewards[:SHORT].sum()) == float(rewards.sum())
+
+
+@pytest.mark.parametrize(
+    ("task", "values", "k", "kept"),
+    [
+        ("pendulum", "window", 0, False),
+        ("pendulum", "window", 1, False),
+        ("pendulum", "return-to-go", 0, False),
+        ("cartpole", "window", 0, False),
+        ("cartpole", "return-to-go", 0, False),
+        ("pendulum", "window", 2, True),
+        ("pendulum", "return-to-go", 2, True),
+    ],
+)
+def test_fewer_replays_give_the_same_answer_bit_for_bit(task: str, values: str, k: int, kept: bool) -> None:
+    """The expert's two replays answer exactly what one replay per purpose answers: states, actions,
+    values, W_x and the kept-warm-start decision. A heavy torque cost makes iLQR's answer replay
+    worse than the warm start from (0.5, 0.5), so the warm start is kept (the cases marked kept)."""
+    from npp_ros.pendulum import SwingUpCost
+
+    extra = {"cost": SwingUpCost(control_weight=100.0)} if kept else {}
+    expert, reference = swingup_expert(task, values, **extra), swingup_expert(task, values, **extra)
+    s0 = start_of(task, k)
+    solution = expert.solve(s0)
+    raw, values_ref, result, kept_ref = separate_replays(reference, s0)
+    assert solution.kept_warm_start == kept_ref == kept
+    np.testing.assert_array_equal(solution.raw_states, raw)
+    np.testing.assert_array_equal(solution.trajectory.values, values_ref)
+    np.testing.assert_array_equal(solution.trajectory.actions, result.actions)
+    np.testing.assert_array_equal(solution.optimization.value_gradient, result.value_gradient)
+    assert solution.optimization.iterations == result.iterations
+    assert solution.expert_return == values_ref[0]
+
+
+class FakeClock:
+    """The expert's clock, moved only by the test: a phase takes the seconds the test says."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def recording_budgets(expert: OptimizingExpert) -> list[float]:
+    """Every time budget the expert hands iLQR, in order (the optimizer itself is untouched)."""
+    budgets: list[float] = []
+    solve = expert.optimizer.solve
+
+    def record(*args: object, **kwargs: object) -> TrajOptResult:
+        budgets.append(kwargs["time_budget"])
+        return solve(*args, **kwargs)
+
+    expert.optimizer.solve = record  # type: ignore[method-assign]
+    return budgets
+
+
+def test_one_slow_request_leaves_later_requests_their_budget() -> None:
+    """Replays that take 1 s a step in the first request (by the expert's clock) shorten that request's
+    optimisation to its floor, one fifth of the budget, and nothing after it: the next request gets
+    the whole budget back and answers exactly what a fresh expert answers."""
+    expert = swingup_expert("pendulum", "window", time_budget=100.0)
+    clock = FakeClock()
+    expert.clock = clock
+    budgets = recording_budgets(expert)
+    step, slow = expert.plant.step, [True]
+
+    def step_slowly(action: np.ndarray) -> float:
+        clock.now += 1.0 if slow[0] else 0.0
+        return step(action)
+
+    expert.plant.step = step_slowly  # type: ignore[method-assign]
+    s0 = start_of("pendulum", 0)
+    first = expert.solve(s0)
+    assert budgets == [pytest.approx(expert.min_optimizer_share * 100.0)]
+    assert first.optimization.iterations >= 1
+    slow[0] = False
+    second = expert.solve(s0)
+    assert budgets[1:] == [100.0]  # nothing spent by the clock: all of it, nothing held back for the past
+    fresh = swingup_expert("pendulum", "window", time_budget=100.0).solve(s0)
+    assert second.optimization.iterations == fresh.optimization.iterations == 5
+    np.testing.assert_array_equal(second.trajectory.actions, fresh.trajectory.actions)
+    np.testing.assert_array_equal(second.trajectory.values, fresh.trajectory.values)
+
+
+@pytest.mark.parametrize("values", ["window", "return-to-go"])
+def test_the_replay_to_come_is_predicted_from_this_request(values: str) -> None:
+    """With the warm start's rollout taking 2 s and its replay 3 s: return-to-go holds back one more
+    replay (3 s), window mode the continued one (3 + 3 + 2 s)."""
+    expert = swingup_expert("pendulum", values, time_budget=100.0)
+    clock = FakeClock()
+    expert.clock = clock
+    budgets = recording_budgets(expert)
+    rollout, replay = expert.optimizer.dynamics.rollout, expert.plant.reset
+
+    def timed_rollout(*args: object, **kwargs: object) -> tuple[np.ndarray, np.ndarray]:
+        clock.now += 2.0
+        return rollout(*args, **kwargs)
+
+    def timed_reset(state: np.ndarray) -> np.ndarray:
+        clock.now += 3.0 if len(budgets) == 0 else 0.0  # the warm start's replay, before iLQR
+        return replay(state)
+
+    expert.optimizer.dynamics.rollout = timed_rollout  # type: ignore[method-assign]
+    expert.plant.reset = timed_reset  # type: ignore[method-assign]
+    expert.solve(start_of("pendulum", 0))
+    to_come = 3.0 + 3.0 + 2.0 if values == "window" else 3.0
+    assert budgets[0] == 100.0 - (2.0 + 3.0) - to_come
+
+
+def test_a_machine_too_slow_for_the_budget_still_gets_an_iteration() -> None:
+    """A budget already spent by the warm start: iLQR gets its floor and still one iteration."""
+    expert = swingup_expert("pendulum", "window", time_budget=1e-6)
+    solution = expert.solve(start_of("pendulum", 1))
+    assert solution.optimization.iterations == 1
+    assert solution.optimization.stop_reason == "time budget"
