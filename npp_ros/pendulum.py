@@ -241,9 +241,10 @@ class PendulumExpert(OptimizingExpert):
     """The TrajectoryOptimizer of Algorithm 1 for the swing-up: iLQR on the plant's own model.
 
     Each request: roll the energy-shaping controller out from s0 (warm start), refine with
-    box-constrained iLQR on :class:`SwingUpCost` within ``time_budget`` seconds (less the
-    slowest replay seen, so the whole request fits the budget), then replay the actions on the
-    plant for dm_control's true rewards (see :class:`OptimizingExpert` for the value modes).
+    box-constrained iLQR on :class:`SwingUpCost` within what ``time_budget`` leaves after the
+    warm start and the replays it predicts (:meth:`OptimizingExpert.optimizer_budget`), then replay
+    the actions on the plant for dm_control's true rewards (see :class:`OptimizingExpert` for the
+    value modes).
     """
 
     def __init__(
