@@ -191,7 +191,7 @@ def test_nothing_from_outside_the_run_enters_it(
     np.testing.assert_array_equal(data.values, local_loop.dataset.values)
     assert not np.any(data.actions == 42.0)
 
-    lipschitz = local_loop.config.lipschitz.value
+    lipschitz = local_loop.config.spec.lipschitz.value
     plant = LQRPlant("lqr_2_1", 0)
     driven = [row for row in rows if row.policy_return is not None]
     assert len(driven) >= len(rows) - 5, "the intruders kept the policy from driving"
