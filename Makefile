@@ -1,6 +1,6 @@
 # Two entry points, each doing its own set-up on a fresh machine:
 #   make run    the main job (the ROS graph runs Algorithm 1 on lqr_2_1 to a certificate)
-#   make test   the test suite (what CI runs)
+#   make test   the test suite (what CI runs), on two pytest-xdist workers, one module each at a time
 #   make test-quick  the core's fast tests, no ROS graph (under a minute)
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -17,7 +17,7 @@ run: $(STAMP)
 	$(VENV)/bin/npp-run --task lqr_2_1 --seed 0
 
 test: $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 --dist loadfile
 
 test-quick: $(STAMP)
 	$(PY) -m pytest -q -m "not slow" --ignore=tests/ros
