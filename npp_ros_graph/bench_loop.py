@@ -4,13 +4,16 @@ This process plays the sim: it publishes a JointState on /npp/state, waits for t
 answer on /npp/action, steps the plant's exact linear model x' = A x + B u with it, and repeats,
 in lockstep. Against it, in separate processes, runs either
 
-* the real policy node (``npp_ros_graph.policy_node``), which catches the dataset up through this
-  process's /npp/dataset/get service and answers with the greedy NPP action, or
-* a bare echo node (``--echo``): same message types, same QoS, same executor, answers at once.
+* the real policy node (``npp_ros_graph.policy_node``, as npp-run starts it: on rclpy's
+  EventsExecutor), which catches the dataset up through this process's /npp/dataset/get service
+  and answers with the greedy NPP action; the driver seals each state and checks each answer's
+  seal as the sim does, and the policy checks and seals in turn, or
+* a bare echo node (``--echo``), a plain rclpy node as a user would write it: rclpy's default
+  SingleThreadedExecutor, same message types and QoS, no seals, answers at once.
 
 Both are measured in the same run with the same driver, so their ratio is the cost of the
-policy (its query and its node code) relative to the ROS round trip itself. Every run gets its
-own ROS_DOMAIN_ID and localhost-only discovery.
+policy (its query, its seals and its node code) relative to the ROS round trip itself. Every run
+gets its own ROS_DOMAIN_ID and localhost-only discovery.
 
 Usage: npp-bench-ros [--quick] [--out DIR] [--json FILE|-] [--steps N]. With --out it puts its
 result into DIR/bench.json and bench.md (results/bench: the ROS section and its target rows,
@@ -66,7 +69,8 @@ TARGETS = {"lqr_2_1": 0.8, "lqr_6_2": 0.5}
 
 
 class EchoNode(Node):
-    """The bare ping-pong partner: answers every state with a zero action at once."""
+    """The bare ping-pong partner: answers every state with a zero action at once (run_node's default
+    executor, the SingleThreadedExecutor that rclpy.spin uses)."""
 
     def __init__(self) -> None:
         super().__init__("npp_bench_echo")
@@ -81,12 +85,13 @@ class EchoNode(Node):
 
 
 class Driver(Node):
-    """Plays the sim (states out, actions in) and the supervisor's dataset service, seals included: the
-    graph's loop is measured with the checks every control step of a run makes."""
+    """Plays the sim (states out, actions in) and the supervisor's dataset service. ``sealed``: seals its
+    states and checks the answers' seals, as the sim does, so that the graph's loop is measured with the
+    checks every control step of a run makes; the bare ping-pong exchanges plain messages."""
 
-    def __init__(self, expert: LQRExpert, data: Dataset, task: str, seed: int, namespace: str) -> None:
+    def __init__(self, expert: LQRExpert, data: Dataset, task: str, seed: int, namespace: str, sealed: bool) -> None:
         super().__init__("npp_bench_driver", namespace=namespace)
-        self.expert, self.data, self.task = expert, data, task
+        self.expert, self.data, self.task, self.sealed = expert, data, task, sealed
         plant = expert.plant
         self.joint_names = list(plant.joint_names)
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
@@ -116,11 +121,14 @@ class Driver(Node):
 
     def on_action(self, msg: JointState) -> None:
         if stamp_ns(msg.header.stamp) == self.sent_ns:
-            self.seal.check_header(msg, "the action")
+            if self.sealed:
+                self.seal.check_header(msg, "the action")
             self.answer = msg
 
     def send(self, state: np.ndarray, step_ns: int) -> None:
-        msg = self.seal.seal_header(state_to_joint_state(state, self.joint_names, stamp(step_ns)), "0")
+        msg = state_to_joint_state(state, self.joint_names, stamp(step_ns))
+        if self.sealed:
+            self.seal.seal_header(msg, "0")
         self.sent_ns = step_ns
         self.answer = None
         self.state_pub.publish(msg)
@@ -170,7 +178,7 @@ def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: di
     log(f"{task}: {len(data):,d} points generated ({time.perf_counter() - t:.1f}s)")
     executor = SingleThreadedExecutor()
     partners = ("pingpong", "graph")
-    drivers = {name: Driver(expert, data, task, 0, f"/bench_{name}") for name in partners}
+    drivers = {name: Driver(expert, data, task, 0, f"/bench_{name}", sealed=name == "graph") for name in partners}
     for driver in drivers.values():
         executor.add_node(driver)
     counter = [0]
