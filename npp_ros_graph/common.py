@@ -2,8 +2,8 @@
 
 Nodes convert messages to core types (convert.py), call the core, and publish; nothing here does math.
 
-Concurrency, the same in every node: one SingleThreadedExecutor (run_node) runs the callbacks, and
-a callback never blocks. It validates, does work that is short and bounded (a sim step, a policy
+Concurrency, the same in every node: one executor thread (run_node) runs the callbacks, and a
+callback never blocks. It validates, does work that is short and bounded (a sim step, a policy
 query), and hands anything long to the node's one worker thread through a Mailbox; results go out
 from the worker as publications, or as a Future that an ``async`` service callback awaits. The
 worker, in turn, makes synchronous calls with deadlines and waits on Conditions that callbacks
@@ -12,6 +12,18 @@ thread, callbacks only hand data over), kept to one thread per node. Callback gr
 MultiThreadedExecutor were the alternative: rclpy's runs every callback through a Python thread
 pool, which adds GIL hand-offs to each control step (the loop the policy node must keep fast), and
 a service that may hold a hundred requests in waiting would need a hundred pool threads.
+
+Which executor: rclpy's SingleThreadedExecutor, except in the two nodes of the control loop (sim
+and policy), which ask run_node for rclpy's EventsExecutor (``events=True``). The
+SingleThreadedExecutor rebuilds its wait set from every entity of the node (subscriptions,
+publishers' QoS events, timers, clients, the parameter services) on each wake-up, in Python; the
+EventsExecutor (C++) is called by the middleware for the one entity that has work. For the policy
+node that wait set was most of what its loop cost beyond a bare ping-pong's (README,
+"Performance"; npp-bench --ros measures it), and much of the sim's CPU time per step. The
+EventsExecutor is experimental in Jazzy, so run_node keeps to what it does well: it spins it with
+spin_once and a timeout (its spin() busy-waits and misses shutdown in rclpy 7.1.6), and falls back
+to the SingleThreadedExecutor where rclpy has none. It serves no guard conditions (the two nodes
+create none), and it logs a callback's exception with its traceback before run_node reports it.
 """
 
 from __future__ import annotations
@@ -26,12 +38,17 @@ from typing import Generic, TypeVar
 
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 
 from npp_ros_graph.parameters import StartupError
+
+try:  # rclpy >= 7.1 (Jazzy); the fallback is the SingleThreadedExecutor
+    from rclpy.experimental import EventsExecutor
+except ImportError:  # pragma: no cover - every supported rclpy has it
+    EventsExecutor = None
 
 # Topic and service names, relative so that the usual namespacing and remapping apply.
 STATE = "npp/state"
@@ -94,19 +111,32 @@ def _init(args: list[str]) -> None:
         )
 
 
-def run_node(factory: Callable[[], Node], argv: Sequence[str] | None = None, usage: str = "") -> int:
-    """The Jazzy idiom: init, spin, and on Ctrl-C or external shutdown destroy and try_shutdown."""
+SPIN_ONCE_S = 1.0  # the EventsExecutor's longest wait for an event before run_node checks for shutdown
+
+
+def run_node(
+    factory: Callable[[], Node], argv: Sequence[str] | None = None, usage: str = "", events: bool = False
+) -> int:
+    """The Jazzy idiom: init, spin, and on Ctrl-C or external shutdown destroy and try_shutdown.
+
+    ``events``: spin on rclpy's EventsExecutor where rclpy has one (see the module's docstring).
+    """
     args = list(sys.argv if argv is None else argv)
     if any(a in ("-h", "--help") for a in args[1:]) and "--ros-args" not in args:
         print(usage)
         return 0
     node: Node | None = None
+    executor: Executor | None = None
     try:
         _init(args)
-        executor = SingleThreadedExecutor()
+        executor = EventsExecutor() if events and EventsExecutor is not None else SingleThreadedExecutor()
         node = factory()
         executor.add_node(node)
-        executor.spin()
+        if isinstance(executor, SingleThreadedExecutor):
+            executor.spin()
+        else:
+            while rclpy.ok():
+                executor.spin_once(timeout_sec=SPIN_ONCE_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except StartupError as exc:
@@ -114,6 +144,8 @@ def run_node(factory: Callable[[], Node], argv: Sequence[str] | None = None, usa
         return 2
     finally:
         try:
+            if executor is not None:
+                executor.shutdown(timeout_sec=SPIN_ONCE_S)  # lets go of the node's entities first
             if node is not None:
                 node.destroy_node()
             rclpy.try_shutdown()

@@ -326,7 +326,7 @@ class PolicyNode(Node):
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(PolicyNode, argv, USAGE)
+    return run_node(PolicyNode, argv, USAGE, events=True)  # the control loop: no wait set to rebuild per state
 
 
 if __name__ == "__main__":

@@ -262,7 +262,7 @@ class SimNode(Node):
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_node(SimNode, argv, USAGE)
+    return run_node(SimNode, argv, USAGE, events=True)  # the control loop: no wait set to rebuild per action
 
 
 if __name__ == "__main__":
