@@ -607,7 +607,7 @@ def markdown(result: dict[str, Any]) -> str:
         lines.append("")
     ros = result.get("ros")
     if ros:
-        lines += ["## ROS loop (sim <-> policy lockstep vs a bare ROS ping-pong, same messages)", ""]
+        lines += ["## ROS loop (sim <-> policy lockstep vs a bare ROS ping-pong of the same message types)", ""]
         if ros.get("command"):  # measured on its own, after the figures above
             lines += [f"Command: `{ros['command']}`, {ros['date']}; load average at start "
                       f"{ros['load_average_start']}, at end {ros['load_average_end']}.", ""]  # fmt: skip
@@ -626,8 +626,10 @@ def markdown(result: dict[str, Any]) -> str:
         lines += [
             "",
             "Graph: this process plays the sim in lockstep with the policy node (npp_ros_graph/policy_node.py), "
-            "stepping the plant's exact linear model with each answer. Ping-pong: the same driver against a "
-            "node that answers at once, in its own process, same messages, QoS and executor.",
+            "stepping the plant's exact linear model with each answer, both sides sealing and checking every "
+            "state and action as a run does (the policy node on rclpy's EventsExecutor). Ping-pong: the same "
+            "driver against a plain rclpy node (SingleThreadedExecutor) that answers at once, in its own process, "
+            "same message types and QoS, no seals.",
             "",
         ]
     if result.get("experts"):
