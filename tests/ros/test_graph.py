@@ -14,9 +14,11 @@ from npp_ros.storage import RunStore
 
 def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
-    monitor = subprocess.Popen(
-        [sys.executable, "-m", "npp_ros_graph.monitor", "--exit-on-certificate"], stdout=subprocess.PIPE, text=True
-    )
+    # The monitor writes to a file: a pipe nobody reads during the run fills up (about 64 KiB, some 300
+    # episodes of lines) and blocks the monitor in the middle of its output.
+    watched_file = tmp_path / "monitor.out"
+    with watched_file.open("w") as out:
+        monitor = subprocess.Popen([sys.executable, "-m", "npp_ros_graph.monitor", "--exit-on-certificate"], stdout=out)
     run = subprocess.run(
         [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--max-episodes", "400"],
         capture_output=True,
@@ -28,8 +30,11 @@ def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: P
     assert "[certificate] condition (i), epsilon 50" in run.stdout
     assert "(lqr-analytic)" in run.stdout
     assert "oracle calls" in run.stderr  # live progress
-    watched, _ = monitor.communicate(timeout=60)  # the certificate is latched: the monitor sees it and exits
-    assert monitor.returncode == 0
+    try:
+        assert monitor.wait(timeout=120) == 0  # the certificate is latched: the monitor sees it and exits
+    finally:
+        monitor.kill()  # no-op once it exited
+    watched = watched_file.read_text()
     assert "[gap]     episode" in watched and "ORACLE" in watched and "[episode] episode" in watched
     assert "[certificate] condition (i), epsilon 50" in watched
     for name in ("run.sqlite", "gaps.csv", "episodes.csv"):
