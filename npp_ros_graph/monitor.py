@@ -170,6 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        # The executor lets go of the node first: destroy_node waits until nothing holds the node, and a
+        # node still added to an executor kept npp-monitor spinning there after the certificate.
+        executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
