@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import time
+from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from npp_ros.dataset import Dataset
 from npp_ros.loop import NPPLoop, RunResult
 from npp_ros.lqr import LQRExpert
 from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
-from npp_ros.storage import EpisodeRow
+from npp_ros.storage import EpisodeRow, RunStore
 
 # Restart and fault tests certify on the paper's surrogate gap: its decisions do not depend on the
 # policy's rollouts, so a killed sim or a restarted policy cannot change them and a faulted run
@@ -35,3 +40,20 @@ def uninterrupted_run(
 def decisions(rows: list[EpisodeRow]) -> list[tuple[Any, ...]]:
     """What Algorithm 1 decided per episode: the numbers a resumed or faulted run must repeat."""
     return [(r.initial_state, r.gap, r.oracle_called) for r in rows]
+
+
+def assert_stored_run_is_uninterrupted(
+    run_file: Path, horizon: int, max_episodes: int
+) -> tuple[Dataset, list[EpisodeRow], NPPLoop]:
+    """A graph run on the surrogate check (ROLLOUT_FREE) that was disturbed ends exactly as the in-process run:
+    the same certificate, decisions and dataset. Returns the stored dataset and rows, and the in-process loop."""
+    time.sleep(0.5)  # the supervisor's worker closes the run file after certifying
+    with RunStore.open(run_file) as store:
+        data, rows, certificate = store.load_dataset(), store.episodes(), store.certificate()
+    local_loop, local = uninterrupted_run(horizon=horizon, max_episodes=max_episodes, **ROLLOUT_FREE)
+    assert local.certificate is not None and certificate == local.certificate.record()
+    assert decisions(rows) == decisions(local.rows)
+    np.testing.assert_array_equal(data.states, local_loop.dataset.states)
+    np.testing.assert_array_equal(data.actions, local_loop.dataset.actions)
+    np.testing.assert_array_equal(data.values, local_loop.dataset.values)
+    return data, rows, local_loop

@@ -24,7 +24,6 @@ from its own expert. The supervisor refuses every such answer and stops with the
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -34,7 +33,7 @@ import pytest
 from npp_interfaces.msg import Certificate, GapReport, PlantDescription
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from npp_interfaces.srv import ExpertTrajectory, GetTrajectories
-from reference import ROLLOUT_FREE, decisions, uninterrupted_run
+from reference import ROLLOUT_FREE, assert_stored_run_is_uninterrupted
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32
 
@@ -180,15 +179,7 @@ def test_nothing_from_outside_the_run_enters_it(
     kinds = ("actions", "states", "trajectories", "dataset answers")
     assert all(intruder.sent[kind] > 0 for kind in kinds), intruder.sent
 
-    time.sleep(0.5)  # the supervisor's worker closes the run file after certifying
-    with RunStore.open(run_dir / "run.sqlite") as store:
-        data, rows, certificate = store.load_dataset(), store.episodes(), store.certificate()
-    local_loop, local = uninterrupted_run(horizon=HORIZON, max_episodes=MAX_EPISODES, **ROLLOUT_FREE)
-    assert local.certificate is not None and certificate == local.certificate.record()
-    assert decisions(rows) == decisions(local.rows)
-    np.testing.assert_array_equal(data.states, local_loop.dataset.states)
-    np.testing.assert_array_equal(data.actions, local_loop.dataset.actions)
-    np.testing.assert_array_equal(data.values, local_loop.dataset.values)
+    data, rows, local_loop = assert_stored_run_is_uninterrupted(run_dir / "run.sqlite", HORIZON, MAX_EPISODES)
     assert not np.any(data.actions == 42.0)
 
     lipschitz = local_loop.config.spec.lipschitz.value

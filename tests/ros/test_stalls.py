@@ -19,12 +19,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import pytest
 from npp_interfaces.msg import Certificate, GapReport
-from reference import ROLLOUT_FREE, decisions, uninterrupted_run
+from reference import ROLLOUT_FREE, assert_stored_run_is_uninterrupted
 
-from npp_ros.storage import RunStore
 from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
 from npp_ros_graph.seal import KEY_ENV, RunSeal
 
@@ -82,12 +80,6 @@ def test_paused_nodes_catch_up_by_themselves(
     for proc in procs.values():
         launch.assert_alive(proc)
 
-    time.sleep(0.5)  # the supervisor's worker closes the run file after certifying
-    with RunStore.open(run_dir / "run.sqlite") as store:
-        data, rows, certificate = store.load_dataset(), store.episodes(), store.certificate()
-    local_loop, local = uninterrupted_run(horizon=HORIZON, max_episodes=MAX_EPISODES, **ROLLOUT_FREE)
-    assert local.certificate is not None and certificate == local.certificate.record()
-    assert decisions(rows) == decisions(local.rows)
-    np.testing.assert_array_equal(data.states, local_loop.dataset.states)
+    _, rows, _ = assert_stored_run_is_uninterrupted(run_dir / "run.sqlite", HORIZON, MAX_EPISODES)
     missing = [row.episode for row in rows if row.policy_return is None]
     assert not missing, f"episodes without the policy's return: {missing}"
