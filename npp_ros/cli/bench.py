@@ -627,8 +627,8 @@ def markdown(result: dict[str, Any]) -> str:
             "",
             "Graph: this process plays the sim in lockstep with the policy node (npp_ros_graph/policy_node.py), "
             "stepping the plant's exact linear model with each answer, both sides sealing and checking every "
-            "state and action as a run does (the policy node on rclpy's EventsExecutor). Ping-pong: the same "
-            "driver against a plain rclpy node (SingleThreadedExecutor) that answers at once, in its own process, "
+            "state and action as a run does (the policy node on the ROS 2 EventsExecutor). Ping-pong: the same "
+            "driver against a plain ROS 2 node (SingleThreadedExecutor) that answers at once, in its own process, "
             "same message types and QoS, no seals.",
             "",
         ]
