@@ -144,14 +144,23 @@ def run_node(
         return 2
     finally:
         try:
-            if executor is not None:
-                executor.shutdown(timeout_sec=SPIN_ONCE_S)  # lets go of the node's entities first
-            if node is not None:
-                node.destroy_node()
-            rclpy.try_shutdown()
+            release(executor, node)
         except KeyboardInterrupt:  # a second Ctrl-C while shutting down
             pass
     return int(getattr(node, "exit_code", 0))
+
+
+def release(executor: Executor | None, node: Node | None) -> None:
+    """Every entry point's teardown, in the one order that cannot hang.
+
+    The executor lets go of the node first: destroy_node waits until nothing holds the node's
+    entities, and a node still added to an executor could keep its process spinning there.
+    """
+    if executor is not None:
+        executor.shutdown(timeout_sec=SPIN_ONCE_S)
+    if node is not None:
+        node.destroy_node()
+    rclpy.try_shutdown()
 
 
 def node_name(namespace: str, name: str) -> str:

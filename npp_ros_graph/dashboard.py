@@ -181,7 +181,7 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
 
-    from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS
+    from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS, release
     from npp_ros_graph.seal import RunSeal
 
     class DashboardNode(Node):
@@ -227,9 +227,7 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        release(executor, node)
 
 
 # ----------------------------------------------------------------------------- HTTP

@@ -19,7 +19,7 @@ from npp_interfaces.msg import Certificate, EpisodeResult, GapReport
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from npp_ros_graph.common import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.common import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS, release
 from npp_ros_graph.seal import RunSeal
 
 TOPICS = {"gap": GAP, "episode": EPISODE}  # --topics names; the certificate is always shown
@@ -170,11 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        # The executor lets go of the node first: destroy_node waits until nothing holds the node, and a
-        # node still added to an executor kept npp-monitor spinning there after the certificate.
-        executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        release(executor, node)
     return 0
 
 

@@ -274,9 +274,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
             flush=True,
         )
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        common.release(executor, node)
     return 0
 
 

@@ -22,6 +22,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosbags.interfaces import Qos, QosDurability, QosReliability
 
 from npp_ros_graph.bag import BagError, open_reader, read_messages
+from npp_ros_graph.common import release
 from npp_ros_graph.record import message_class, split_ros_args
 
 
@@ -149,9 +150,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"npp-replay: {exc}", file=sys.stderr)
         return 2
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        release(executor, node)
     return 0
 
 

@@ -38,7 +38,16 @@ from rclpy.signals import SignalHandlerOptions
 
 from npp_ros.storage import RunFileError, _WriterLock
 from npp_ros.tasks import TASK_NAMES
-from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS, node_name, publishers_of
+from npp_ros_graph.common import (
+    CERTIFICATE,
+    GAP,
+    LATCHED_QOS,
+    PLANT,
+    REPORT_QOS,
+    node_name,
+    publishers_of,
+    release,
+)
 from npp_ros_graph.dashboard import start_dashboard
 from npp_ros_graph.monitor import certificate_line, gap_line
 from npp_ros_graph.record import start_recorder
@@ -321,6 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     procs: dict[str, subprocess.Popen] = {}
     extras: dict[str, subprocess.Popen] = {}  # started first and stopped last, so that they see the whole run
     follower: Follower | None = None
+    executor: SingleThreadedExecutor | None = None
     code = 0
     try:
         # SIGINT stays Python's (KeyboardInterrupt); SIGTERM and SIGHUP raise Stopped.
@@ -372,8 +382,7 @@ def main(argv: list[str] | None = None) -> int:
                 with suppress(OSError):
                     print(("\n" if follower.tty else "") + certificate_line(follower.certificate))
                     print(f"run folder: {run_dir}")
-            follower.destroy_node()
-        rclpy.try_shutdown()
+        release(executor, follower)
         stop_all({name: proc for name, proc in procs.items() if name not in extras})
         stop_all(extras)
     return code

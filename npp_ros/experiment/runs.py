@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from npp_ros.bounds import NonparametricPolicy
+from npp_ros.certification import CertificationStatus
 from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
 from npp_ros.experiment.evaluation import (
     EvaluationRow,
@@ -22,6 +23,7 @@ from npp_ros.experiment.evaluation import (
 )
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.loop import NPPLoop, Observer
+from npp_ros.progress import status_text
 from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.storage import EpisodeRow
 from npp_ros.tasks import Expert, get_task
@@ -47,16 +49,18 @@ Progress = Callable[[str], None]
 
 
 class _EpisodeProgress(Observer):
-    def __init__(self, report: Progress, key: str, budget: int) -> None:
+    """The worker's status line for one run: npp-learn's text (checked gap, streak), once a second."""
+
+    def __init__(self, report: Progress, key: str, budget: int, epsilon: float, condition: str) -> None:
         self.report, self.key, self.budget = report, key, budget
+        self.epsilon, self.condition = epsilon, condition
         self._last = 0.0
 
-    def on_episode(self, row: EpisodeRow, status) -> None:
+    def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
         now = time.monotonic()
-        if now - self._last >= 1.0 or row.certified:
+        if now - self._last >= 1.0 or status.certified:
             self._last = now
-            gap = "inf" if math.isinf(row.gap) else f"{row.gap:.1f}"
-            self.report(f"{self.key}: episode {row.episode + 1}/{self.budget}, gap {gap}, oracle {row.oracle_calls}")
+            self.report(f"{self.key} (budget {self.budget}): {status_text(row, self.epsilon, status, self.condition)}")
 
 
 def run_arm_seed(
@@ -75,9 +79,8 @@ def run_arm_seed(
         certify=arm.certify, rule=arm.rule,  # type: ignore[arg-type]  # Arm checks both
     )  # fmt: skip
     budget = settings.max_episodes[arm.task]
-    loop = build_loop(
-        config, expert, store_path=run_dir / "run.sqlite", observers=[_EpisodeProgress(report, key, budget)]
-    )
+    progress = _EpisodeProgress(report, key, budget, epsilon, config.spec.condition)
+    loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", observers=[progress])
     try:
         evaluations_path = run_dir / "evaluations.csv"
         done = {row.checkpoint for row in read_evaluations(evaluations_path)}
