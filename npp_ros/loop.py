@@ -325,6 +325,8 @@ class NPPLoop:
             f"L = {spec.lipschitz.value:.6g} ({spec.lipschitz.source}) bounds the slope of the stored value function "
             f"on every segment between an initial state and a data point"
         )
+        if self._no_lipschitz_bound():
+            lipschitz += f": it does NOT hold here, {self._no_lipschitz_bound()}"
         common = [
             "initial states are independent draws from rho, independent of the run so far",
             "the plant is deterministic, so one rollout's return is the policy's value at s0",
@@ -345,9 +347,15 @@ class NPPLoop:
             items.append("the paper's one-shot test, though it is checked after every episode (not sequentially valid)")
         return assumption_list(items)
 
+    def _no_lipschitz_bound(self) -> str:
+        """Why no L bounds the stored values, where the expert knows it ("" otherwise)."""
+        return self.basis.no_lipschitz_bound if self.basis is not None else ""
+
     def _proven(self) -> bool:
         if self.spec.rule == "paper":
             return False
+        if self.spec.certify != "oracle" and self._no_lipschitz_bound():
+            return False  # the claim rests on an L that cannot exist for these values
         if self.spec.certify == "surrogate":
             return bool(self.basis is not None and self.basis.theorem_34_holds)
         return True

@@ -271,6 +271,10 @@ class PendulumExpert(OptimizingExpert):
         self.task = TASK
         self.reward_lipschitz = math.inf
         self.reward_lipschitz_detail = "is infinite: the reward is 1 within 8 degrees of upright, else 0"
+        self.no_lipschitz_bound = (
+            "with the 0/1 reward every H-step return is a whole number, so the expert's value is a staircase "
+            "in s0 and no finite L bounds its slope (scripts/pendulum_expert_report.py finds a step)"
+        )
 
 
 SWINGUP = OptimizerTask(

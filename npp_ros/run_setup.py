@@ -24,7 +24,7 @@ from npp_ros.loop import NPPLoop, Observer, RunConfig
 from npp_ros.lqr import rollout
 from npp_ros.storage import RunStore
 from npp_ros.tasks import LIPSCHITZ_CHOICES as LIPSCHITZ_CHOICES  # re-exported for the CLIs
-from npp_ros.tasks import Expert, Plant, get_task
+from npp_ros.tasks import Expert, MeasuresValueSlope, Plant, get_task
 from npp_ros.values import ValueBasis
 
 
@@ -122,4 +122,7 @@ def lipschitz_checks(loop: NPPLoop, expert: Expert, rollout_slope: float = 0.0) 
         slopes.append((estimate_global(loop.dataset), "data-estimated (global)"))
     if rollout_slope and math.isfinite(rollout_slope):  # NaN: the expert knows no closed-form slope
         slopes.append((rollout_slope, "exact |grad V| over the evaluation rollouts"))
+    if isinstance(expert, MeasuresValueSlope) and expert.requests:
+        what = f"optimizer's own (max |W_x| of its backward pass over {expert.requests} requests; a floor)"
+        slopes.append((expert.slope_floor(), what))
     return [check_lipschitz(loop.spec.lipschitz.value, slope, source) for slope, source in slopes]

@@ -18,7 +18,7 @@ import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -93,6 +93,15 @@ class Expert(Protocol):
     def value_basis(self) -> ValueBasis: ...
 
     def theorem_34_condition(self, lipschitz: float) -> tuple[bool, str]: ...
+
+
+@runtime_checkable
+class MeasuresValueSlope(Protocol):
+    """An expert that sees the slope of its own value as it works (an optimizer's backward pass)."""
+
+    requests: int
+
+    def slope_floor(self) -> float: ...
 
 
 @dataclass(frozen=True)

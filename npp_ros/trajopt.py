@@ -612,6 +612,7 @@ class OptimizingExpert:
         self.task = "mujoco"
         self.reward_lipschitz = math.inf  # a task that knows its reward's slope says so
         self.reward_lipschitz_detail = "not known for this task"
+        self.no_lipschitz_bound = ""  # a task whose true values are discontinuous in the state says why
 
     def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
         """One request. The answer is never worse than the warm start under the true reward: when
@@ -674,7 +675,11 @@ class OptimizingExpert:
         return self.solve(initial_state, horizon).trajectory
 
     def slope_floor(self) -> float:
-        """max |W_x| over every request so far (the surrogate cost-to-go's slope; see TrajOptResult)."""
+        """max |W_x| over every request so far (the surrogate cost-to-go's slope; see TrajOptResult).
+
+        A floor for L: the optimizer's own value already rises this steeply along its trajectories.
+        It is not a bound (a slope seen is never more than the slope there is).
+        """
         return self.max_slope_seen
 
     def value_basis(self) -> ValueBasis:
@@ -689,8 +694,14 @@ class OptimizingExpert:
             "smooth surrogate, not V*_H (Appendix B's setting)"
         )
         if self.values == "window":
-            return ValueBasis(what, lambda s0: 0.0, "Q_0 is the expert's replayed H-step return from s0")
-        return ValueBasis(what, None, "return-to-go values depend on the time left, not only on the state")
+            return ValueBasis(
+                what, lambda s0: 0.0, "Q_0 is the expert's replayed H-step return from s0",
+                no_lipschitz_bound=self.no_lipschitz_bound,
+            )  # fmt: skip
+        return ValueBasis(
+            what, None, "return-to-go values depend on the time left, not only on the state",
+            no_lipschitz_bound=self.no_lipschitz_bound,
+        )  # fmt: skip
 
     def theorem_34_condition(self, lipschitz: float) -> tuple[bool, str]:
         """Theorem 3.4's condition with L_f = the largest |A_t| seen on the expert's trajectories."""

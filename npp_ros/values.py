@@ -24,6 +24,7 @@ class ValueBasis:
     tail_detail: str
     theorem_34_holds: bool = False  # Theorem 3.4's condition, checked for the plant and L (surrogate mode)
     theorem_34: str = ""
+    no_lipschitz_bound: str = ""  # why no finite L bounds these values, where the expert knows it ("": no such reason)
 
 
 def theorem_34_condition(

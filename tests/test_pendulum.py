@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
 
 from npp_ros.dataset import DatasetError, Trajectory
+from npp_ros.lipschitz import LipschitzConstant, LipschitzWarning
 from npp_ros.pendulum import (
     PAPER_LIPSCHITZ,
     PendulumExpert,
@@ -16,6 +18,7 @@ from npp_ros.pendulum import (
     sample_initial_state,
     wrap_angle,
 )
+from npp_ros.run_setup import build_config, build_loop, lipschitz_checks
 from npp_ros.trajopt import replay_return_to_go
 
 COS_8 = math.cos(math.radians(8.0))
@@ -196,3 +199,31 @@ def test_importing_the_plants_loads_no_numba() -> None:
     code = "import sys, npp_ros.pendulum, npp_ros.cartpole; print(any(m.startswith('numba') for m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "False"
+
+
+@pytest.mark.parametrize("certify", ["rollout", "oracle"])
+def test_certificates_say_that_no_l_bounds_the_pendulum_values(certify: str) -> None:
+    """The 0/1 reward makes the expert's value a staircase: an L-based certificate is not proven, an oracle one is.
+
+    The optimizer's own slope floor is among the L checks, and an L below it fails there.
+    """
+    horizon, lipschitz = 40, LipschitzConstant(1e-3, "user")
+    expert = PendulumExpert(seed=0, horizon=horizon, time_budget=60.0, max_iterations=3, values="window")
+    config = build_config(
+        "pendulum_swingup", 0, lipschitz, 1e6, p=0.5, delta=0.5, horizon=horizon, certify=certify
+    )  # fmt: skip
+    loop = build_loop(config, expert)
+    result = loop.run(50)
+    certificate = result.certificate
+    assert certificate is not None
+    text = "\n".join(certificate.assumptions)
+    if certify == "rollout":
+        assert not certificate.proven
+        assert "it does NOT hold here, with the 0/1 reward every H-step return is a whole number" in text
+    else:
+        assert certificate.proven and "NOT hold" not in text
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LipschitzWarning)
+        floors = [c for c in lipschitz_checks(loop, expert) if c.source.startswith("optimizer's own")]
+    assert len(floors) == 1 and floors[0].slope == expert.slope_floor() > lipschitz.value
+    assert not floors[0].ok and f"over {expert.requests} requests" in floors[0].source
