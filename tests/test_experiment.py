@@ -85,6 +85,8 @@ def test_table_claims_follow_from_the_measured_columns(reduced_run: Path) -> Non
         final = [e for e in evaluations if e.checkpoint == row["evaluated_at"]]
         gaps = np.array([e.expert_return - e.policy_return for e in final])
         assert row["rollouts"] == len(final) == 4
+        assert row["policy_return_q50"] == pytest.approx(np.median([e.policy_return for e in final]))
+        assert row["expert_return_q50"] == pytest.approx(np.median([e.expert_return for e in final]))
         assert row["fraction_within_epsilon"] == pytest.approx(np.mean(gaps <= row["epsilon"]))
         assert row["lower_bound_violations"] == sum(e.policy_return < e.v_lb - 1e-9 * abs(e.v_lb) for e in final)
         assert row["l_is_bound"] == (row["lipschitz"] >= row["slope_needed"])

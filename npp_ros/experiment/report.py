@@ -35,6 +35,8 @@ class ResultRow:
     dataset_size: int
     evaluated_at: int
     rollouts: int
+    policy_return_q50: float  # median H-step return of the policy over the rollouts at evaluated_at
+    expert_return_q50: float  # median H-step return of the data expert from the same s0
     gap_q50: float  # gap to the data expert, V^expert(s0) - V^pi(s0), measured returns
     gap_q90: float
     gap_max: float
@@ -106,6 +108,8 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
         dataset_size=last.dataset_size if last else 0,
         evaluated_at=final,
         rollouts=len(rows),
+        policy_return_q50=float(np.median([row.policy_return for row in rows])) if rows else float("nan"),
+        expert_return_q50=float(np.median([row.expert_return for row in rows])) if rows else float("nan"),
         gap_q50=float(np.quantile(gaps, 0.5)),
         gap_q90=float(np.quantile(gaps, 0.9)),
         gap_max=float(np.max(gaps)),
@@ -219,9 +223,9 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
     """One line per arm: what a user needs to decide whether to trust the certificates."""
     head = (
         "| task | expert | L used (slope needed) | certified | certified at (median, range) | oracle calls "
-        "| within eps (worst seed) | returns < V_lb | V_ub < V_lb episodes | slope visited / L (max) "
-        "| verdicts | compute s |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| return policy / expert (median) | within eps (worst seed) | returns < V_lb | V_ub < V_lb episodes "
+        "| slope visited / L (max) | verdicts | compute s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for (task, expert, _, certify, rule), group in _arms(rows).items():
@@ -232,6 +236,8 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
         certs = [r.certified_episode for r in group if r.certified_episode is not None]
         at = f"{int(np.median(certs))} ({min(certs)}-{max(certs)})" if certs else "-"
         calls = int(np.median([r.oracle_calls for r in group]))
+        policy = np.median([r.policy_return_q50 for r in group])
+        returns = f"{policy:.0f} / {np.median([r.expert_return_q50 for r in group]):.0f}"
         worst = min(r.fraction_within_epsilon for r in group)
         below = sum(r.lower_bound_violations for r in group)
         total = sum(r.rollouts for r in group)
@@ -247,17 +253,17 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
         ratio += f" (**{above} of {len(group)} seeds above L**)" if above else ""
         lines.append(
             f"| {task} | {expert} | {used} ({needed}){bound} | {len(certs)}/{len(group)} | {at} | {calls} "
-            f"| {worst:.0%} | {below}/{total} | {crossed} | {ratio} | {said} | {compute:.0f} |"
+            f"| {returns} | {worst:.0%} | {below}/{total} | {crossed} | {ratio} | {said} | {compute:.0f} |"
         )
     return head + "\n".join(lines) + "\n"
 
 
 def markdown_table(rows: Sequence[ResultRow]) -> str:
     head = (
-        "| task | expert | L (needed) | seed | certified at | oracle calls | \\|D\\| | gap q50 / q90 / max "
-        "| within eps | gap to optimum q50 | returns < V_lb | V_ub < V_lb at s0 | max slope visited "
-        "| verdict | wall s |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| task | expert | L (needed) | seed | certified at | oracle calls | \\|D\\| | return q50 policy / expert "
+        "| gap q50 / q90 / max | within eps | gap to optimum q50 | returns < V_lb | V_ub < V_lb at s0 "
+        "| max slope visited | verdict | wall s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for r in rows:
@@ -265,7 +271,8 @@ def markdown_table(rows: Sequence[ResultRow]) -> str:
         cert = str(r.certified_episode) if r.certified_episode is not None else f"none ({r.episodes})"
         lines.append(
             f"| {r.task} | {_expert_cell(r)} | {r.lipschitz:.0f} ({r.slope_needed:.0f}){bound} | {r.seed} | {cert} "
-            f"| {r.oracle_calls} | {r.dataset_size} | {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
+            f"| {r.oracle_calls} | {r.dataset_size} | {r.policy_return_q50:.1f} / {r.expert_return_q50:.1f} "
+            f"| {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
             f"| {r.fraction_within_epsilon:.0%} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
             f"| {r.crossed_bounds} | {_slope_cell(r)} | {r.verdict} | {r.wall_time_s:.0f} |"
         )
