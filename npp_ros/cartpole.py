@@ -18,10 +18,7 @@ one-step rollouts (``mujoco.rollout``): ``mjd_transitionFD`` refuses RK4.
 
 from __future__ import annotations
 
-import copy
-import hashlib
 import math
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,10 +26,9 @@ from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are
 
 from npp_ros.dataset import FloatArray
-from npp_ros.pendulum import wrap_angle
+from npp_ros.suite_plant import SuitePlant, wrap_angle
 from npp_ros.tasks import OptimizerTask
 from npp_ros.trajopt import MujocoDynamics, OptimizingExpert
-from npp_ros.vectors import finite_vector
 
 TASK = "cartpole_swingup"
 DEFAULT_HORIZON = 1000
@@ -52,87 +48,17 @@ def sample_initial_state(rng: np.random.Generator) -> FloatArray:
     return np.array([0.01 * noise[0], math.pi + 0.01 * noise[1], 0.01 * noise[2], 0.01 * noise[3]])
 
 
-class CartpolePlant:
+class CartpolePlant(SuitePlant):
     """The swing-up task driven step by step, with an explicit horizon and no termination."""
 
-    def __init__(self, seed: int = 0) -> None:
-        os.environ.setdefault("MUJOCO_GL", "disable")
-        from dm_control import suite
-
-        env = suite.load("cartpole", "swingup", task_kwargs={"random": int(seed)})
-        n_sub = round(env.control_timestep() / env.physics.model.opt.timestep)
-        if n_sub != 1:
-            raise RuntimeError(f"cartpole control step is {n_sub} physics steps; this plant assumes 1")
-        self.task = TASK
-        self.seed = int(seed)
-        self.physics = env.physics
-        self._task = env.task
-        model = self.physics.model
-        self.dt = float(env.control_timestep())
-        self.state_dim = 4
-        self.action_dim = 1
-        self.joint_names = [model.id2name(i, "joint") for i in range(model.njnt)]
-        self.actuated_joint_names = [model.id2name(int(model.actuator_trnid[i, 0]), "joint") for i in range(model.nu)]
-        self.action_low = model.actuator_ctrlrange[:, 0].astype(np.float64)
-        self.action_high = model.actuator_ctrlrange[:, 1].astype(np.float64)
-        self.steps = 0
-
-    def model_sha256(self) -> str:
-        m = self.physics.model
-        parts = [
-            m.opt.timestep,
-            m.opt.gravity,
-            m.opt.integrator,
-            m.dof_damping,
-            m.jnt_range,
-            m.body_mass,
-            m.body_inertia,
-            m.body_ipos,
-            m.body_pos,
-            m.actuator_gear,
-            m.actuator_ctrlrange,
-        ]
-        blob = b"".join(np.ascontiguousarray(np.asarray(x, dtype=np.float64)).tobytes() for x in parts)
-        return hashlib.sha256(blob).hexdigest()
-
-    def clone(self) -> CartpolePlant:
-        twin = copy.copy(self)
-        twin.physics = self.physics.copy(share_model=True)
-        twin.steps = 0
-        return twin
-
-    def check_state(self, state: ArrayLike, what: str = "state") -> FloatArray:
-        return finite_vector(
-            state,
-            self.state_dim,
-            what,
-            f"cart position, pole angle, cart velocity, pole angular velocity of {self.task}",
-        )
-
-    def check_action(self, action: ArrayLike) -> FloatArray:
-        return finite_vector(np.ravel(action), self.action_dim, "action", f"one per actuator of {self.task}")
-
-    def reset(self, state: ArrayLike) -> FloatArray:
-        x = self.check_state(state)
-        with self.physics.reset_context():
-            self.physics.data.qpos[:] = x[:2]
-            self.physics.data.qvel[:] = x[2:]
-        self.steps = 0
-        return represent(x)
-
-    def raw_state(self) -> FloatArray:
-        return np.concatenate([self.physics.data.qpos, self.physics.data.qvel]).astype(np.float64)
-
-    def state(self) -> FloatArray:
-        return represent(self.raw_state())
-
-    def step(self, action: ArrayLike) -> float:
-        """Apply u (clamped to ctrlrange; the reward's control term sees the applied u) for one step."""
-        u = np.clip(self.check_action(action), self.action_low, self.action_high)
-        self.physics.set_control(u)
-        self.physics.step()
-        self.steps += 1
-        return float(self._task.get_reward(self.physics))
+    task = TASK
+    suite = ("cartpole", "swingup")
+    state_entries = "cart position, pole angle, cart velocity, pole angular velocity"
+    fingerprint_fields = (
+        "opt.timestep", "opt.gravity", "opt.integrator", "dof_damping", "jnt_range", "body_mass",
+        "body_inertia", "body_ipos", "body_pos", "actuator_gear", "actuator_ctrlrange",
+    )  # fmt: skip
+    represent = staticmethod(represent)
 
 
 _LN10 = math.log(10.0)

@@ -23,10 +23,7 @@ MuJoCo does for a ctrllimited actuator, so any finite action is accepted.
 
 from __future__ import annotations
 
-import copy
-import hashlib
 import math
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,9 +31,9 @@ from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are
 
 from npp_ros.dataset import FloatArray
+from npp_ros.suite_plant import SuitePlant, wrap_angle
 from npp_ros.tasks import OptimizerTask
 from npp_ros.trajopt import OptimizingExpert
-from npp_ros.vectors import finite_vector
 
 TASK = "pendulum_swingup"
 DEFAULT_HORIZON = 1000
@@ -47,13 +44,6 @@ H-step return is an integer, so a value is a staircase in s0 and no finite L bou
 PAPER_EPSILON = 130.0
 UPRIGHT_DEGREES = 8.0
 DEFAULT_TIME_BUDGET = 5.0
-
-
-def wrap_angle(angle: ArrayLike) -> FloatArray:
-    """Map angles to (-pi, pi] (pi stays pi, -pi becomes pi)."""
-    a = np.asarray(angle, dtype=np.float64)
-    out = np.pi - np.mod(np.pi - a, 2 * np.pi)
-    return out
 
 
 def represent(raw: ArrayLike) -> FloatArray:
@@ -73,83 +63,17 @@ def initial_state_diameter() -> float:
     return 2 * np.pi
 
 
-class PendulumPlant:
+class PendulumPlant(SuitePlant):
     """The swing-up task driven step by step, with an explicit horizon and no termination."""
 
-    def __init__(self, seed: int = 0) -> None:
-        os.environ.setdefault("MUJOCO_GL", "disable")
-        from dm_control import suite
-
-        env = suite.load("pendulum", "swingup", task_kwargs={"random": int(seed)})
-        n_sub = round(env.control_timestep() / env.physics.model.opt.timestep)
-        if n_sub != 1:
-            raise RuntimeError(f"pendulum control step is {n_sub} physics steps; this plant assumes 1")
-        self.task = TASK
-        self.seed = int(seed)
-        self.physics = env.physics
-        self._task = env.task
-        model = self.physics.model
-        self.dt = float(env.control_timestep())
-        self.state_dim = 2
-        self.action_dim = 1
-        self.joint_names = [model.id2name(i, "joint") for i in range(model.njnt)]
-        self.actuated_joint_names = [model.id2name(int(model.actuator_trnid[i, 0]), "joint") for i in range(model.nu)]
-        self.action_low = model.actuator_ctrlrange[:, 0].astype(np.float64)
-        self.action_high = model.actuator_ctrlrange[:, 1].astype(np.float64)
-        self.steps = 0
-
-    def model_sha256(self) -> str:
-        """Fingerprint of the compiled model's dynamics, so an expert can prove it models this plant."""
-        m = self.physics.model
-        parts = [
-            m.opt.timestep,
-            m.opt.gravity,
-            m.dof_damping,
-            m.jnt_stiffness,
-            m.body_mass,
-            m.body_inertia,
-            m.body_ipos,
-            m.body_pos,
-            m.actuator_gear,
-            m.actuator_ctrlrange,
-        ]
-        blob = b"".join(np.ascontiguousarray(np.asarray(x, dtype=np.float64)).tobytes() for x in parts)
-        return hashlib.sha256(blob).hexdigest()
-
-    def clone(self) -> PendulumPlant:
-        twin = copy.copy(self)
-        twin.physics = self.physics.copy(share_model=True)
-        twin.steps = 0
-        return twin
-
-    def check_state(self, state: ArrayLike, what: str = "state") -> FloatArray:
-        return finite_vector(state, self.state_dim, what, f"hinge angle, angular velocity of {self.task}")
-
-    def check_action(self, action: ArrayLike) -> FloatArray:
-        return finite_vector(np.ravel(action), self.action_dim, "action", f"one per actuator of {self.task}")
-
-    def reset(self, state: ArrayLike) -> FloatArray:
-        """Set [angle, velocity] (any finite angle); returns the stored representation."""
-        x = self.check_state(state)
-        with self.physics.reset_context():
-            self.physics.data.qpos[:] = x[:1]
-            self.physics.data.qvel[:] = x[1:]
-        self.steps = 0
-        return represent(x)
-
-    def raw_state(self) -> FloatArray:
-        return np.concatenate([self.physics.data.qpos, self.physics.data.qvel]).astype(np.float64)
-
-    def state(self) -> FloatArray:
-        return represent(self.raw_state())
-
-    def step(self, action: ArrayLike) -> float:
-        """Apply u (clamped to ctrlrange, as MuJoCo does) for one control step; return dm_control's reward."""
-        u = np.clip(self.check_action(action), self.action_low, self.action_high)
-        self.physics.set_control(u)
-        self.physics.step()
-        self.steps += 1
-        return float(self._task.get_reward(self.physics))
+    task = TASK
+    suite = ("pendulum", "swingup")
+    state_entries = "hinge angle, angular velocity"
+    fingerprint_fields = (
+        "opt.timestep", "opt.gravity", "dof_damping", "jnt_stiffness", "body_mass", "body_inertia",
+        "body_ipos", "body_pos", "actuator_gear", "actuator_ctrlrange",
+    )  # fmt: skip
+    represent = staticmethod(represent)
 
 
 # ----------------------------------------------------------------------------- surrogate and warm start
