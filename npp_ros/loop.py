@@ -74,6 +74,7 @@ class RunConfig:
     spec: CertificationSpec
     horizon: int = 1000
     gamma: float = 1.0
+    plant_fingerprint: str = ""  # the compiled model's SHA-256 (Plant.model_sha256): which plant the data are of
 
     def metadata(self) -> RunMetadata:
         """What the run file records of this config: its own fields, the spec's record, where L came from."""

@@ -9,6 +9,7 @@ the ROS parts in place of direct calls): :func:`build_config`, :func:`initial_st
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -56,7 +57,16 @@ def build_config(
         condition, epsilon, p, delta, lipschitz, definition.initial_state_diameter,
         certify=certify or definition.default_certify, rule=rule,
     )  # fmt: skip
-    return RunConfig(task, seed, definition.state_dim, definition.action_dim, spec, horizon=horizon, gamma=gamma)
+    return RunConfig(
+        task, seed, definition.state_dim, definition.action_dim, spec,
+        horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed),
+    )  # fmt: skip
+
+
+@functools.lru_cache(maxsize=64)
+def plant_fingerprint(task: str, seed: int) -> str:
+    """The fingerprint of the task's plant for this seed: what a run file records of its data's plant."""
+    return get_task(task).make_plant(seed).model_sha256()
 
 
 def initial_state_fn(task: str, seed: int) -> Callable[[int], FloatArray]:

@@ -4,7 +4,9 @@ The file is SQLite (format "npp_ros.run", version FORMAT_VERSION), readable by t
 R or any language; no pickle. Tables (see README, "Run file format"):
 
 - ``meta(key, value)``: format, format_version, created, the run's metadata (``RunConfig.metadata()``:
-  task, seed, dims, horizon, gamma, what it certifies, L with its source), and the certificate (JSON) once issued;
+  task, seed, dims, horizon, gamma, the plant's model fingerprint, what it certifies, L with its source), and the
+  certificate (JSON) once issued. A resumed run must ask for the same values; a file from before the
+  fingerprint was recorded records its resuming run's;
 - ``trajectories(id, episode, steps, sha256)``: one row per expert trajectory, ids from 0;
 - ``points(trajectory, step, s_0.., a_0.., q)``: the (s, a, Q) triplets, one row per step;
 - ``episodes(episode, ...)``: Algorithm 1's decision per episode, and the policy's return.
@@ -83,13 +85,21 @@ class RunMetadata(SimpleNamespace):
     """
 
     PROVENANCE = ("lipschitz_detail",)
+    RECORDED_SINCE = ("plant_fingerprint",)  # absent from older files: the first resume records them
 
     def mismatches(self, asked: RunMetadata) -> list[str]:
         return [
             f"{name}: file has {getattr(self, name, None)!r}, this run asks for {value!r}"
             for name, value in vars(asked).items()
-            if name not in self.PROVENANCE and getattr(self, name, None) != value
+            if name not in self.PROVENANCE
+            and getattr(self, name, None) != value
+            and not (name in self.RECORDED_SINCE and not hasattr(self, name))
         ]
+
+    def unrecorded(self, asked: RunMetadata) -> dict[str, object]:
+        """What ``asked`` records that this (older) file does not yet."""
+        names = [name for name in self.RECORDED_SINCE if hasattr(asked, name) and not hasattr(self, name)]
+        return {name: getattr(asked, name) for name in names}
 
 
 @dataclass(frozen=True)
@@ -272,6 +282,7 @@ class RunStore:
                 raise RunFileError(f"{path} belongs to another run and was left untouched:\n  " + "\n  ".join(problems))
             store._lock = lock
             store._use_wal()
+            store._record_meta(store.metadata.unrecorded(metadata))
             return store
         except BaseException:
             store.close()
@@ -365,6 +376,15 @@ class RunStore:
         self._writable()
         with _transaction(self._conn, self.path):
             self._conn.execute("INSERT OR REPLACE INTO meta VALUES ('certificate', ?)", (json.dumps(certificate),))
+
+    def _record_meta(self, values: Mapping[str, Any]) -> None:
+        """Add metadata a file made by an older npp_ros lacks (never changes a recorded value)."""
+        if not values:
+            return
+        with _transaction(self._conn, self.path):
+            self._conn.executemany("INSERT INTO meta VALUES (?, ?)", [(k, json.dumps(v)) for k, v in values.items()])
+        for name, value in values.items():
+            setattr(self.metadata, name, value)
 
     # ---------------------------------------------------------------- reading
     @contextmanager

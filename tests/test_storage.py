@@ -84,6 +84,24 @@ def test_resume_requires_the_same_run(tmp_path: Path) -> None:
         RunStore.create(path, META)
 
 
+def test_resume_requires_the_same_plant_and_older_files_record_theirs(tmp_path: Path) -> None:
+    """The run file names its plant's model fingerprint; data of another plant never join it."""
+    path = tmp_path / "run.sqlite"
+    mine = RunMetadata(**(vars(META) | {"plant_fingerprint": "a" * 64}))
+    RunStore.create(path, mine).close()
+    with pytest.raises(
+        RunFileError, match=r"belongs to another run.*\n  plant_fingerprint: file has 'a{64}', this run asks"
+    ):
+        RunStore.open_or_create(path, RunMetadata(**(vars(META) | {"plant_fingerprint": "b" * 64})))
+    older = tmp_path / "older.sqlite"  # made before npp_ros recorded the plant
+    RunStore.create(older, META).close()
+    with RunStore.open_or_create(older, mine) as store:
+        assert store.metadata.plant_fingerprint == "a" * 64
+    assert RunStore.open(older).metadata.plant_fingerprint == "a" * 64  # recorded in the file
+    with pytest.raises(RunFileError, match=r"plant_fingerprint: file has 'a{64}'"):
+        RunStore.open_or_create(older, RunMetadata(**(vars(META) | {"plant_fingerprint": "b" * 64})))
+
+
 def test_wrong_version_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "run.sqlite"
     RunStore.create(path, META).close()

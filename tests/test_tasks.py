@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from npp_ros import lqr
+from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.run_setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
 from npp_ros.tasks import TASK_NAMES, ExpertOptions, UnknownTaskError, episode_rng, get_task
 
@@ -73,3 +74,14 @@ def test_pendulum_defaults_to_oracle_and_rollout_needs_window_values() -> None:
     assert window.values == "window"
     answer = window.trajectory(task.initial_state(0, 0))
     assert answer.expert_return == answer.values[0]  # the oracle mode's V^E(s0)
+
+
+def test_a_run_records_the_fingerprint_of_its_plant() -> None:
+    lipschitz = LipschitzConstant(50.0, "paper")
+    fingerprints = {}
+    for task in ("lqr_2_1", "pendulum_swingup"):
+        config = build_config(task, 0, lipschitz, 50.0)
+        assert config.metadata().plant_fingerprint == config.plant_fingerprint
+        assert config.plant_fingerprint == get_task(task).make_plant(0).model_sha256()
+        fingerprints[task] = config.plant_fingerprint
+    assert len(set(fingerprints.values())) == 2
