@@ -86,6 +86,7 @@ def check_policy(
     delta: float,
     against_expert: bool,
     progress: Callable[[int, int], None] | None = None,
+    expert_progress: Callable[[int, int], None] | None = None,
 ) -> HeldOutCheck:
     """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
 
@@ -97,7 +98,8 @@ def check_policy(
     returns, slopes = policy_rollouts(plant, policy, states, horizon, task.value_slope(expert), progress=progress)
     optimal = None if against_expert else task.optimal_returns(expert, plant, states, horizon)
     if optimal is None:
-        reference, what = task.expert_returns(expert, plant, states, horizon), "the expert's H-step return"
+        reference = task.expert_returns(expert, plant, states, horizon, expert_progress)
+        what = "the expert's H-step return"
     else:
         reference, what = optimal, "the optimal H-step return V*_H"
     gaps = reference - returns

@@ -38,6 +38,7 @@ REGISTRY: dict[str, str] = {
 
 TASK_NAMES: tuple[str, ...] = tuple(sorted(REGISTRY))
 LIPSCHITZ_CHOICES = ("analytic", "paper")
+Progress = Callable[[int, int], None]  # (done, total) of a long computation
 MAX_HORIZON = 100_000
 
 
@@ -104,6 +105,14 @@ class MeasuresValueSlope(Protocol):
     def slope_floor(self) -> float: ...
 
 
+@runtime_checkable
+class StopsAtTimeBudget(Protocol):
+    """An expert whose requests may stop at a wall-clock budget: such an answer depends on the machine's speed."""
+
+    time_budget: float
+    budget_stops: int  # requests so far that the budget stopped before convergence or the iteration cap
+
+
 @dataclass(frozen=True)
 class ExpertOptions:
     """How to build a task's expert; None means the task's default. A task refuses what it cannot honour."""
@@ -164,12 +173,19 @@ class Task:
         """The optimal H-step return from each s0, where it is known; None for a suboptimal-only task."""
         return None
 
-    def expert_returns(self, expert: Expert, plant: Plant, states: FloatArray, horizon: int) -> FloatArray:
-        """The expert's own H-step return from each s0: one request each (its reported return)."""
+    def expert_returns(
+        self, expert: Expert, plant: Plant, states: FloatArray, horizon: int, progress: Progress | None = None
+    ) -> FloatArray:
+        """The expert's own H-step return from each s0: one request each (its reported return).
+
+        ``progress(done, total)`` after each request: an optimizer's requests take seconds each.
+        """
         out = np.empty(len(states))
         for k, s0 in enumerate(states):
             ret = expert.trajectory(s0, horizon).expert_return
             out[k] = math.nan if ret is None else ret
+            if progress is not None:
+                progress(k + 1, len(states))
         return out
 
     # ------------------------------------------------------------------ derived, shared

@@ -608,6 +608,7 @@ class OptimizingExpert:
         self.max_slope_seen = 0.0
         self.max_transition_norm = 0.0
         self.requests = 0
+        self.budget_stops = 0  # requests the time budget stopped (their answers depend on the machine's speed)
         self.clock: Callable[[], float] = time.perf_counter  # times the request's phases (a test may fake it)
         self.task = "mujoco"
         self.reward_lipschitz = math.inf  # a task that knows its reward's slope says so
@@ -641,6 +642,7 @@ class OptimizingExpert:
             max_iterations=self.max_iterations,
             min_iterations=self.min_iterations,
         )
+        stopped_by_budget = result.timed_out  # before a kept warm start replaces the result: it decided that too
         extra = steps - 1 if window else 0
         raw, rewards = replay_rewards(self.plant, x0, result.actions, self.warm_start if window else None, extra)
         kept_warm_start = float(warm_rewards.sum()) > float(rewards[:steps].sum())
@@ -654,6 +656,7 @@ class OptimizingExpert:
         self.max_slope_seen = max(self.max_slope_seen, result.max_value_slope)
         self.max_transition_norm = max(self.max_transition_norm, result.max_transition_norm)
         self.requests += 1
+        self.budget_stops += stopped_by_budget
         # Q_0 is the replayed H-step return in both value modes: the expert's own return at s0 (oracle mode).
         trajectory = Trajectory(self.represent(raw), result.actions.copy(), values, expert_return=float(values[0]))
         return ExpertSolution(trajectory, result, raw, kept_warm_start)

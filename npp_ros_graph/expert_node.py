@@ -26,7 +26,7 @@ from rclpy.task import Future
 
 from npp_ros.choices import check_gamma
 from npp_ros.dataset import Trajectory
-from npp_ros.tasks import MAX_HORIZON, Expert, ExpertOptions, get_task
+from npp_ros.tasks import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
 from npp_ros.vectors import finite_vector
 from npp_ros_graph.common import (
     BUSY,
@@ -220,10 +220,17 @@ class ExpertNode(Node):
         """Worker thread: one trajectory at a time, in arrival order; wakes the executor when one is done."""
         while (job := self._jobs.take()) is not None:
             expert, state, horizon, done = job
+            stops = expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
             try:
                 done.set_result(expert.trajectory(state, horizon or expert.horizon))
             except Exception as exc:  # reported to the waiting request, never kills the worker
                 done.set_exception(exc)
+            if isinstance(expert, StopsAtTimeBudget) and expert.budget_stops > stops:
+                self.get_logger().warning(
+                    f"the request from {np.array2string(np.asarray(state), precision=4)} stopped at the time budget "
+                    f"({expert.time_budget:g} s) before converging: its answer depends on this machine's speed "
+                    f"({expert.budget_stops} such requests so far; a larger time_budget keeps answers reproducible)"
+                )
             executor = self.executor
             if executor is not None:
                 executor.wake()

@@ -25,7 +25,7 @@ from npp_ros.lipschitz import LipschitzWarning
 from npp_ros.progress import Counter, StatusLine
 from npp_ros.run_setup import LIPSCHITZ_CHOICES, build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.storage import EpisodeRow, RunFileError
-from npp_ros.tasks import TASK_NAMES, ExpertOptions, get_task
+from npp_ros.tasks import TASK_NAMES, ExpertOptions, StopsAtTimeBudget, get_task
 
 
 def parser() -> argparse.ArgumentParser:
@@ -181,6 +181,14 @@ def main(argv: list[str] | None = None) -> int:
             "true_gap_max": evaluation.gap_max,
             "lower_bound_violations": evaluation.below_v_lb,
         }
+    if isinstance(expert, StopsAtTimeBudget):
+        summary["expert_budget_stops"] = expert.budget_stops
+        if expert.budget_stops:
+            print(
+                f"  expert          {expert.budget_stops} requests stopped at the time budget "
+                f"({expert.time_budget:g} s): their answers depend on this machine's speed; a larger "
+                "--time-budget keeps a run reproducible"
+            )
     print(f"  run folder      {run_dir} ({elapsed:.1f} s)")
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return 0 if result.certificate else 1

@@ -27,7 +27,7 @@ from npp_ros.experiment.arms import (
     ExperimentSettings,
     evaluation_states,
 )
-from npp_ros.tasks import Expert, get_task
+from npp_ros.tasks import Expert, Progress, get_task
 
 
 @dataclass(frozen=True)
@@ -103,13 +103,15 @@ def append_evaluations(path: Path, rows: Sequence[EvaluationRow]) -> None:
 class Evaluator:
     """Rolls the policy and both reference controllers out in MuJoCo from the evaluation s0."""
 
-    def __init__(self, arm: Arm, seed: int, settings: ExperimentSettings, expert: Expert) -> None:
+    def __init__(
+        self, arm: Arm, seed: int, settings: ExperimentSettings, expert: Expert, progress: Progress | None = None
+    ) -> None:
         self.settings = settings
         self.expert = expert
         task = self.task = get_task(arm.task)
         self.plant = task.make_plant(seed)
         self.states = evaluation_states(arm.task, seed, settings.evaluations)
-        self.expert_returns = task.expert_returns(expert, self.plant, self.states, settings.horizon)
+        self.expert_returns = task.expert_returns(expert, self.plant, self.states, settings.horizon, progress)
         if not task.optimal_expert:
             self.optimal_returns = np.full(len(self.states), np.nan)
         elif arm.expert == task.experts[0]:
@@ -161,8 +163,11 @@ def check_certificate(
     settings: ExperimentSettings,
     expert: Expert,
     count: int,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> HeldOutCheck:
     """The certified policy (the greedy policy over the trajectories it names) on ``count`` fresh s0.
+
+    ``progress(phase, done, total)``: phase "policy" (the rollouts), then "expert" (its requests).
 
     The gap is to the exact optimal H-step return where the claim is about V* and the expert is
     optimal; otherwise (oracle mode, the detuned expert, an optimizer expert) to the expert's own
@@ -177,6 +182,8 @@ def check_certificate(
         policy, task, task.make_plant(seed), expert, states, settings.horizon,
         epsilon=spec.epsilon, p=spec.p, delta=spec.delta,
         against_expert=spec.certify == "oracle" or arm.expert != task.experts[0],
+        progress=None if progress is None else lambda k, n: progress("policy", k, n),
+        expert_progress=None if progress is None else lambda k, n: progress("expert", k, n),
     )  # fmt: skip
 
 

@@ -100,8 +100,9 @@ def run_arm_seed(
             else:  # resumed past an unevaluated checkpoint: rebuild the data as it was there
                 policy = NonparametricPolicy(loop.dataset.prefix(calls), lipschitz.value)
             if evaluator is None:
-                report(f"{key}: reference rollouts")
-                evaluator = Evaluator(arm, seed, settings, expert)
+                evaluator = Evaluator(
+                    arm, seed, settings, expert, lambda k, n: report(f"{key}: the expert from evaluation s0 {k}/{n}")
+                )
             label = f"{key}: evaluating at episode {reached}"
             rows = evaluator.evaluate(reached, policy, lambda k, n, label=label: report(f"{label}: {k}/{n}"))
             append_evaluations(evaluations_path, rows)
@@ -109,8 +110,13 @@ def run_arm_seed(
             if loop.certificate is not None and reached >= loop.certificate.episodes:
                 break
         if loop.certificate is not None and not (run_dir / "heldout.json").exists():
-            report(f"{key}: checking the certificate on {settings.held_out} held-out s0")
-            check = check_certificate(loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out)
+
+            def held_out(phase: str, done: int, total: int) -> None:
+                report(f"{key}: checking the certificate on held-out s0: {phase} {done}/{total}")
+
+            check = check_certificate(
+                loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out, held_out
+            )
             (run_dir / "heldout.json").write_text(json.dumps(asdict(check), indent=2) + "\n")
         return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)
     finally:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -116,3 +117,23 @@ def test_a_long_request_leaves_the_service_answering_busy(pendulum_expert: tuple
     busy = [a for a in answers if not a.success]
     assert any(a.success for a in answers)
     assert busy and all(a.message.startswith("busy:") and "max_queue 1" in a.message for a in busy)
+
+
+def test_an_answer_cut_by_the_time_budget_is_named_in_the_log(
+    launch: Launcher, ros_client: Callable[..., RosClient]
+) -> None:
+    """A budget no request can meet: the node still answers, and says the answer depends on the machine."""
+    namespace = "/budget"
+    launch("npp-sim", {"task": TASK, "seed": 0, "horizon": HORIZON}, namespace=namespace)
+    expert = launch("npp-expert", {"time_budget": 1e-6, "max_iterations": ITERATIONS}, namespace=namespace)
+    client = ros_client("budget_client", namespace=namespace)
+    service = client.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT)
+    wait_until_modelling(client, service)
+    answer = client.call(service, request([3.0, 0.0], 0), TIMEOUT)
+    assert answer.success, answer.message
+    deadline = time.monotonic() + TIMEOUT
+    while "stopped at the time budget" not in launch.log(expert) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    log = launch.log(expert)
+    assert "the request from [3. 0.] stopped at the time budget (1e-06 s) before converging" in log, log
+    assert "its answer depends on this machine's speed (1 such requests so far" in log
