@@ -326,8 +326,8 @@ class NPPLoop:
             f"L = {spec.lipschitz.value:.6g} ({spec.lipschitz.source}) bounds the slope of the stored value function "
             f"on every segment between an initial state and a data point"
         )
-        if self._no_lipschitz_bound():
-            lipschitz += f": it does NOT hold here, {self._no_lipschitz_bound()}"
+        if no_bound := self._no_lipschitz_bound():
+            lipschitz += f": it does NOT hold here, {no_bound}"
         common = [
             "initial states are independent draws from rho, independent of the run so far",
             "the plant is deterministic, so one rollout's return is the policy's value at s0",

@@ -26,16 +26,7 @@ from scipy.linalg import solve_discrete_are, solve_discrete_lyapunov
 from npp_ros.certification import CheckedQuantity
 from npp_ros.dataset import FloatArray, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
-from npp_ros.tasks import (
-    DEFAULT_OPTIONS,
-    Expert,
-    ExpertOptions,
-    Plant,
-    Progress,
-    Task,
-    UnknownTaskError,
-    check_horizon,
-)
+from npp_ros.tasks import DEFAULT_OPTIONS, Expert, ExpertOptions, Plant, Task, UnknownTaskError, check_horizon
 from npp_ros.tasks import MAX_HORIZON as MAX_HORIZON  # re-exported: callers of the lqr module use them
 from npp_ros.tasks import episode_rng as episode_rng
 from npp_ros.values import ValueBasis, theorem_34_condition
@@ -440,7 +431,12 @@ class LQRTask(Task):
         return horizon - 0.5 * np.einsum("bi,ij,bj->b", states, p_h, states)
 
     def expert_returns(
-        self, expert: Expert, plant: Plant, states: FloatArray, horizon: int, progress: Progress | None = None
+        self,
+        expert: Expert,
+        plant: Plant,
+        states: FloatArray,
+        horizon: int,
+        progress: Callable[[int, int], None] | None = None,
     ) -> FloatArray:
         """The expert's controller rolled out in MuJoCo from each s0, in lockstep (one batch: no progress)."""
         assert isinstance(expert, LQRExpert)

@@ -38,7 +38,6 @@ REGISTRY: dict[str, str] = {
 
 TASK_NAMES: tuple[str, ...] = tuple(sorted(REGISTRY))
 LIPSCHITZ_CHOICES = ("analytic", "paper")
-Progress = Callable[[int, int], None]  # (done, total) of a long computation
 MAX_HORIZON = 100_000
 
 
@@ -174,7 +173,12 @@ class Task:
         return None
 
     def expert_returns(
-        self, expert: Expert, plant: Plant, states: FloatArray, horizon: int, progress: Progress | None = None
+        self,
+        expert: Expert,
+        plant: Plant,
+        states: FloatArray,
+        horizon: int,
+        progress: Callable[[int, int], None] | None = None,
     ) -> FloatArray:
         """The expert's own H-step return from each s0: one request each (its reported return).
 

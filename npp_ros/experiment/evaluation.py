@@ -27,7 +27,7 @@ from npp_ros.experiment.arms import (
     ExperimentSettings,
     evaluation_states,
 )
-from npp_ros.tasks import Expert, Progress, get_task
+from npp_ros.tasks import Expert, get_task
 
 
 @dataclass(frozen=True)
@@ -104,7 +104,12 @@ class Evaluator:
     """Rolls the policy and both reference controllers out in MuJoCo from the evaluation s0."""
 
     def __init__(
-        self, arm: Arm, seed: int, settings: ExperimentSettings, expert: Expert, progress: Progress | None = None
+        self,
+        arm: Arm,
+        seed: int,
+        settings: ExperimentSettings,
+        expert: Expert,
+        progress: Callable[[int, int], None] | None = None,
     ) -> None:
         self.settings = settings
         self.expert = expert
