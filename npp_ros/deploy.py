@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from npp_ros.bounds import NonparametricPolicy
 from npp_ros.certification import CertificationSpec, Certifier
-from npp_ros.dataset import FloatArray
+from npp_ros.dataset import Dataset, FloatArray
 from npp_ros.lipschitz import LipschitzConstant
 from npp_ros.storage import EpisodeRow, RunFileError, RunMetadata, RunStore
 from npp_ros.tasks import Plant, Task, UnknownTaskError, get_task
@@ -128,8 +128,7 @@ def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
         store.close()
     if dataset.num_trajectories == 0:
         raise GateRefusal(f"{run_file} holds no expert trajectories: there is no policy to deploy")
-    stored = dataset.num_trajectories
-    inconsistent = [] if certificate is None else _inconsistencies(certificate, metadata, rows, stored, task)
+    inconsistent = [] if certificate is None else _inconsistencies(certificate, metadata, rows, dataset, task)
     if inconsistent:
         what = "; ".join(inconsistent)
         reasons = [f"the certificate does not follow from the run's own log ({what}): it was altered"]
@@ -206,7 +205,7 @@ def _certificate_reasons(
 
 
 def _inconsistencies(
-    certificate: Mapping[str, Any], metadata: RunMetadata, rows: Sequence[EpisodeRow], stored: int, task: Task
+    certificate: Mapping[str, Any], metadata: RunMetadata, rows: Sequence[EpisodeRow], dataset: Dataset, task: Task
 ) -> list[str]:
     """Where the certificate disagrees with the run's metadata and episode log (replayed through the Certifier)."""
     problems = [
@@ -219,13 +218,25 @@ def _inconsistencies(
     if problems:
         return problems
     episodes, trajectories = int(certificate["episodes"]), int(certificate["policy_trajectories"])
+    stored = dataset.num_trajectories
     if not 1 <= trajectories <= stored:
         return [f"it names {trajectories} trajectories, the run stores {stored}"]
     if not 1 <= episodes <= len(rows):
         return [f"it was issued at episode {episodes}, the log holds {len(rows)}"]
     called = sum(row.oracle_called for row in rows[:episodes])
-    if trajectories > called:
-        return [f"it names {trajectories} trajectories, the first {episodes} episodes asked for {called}"]
+    # The policy under test holds every trajectory asked for so far, except (oracle checks) those of the
+    # passed checks of the certifying streak, held back so that the test saw one frozen policy.
+    held = 0
+    if metadata.certify == "oracle":
+        for row in reversed(rows[:episodes]):
+            if row.checked_gap is None or not row.checked_gap <= metadata.epsilon:
+                break
+            held += int(row.oracle_called)
+    if trajectories != called - held:
+        return [f"it names {trajectories} trajectories; the first {episodes} episodes gave the policy {called - held}"]
+    points = int(dataset.trajectory_offsets[trajectories])
+    if int(certificate["dataset_size"]) != points:
+        return [f"it names {certificate['dataset_size']} points; the first {trajectories} trajectories hold {points}"]
     try:
         spec = CertificationSpec(
             metadata.condition, metadata.epsilon, metadata.p, metadata.delta,
@@ -464,8 +475,10 @@ class Watchdog:
     def feed(self) -> bool:
         """A fresh state arrived; True when it ends an expiry (states flow again)."""
         self._last = time.monotonic()
-        if self.expired:
-            self.expired = False
+        if self.expired:  # rare: wake the thread, which sleeps without a deadline while expired
+            with self._wake:
+                self.expired = False
+                self._wake.notify()
             return True
         return False
 
