@@ -15,7 +15,9 @@ resumes when states flow again.
 
 from __future__ import annotations
 
+import functools
 import math
+import signal
 import sys
 import time
 from collections import deque
@@ -23,7 +25,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import rclpy
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -56,26 +62,30 @@ COMMANDS = "/forward_effort_controller/commands"
 STOP_SERVICE = "~/stop"
 LATENCY_WINDOW = 1000  # the diagnostics' latency percentiles are over this many latest answers
 
+# Read at configure, so an operator may change them while the node is unconfigured.
+Changeable = functools.partial(Param, read_only=False)
+
 PARAMETERS = (
-    Param("run_dir", "", "the run folder to deploy (holds run.sqlite)"),
-    Param("robot_model_fingerprint", "", "the robot's model fingerprint (npp-robot logs it); must be the certified "
-          "plant's"),
-    Param("max_epsilon", math.inf, "largest certified epsilon this deployment accepts", 0.0),
-    Param("min_p", 0.0, "smallest certified p (share of s0 ~ rho within epsilon) accepted", 0.0, 1.0),
-    Param("max_delta", 1.0, "largest certified delta (the claim's failure probability) accepted", 0.0, 1.0),
-    Param("override_gate", False, "deploy even when the gate refuses (each reason logged as an error and kept on "
-          "/diagnostics); never for a run file whose data fail their checksums"),
-    Param("joint_states_topic", JOINT_STATES, "the robot's sensor_msgs/JointState topic"),
-    Param("command_topic", COMMANDS, "the controller's std_msgs/Float64MultiArray command topic"),
-    Param("command_joints", "", "the controller's joints in command order, comma-separated; empty = the task's "
-          "actuated joints in the task's order"),
-    Param("command_interface", "effort", "what the controller commands; the safe command is zero effort, or the "
-          "present position held", choices=COMMAND_INTERFACES),
-    Param("effort_limit", 0.0, "largest |command| on top of the model's actuator limits; 0 = the model's only", 0.0),
-    Param("state_timeout", 0.1, "seconds without a new joint state before the safe command is sent", 1e-3),
-    Param("coverage_radius", 0.0, "distance from the policy's data beyond which a state is reported as outside the "
-          "certificate's coverage; 0 = the farthest any s0 of the run lay from the data", 0.0),
-    Param("stop_outside_coverage", False, "deactivate at the first state outside the coverage (or non-finite)"),
+    Changeable("run_dir", "", "the run folder to deploy (holds run.sqlite)"),
+    Changeable("robot_model_fingerprint", "", "the robot's model fingerprint (npp-robot logs it); must be the "
+               "certified plant's"),
+    Changeable("max_epsilon", math.inf, "largest certified epsilon this deployment accepts", 0.0),
+    Changeable("min_p", 0.0, "smallest certified p (share of s0 ~ rho within epsilon) accepted", 0.0, 1.0),
+    Changeable("max_delta", 1.0, "largest certified delta (the claim's failure probability) accepted", 0.0, 1.0),
+    Changeable("override_gate", False, "deploy even when the gate refuses (each reason logged as an error and kept on "
+               "/diagnostics); never for a run file whose data fail their checksums"),
+    Changeable("joint_states_topic", JOINT_STATES, "the robot's sensor_msgs/JointState topic"),
+    Changeable("command_topic", COMMANDS, "the controller's std_msgs/Float64MultiArray command topic"),
+    Changeable("command_joints", "", "the controller's joints in command order, comma-separated; empty = the task's "
+               "actuated joints in the task's order"),
+    Changeable("command_interface", "effort", "what the controller commands; the safe command is zero effort, or "
+               "the present position held", choices=COMMAND_INTERFACES),
+    Changeable("effort_limit", 0.0, "largest |command| on top of the model's actuator limits; 0 = the model's only",
+               0.0),
+    Changeable("state_timeout", 0.1, "seconds without a new joint state before the safe command is sent", 1e-3),
+    Changeable("coverage_radius", 0.0, "distance from the policy's data beyond which a state is reported as outside "
+               "the certificate's coverage; 0 = the farthest any s0 of the run lay from the data", 0.0),
+    Changeable("stop_outside_coverage", False, "deactivate at the first state outside the coverage (or non-finite)"),
 )  # fmt: skip
 
 
@@ -112,7 +122,8 @@ class DeploySettings:
 USAGE = f"""npp-deploy: one certified run's policy drives a robot over ros2_control topics (lifecycle node
 "npp_deploy").
 
-Managed: drive it with the standard lifecycle services (npp-deploy-ctl configure|activate|deactivate|
+Managed: parameters are read at configure (change them while unconfigured); drive it with the standard
+lifecycle services (npp-deploy-ctl configure|activate|deactivate|
 cleanup|shutdown|stop|state, or `ros2 lifecycle set`). configure checks the run (checksums, a proven
 certificate, the operator's limits, the robot's model fingerprint) and fails with the reason; activate
 starts commanding; deactivate sends the safe command and stops.
@@ -150,16 +161,27 @@ class DeployNode(LifecycleNode):
         )  # fmt: skip
         self._warn = ThrottledWarnings(self)
         self._state_sub = None
-        self.command_pub = self.create_publisher(Float64MultiArray, self.settings.command_topic, CONTROL_QOS)
+        self.command_pub: Publisher | None = None  # created at configure, on the configured topic
         self.create_service(Trigger, STOP_SERVICE, self.on_stop)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.watchdog = Watchdog(self.settings.state_timeout, self.on_states_stopped)
         self.diagnostics = DiagnosticsReporter(self, self.health)
         self.get_logger().info(f"unconfigured; run_dir {self.settings.run_dir or '(none given)'}")
 
     # ---------------------------------------------------------------- lifecycle
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        """Parameters take effect at configure, so they may change only while unconfigured."""
+        if self.lifecycle == "unconfigured":
+            return SetParametersResult(successful=True)
+        names = ", ".join(p.name for p in params)
+        return SetParametersResult(successful=False, reason=f"{names}: read at configure; clean up first")
+
+    def _read_settings(self) -> DeploySettings:
+        return DeploySettings(**{param.name: self.get_parameter(param.name).value for param in PARAMETERS})
+
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
-        settings = self.settings
         try:
+            self.settings = settings = self._read_settings()
             deployment = load_deployment(settings.run_dir, settings.acceptance())
             plant = deployment.plant
             check_command_interface(plant, settings.command_interface)
@@ -172,6 +194,8 @@ class DeployNode(LifecycleNode):
         self.deployment, self.layout, self.coverage = deployment, layout, coverage
         self.limits = CommandLimits.of_plant(plant, settings.effort_limit)
         self.refusal = ""
+        self.watchdog.timeout = settings.state_timeout
+        self.command_pub = self.create_publisher(Float64MultiArray, settings.command_topic, CONTROL_QOS)
         self._state_sub = self.create_subscription(
             JointState, settings.joint_states_topic, self.on_joint_state, CONTROL_QOS
         )
@@ -189,10 +213,14 @@ class DeployNode(LifecycleNode):
         self.active = True
         self.watchdog.arm()
         self.get_logger().info("active: commanding the robot")
+        if self.command_pub is not None and self.command_pub.get_subscription_count() == 0:
+            self.get_logger().warning(
+                f"nothing subscribes to {self.command_pub.topic_name} yet: is the controller loaded and active?"
+            )
         return self._became("active")
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._stop_commanding("deactivated")
+        self.stop_commanding("deactivated")
         return self._became("inactive")
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -200,12 +228,12 @@ class DeployNode(LifecycleNode):
         return self._became("unconfigured")
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._stop_commanding("shutting down")
+        self.stop_commanding("shutting down")
         self._release()
         return self._became("finalized")
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._stop_commanding("error")
+        self.stop_commanding("error")
         self._release()
         return self._became("unconfigured")
 
@@ -224,10 +252,13 @@ class DeployNode(LifecycleNode):
         if self._state_sub is not None:
             self.destroy_subscription(self._state_sub)
             self._state_sub = None
+        if self.command_pub is not None:
+            self.destroy_publisher(self.command_pub)
+            self.command_pub = None
         self.deployment = self.layout = self.limits = self.coverage = None
         self._raw, self._last_answered = None, None
 
-    def _stop_commanding(self, why: str) -> None:
+    def stop_commanding(self, why: str) -> None:
         was_active, self.active = self.active, False
         self.watchdog.disarm()
         if was_active:
@@ -236,14 +267,14 @@ class DeployNode(LifecycleNode):
 
     def send_safe_command(self) -> str:
         """Publish the safe command (zero effort, or the present position held); say what was sent."""
-        layout = self.layout
-        if layout is None:
+        layout, publisher = self.layout, self.command_pub
+        if layout is None or publisher is None:
             return "no safe command (not configured)"
         try:
             command = safe_command(self.settings.command_interface, layout, self._raw)
         except RobotStateError as exc:
             return f"no safe command: {exc}"
-        self.command_pub.publish(Float64MultiArray(data=float64_array(command)))
+        publisher.publish(Float64MultiArray(data=float64_array(command)))
         return f"safe command {command.tolist()} sent"
 
     def on_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -281,6 +312,8 @@ class DeployNode(LifecycleNode):
         try:
             self._answer(raw, deployment, layout, started)
         except Exception as exc:  # a single state must never take the node down
+            if not rclpy.ok():
+                return  # interrupted while answering: the safe command went out, nothing more can
             self.last_error = f"could not answer a joint state: {type(exc).__name__}: {exc}"
             self.get_logger().error(self.last_error)
 
@@ -300,6 +333,7 @@ class DeployNode(LifecycleNode):
         if clamped:
             self.counts["clamped entries"] += clamped
         self._command.data = float64_array(layout.command(action))
+        assert self.command_pub is not None
         self.command_pub.publish(self._command)
         self.counts["answered"] += 1
         self._latencies.append(time.perf_counter() - started)
@@ -356,13 +390,29 @@ class DeployNode(LifecycleNode):
 
     def destroy_node(self) -> None:
         if self.active:
-            self._stop_commanding("exiting")
+            self.stop_commanding("exiting")
         self.watchdog.close()
         super().destroy_node()
 
 
+def make_node() -> DeployNode:
+    """The node, with Ctrl-C and SIGTERM handled so that the safe command goes out before the context shuts
+    down (rclpy's own handler shuts it down at once, and a shut-down context cannot publish)."""
+    node = DeployNode()
+
+    def stop(signum: int, frame: object) -> None:
+        for each in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(each, signal.SIG_IGN)  # once: a second signal must not interrupt the teardown
+        node.stop_commanding(signal.Signals(signum).name)
+        rclpy.try_shutdown()  # what rclpy's handler does: run_node's spin loop ends and tears down
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, stop)  # after rclpy.init, which installed its own
+    return node
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_node(DeployNode, argv, USAGE, events=True)
+    return run_node(make_node, argv, USAGE, events=True)
 
 
 if __name__ == "__main__":

@@ -63,6 +63,8 @@ class DiagnosticsReporter:
         self.timer = node.create_timer(period, self.publish)
 
     def publish(self) -> None:
+        if not self.node.context.ok():
+            return  # shutting down: nobody to tell
         try:
             health = self.report()
         except Exception as exc:  # a report must never take its node down

@@ -6,9 +6,10 @@ applied is the latest std_msgs/Float64MultiArray from the controller's topic, he
 arrives (a zero-order hold, no lockstep: a late command leaves the previous one in force, as
 forward_command_controller does). Before the first command it applies zero.
 
-Lockstep (``lockstep:=true``, for exact comparisons): it publishes a state, then steps only when a
-command answers it, and publishes the next; a state left unanswered for ``resend_after`` seconds is
-published again with the same stamp (so a controller that joins late picks it up).
+Lockstep (``lockstep:=true``, for exact comparisons): once a controller publishes on the command
+topic, it publishes a state, then steps only when a command answers it, and publishes the next; a
+state left unanswered for ``resend_after`` seconds is published again with the same stamp (so a
+controller activated later picks it up).
 
 Joint states: every joint of the model, position = qpos, velocity = qvel, effort = the control
 applied to its actuator (0 for a joint without one); stamps are the wall clock (real time) or the
@@ -25,6 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -107,7 +109,9 @@ class RobotNode(Node):
         self._stopping = threading.Event()
         self._clock_thread: threading.Thread | None = None
         self.state_pub = self.create_publisher(JointState, settings.joint_states_topic, CONTROL_QOS)
-        self.create_subscription(Float64MultiArray, settings.command_topic, self.on_command, CONTROL_QOS)
+        self._command_sub = self.create_subscription(
+            Float64MultiArray, settings.command_topic, self.on_command, CONTROL_QOS
+        )
         self.diagnostics = DiagnosticsReporter(self, self.health)
         self._build_timer = self.create_timer(0.0, self._build)  # MuJoCo loads after init, not inside it
 
@@ -142,8 +146,8 @@ class RobotNode(Node):
             f"model fingerprint {plant.model_sha256()}"
         )
         if settings.lockstep:
-            self._publish(stamp(0))
-            self.create_timer(min(settings.resend_after, 0.25), self._resend_if_unanswered)
+            self._started = False  # the first state waits for a controller, whose answer it could otherwise miss
+            self.create_timer(min(settings.resend_after, 0.05), self._resend_if_unanswered)
         else:
             self._clock_thread = threading.Thread(target=self._run_clock, name="npp-robot-clock", daemon=True)
             self._clock_thread.start()
@@ -197,6 +201,8 @@ class RobotNode(Node):
                 self.held_steps += 1
             with self._lock:
                 self._step(command)
+                if not rclpy.ok():
+                    return  # shutting down: nobody to publish to
                 self._publish(self.get_clock().now().to_msg())
 
     def _publish(self, when) -> None:
@@ -211,6 +217,12 @@ class RobotNode(Node):
         self.state_pub.publish(msg)
 
     def _resend_if_unanswered(self) -> None:
+        if not self._started:
+            if self._command_sub.get_publisher_count() > 0:
+                self._started = True
+                self.get_logger().info("a controller publishes commands: lockstep starts")
+                self._publish(stamp(0))
+            return
         if time.monotonic() - self._last_sent >= self.settings.resend_after:
             with self._lock:
                 self.state_pub.publish(self._state_msg)
