@@ -156,8 +156,8 @@ class DeployNode(LifecycleNode):
         self._command = Float64MultiArray()
         self._latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self.counts = dict.fromkeys(
-            ("answered", "refused states", "repeated stamps", "clamped entries", "outside coverage",
-             "watchdog expiries"), 0,
+            ("answered", "refused states", "overtaken states", "repeated stamps", "clamped entries",
+             "outside coverage", "watchdog expiries"), 0,
         )  # fmt: skip
         self._warn = ThrottledWarnings(self)
         self._state_sub = None
@@ -290,15 +290,27 @@ class DeployNode(LifecycleNode):
 
     # ---------------------------------------------------------------- control
     def on_joint_state(self, msg: JointState) -> None:
+        """Answer the newest joint state: those already behind this one on the wire are checked too, and a
+        state overtaken by a newer one is dropped (counted), so a slow answer never builds a queue."""
         started = time.perf_counter()
-        layout, deployment = self.layout, self.deployment
-        if layout is None or deployment is None:
+        layout, deployment, subscription = self.layout, self.deployment, self._state_sub
+        if layout is None or deployment is None or subscription is None:
             return
-        try:
-            raw = layout.state(msg.name, msg.position, msg.velocity)
-        except RobotStateError as exc:
-            self._refused_state(exc)
+        newest: tuple[np.ndarray, JointState] | None = None
+        while msg is not None:
+            try:
+                raw = layout.state(msg.name, msg.position, msg.velocity)
+            except RobotStateError as exc:
+                self._refused_state(exc)
+            else:
+                self.counts["overtaken states"] += int(newest is not None)
+                newest = (raw, msg)
+            with subscription.handle:
+                taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+            msg = None if taken is None else taken[0]
+        if newest is None:
             return
+        raw, msg = newest
         self._raw = raw
         if not self.active:
             return

@@ -8,6 +8,8 @@ busy machine (the measured figures are in results/deploy, from npp-bench-deploy)
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -19,6 +21,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -35,6 +38,9 @@ from npp_ros_graph.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, ERROR, Healt
 START_TIMEOUT_S = 120.0  # processes importing rclpy and MuJoCo on a shared, busy machine
 BUSY_MACHINE_SLACK_S = 1.0  # what a loaded machine may add to the watchdog's reaction, beyond one period
 DT = get_task(TASK).make_plant(SEED).dt
+# The test's own subscriptions keep everything: a lockstep loop outpaces a test spinning between checks,
+# and a shallow reader history would drop states (the robot and npp-deploy themselves use CONTROL_QOS).
+KEEP_ALL = QoSProfile(depth=100_000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 
 
 @pytest.fixture(scope="module")
@@ -68,9 +74,7 @@ class Deploy:
         self.statuses: list[Any] = []
         self.commands: list[tuple[float, list[float]]] = []
         client.node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS_QOS)
-        self.command_sub = client.node.create_subscription(
-            Float64MultiArray, command_topic, self._on_command, CONTROL_QOS
-        )
+        self.command_sub = client.node.create_subscription(Float64MultiArray, command_topic, self._on_command, KEEP_ALL)
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         self.statuses += [status for status in msg.status if status.name == self.node]
@@ -151,7 +155,7 @@ def test_the_lockstep_robot_follows_the_in_process_policy_exactly(runs, launch, 
             (msg.header.stamp.sec, msg.header.stamp.nanosec), np.concatenate([msg.position, msg.velocity])
         )
 
-    client.node.create_subscription(JointState, JOINT_STATES, on_state, CONTROL_QOS)
+    client.node.create_subscription(JointState, JOINT_STATES, on_state, KEEP_ALL)
     deploy = Deploy(client)
     deploy.deploy(good, state_timeout=30.0)
     client.wait_for(lambda: len(states) >= HORIZON, 120.0, f"{HORIZON} lockstep states")
@@ -176,7 +180,7 @@ def test_the_real_time_robot_stays_close_to_the_in_process_policy(runs, launch, 
         states.append(np.concatenate([msg.position, msg.velocity]))
         efforts.append(msg.effort[0])
 
-    client.node.create_subscription(JointState, JOINT_STATES, on_state, CONTROL_QOS)
+    client.node.create_subscription(JointState, JOINT_STATES, on_state, KEEP_ALL)
     deploy = Deploy(client)
     deploy.deploy(good)
     client.wait_for(lambda: any(efforts), 60.0, "the first commanded step")
@@ -198,7 +202,7 @@ def test_when_states_stop_the_safe_command_follows_within_the_timeout(runs, laun
     proc = launch("npp-deploy")
     client = ros_client("watchdog_test")
     arrivals: list[float] = []
-    client.node.create_subscription(JointState, JOINT_STATES, lambda _: arrivals.append(time.monotonic()), CONTROL_QOS)
+    client.node.create_subscription(JointState, JOINT_STATES, lambda _: arrivals.append(time.monotonic()), KEEP_ALL)
     deploy = Deploy(client)
     deploy.deploy(good, state_timeout=timeout)
     client.wait_for(lambda: len(deploy.commands) >= 10 and len(arrivals) >= 10, 60.0, "the loop to run")
@@ -291,3 +295,32 @@ def test_bad_joint_states_are_refused_without_a_crash(runs, launch, ros_client) 
     client.wait_for(lambda: deploy.state() == "inactive", 30.0, "the stop outside the coverage")
     assert "the certificate says nothing about it" in launch.log(proc)
     launch.assert_alive(proc)
+
+
+def deploy_ctl(*args: str) -> subprocess.CompletedProcess[str]:
+    command = [sys.executable, "-m", "npp_ros_graph.deploy_ctl", *args, "--timeout", "120"]
+    return subprocess.run(command, capture_output=True, text=True, timeout=300)
+
+
+def test_npp_deploy_ctl_drives_the_lifecycle_and_prints_the_gate_reason(runs, launch) -> None:
+    good, bad = runs
+    launch("npp-deploy", {"run_dir": str(bad["uncertified"][0]), "robot_model_fingerprint": FINGERPRINT}, "/refused")
+    launch("npp-deploy", {"run_dir": str(good), "robot_model_fingerprint": FINGERPRINT, "state_timeout": 30.0})
+    refused = deploy_ctl("configure", "--node", "/refused/npp_deploy")
+    assert refused.returncode == 1 and "the run holds no certificate" in refused.stderr, refused.stderr
+    assert deploy_ctl("state", "--node", "/refused/npp_deploy").stdout.strip().endswith("unconfigured")
+    for command, says in (("configure", "unconfigured -> inactive"), ("activate", "inactive -> active"),
+                          ("stop", "stopped: safe command sent"), ("state", "inactive")):  # fmt: skip
+        done = deploy_ctl(command)
+        assert done.returncode == 0 and says in done.stdout, (command, done.stdout, done.stderr)
+    gone = subprocess.run(
+        [sys.executable, "-m", "npp_ros_graph.deploy_ctl", "state", "--node", "/nobody", "--timeout", "2"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert gone.returncode == 2 and "not found" in gone.stderr
+
+
+def test_every_deploy_command_has_help() -> None:
+    for module in ("npp_ros_graph.deploy", "npp_ros_graph.deploy_ctl", "npp_ros_graph.robot"):
+        shown = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=120)
+        assert shown.returncode == 0 and ("usage" in shown.stdout.lower() or "subscribes" in shown.stdout), module
