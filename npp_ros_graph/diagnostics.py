@@ -53,6 +53,20 @@ def health_of(status: DiagnosticStatus) -> Health:
     return Health(status.message, values, level, error)
 
 
+def health_lines(msg: DiagnosticArray, shown: dict[str, str]) -> list[str]:
+    """npp-monitor's lines for the statuses whose level or message changed since ``shown`` (updated here)."""
+    lines = []
+    for status in msg.status:
+        health = health_of(status)
+        line = f"[health]  {status.name:<22} {LEVEL_NAMES.get(health.level, str(health.level)):<5}  {health.doing}"
+        if health.error:
+            line += f"  (last error: {health.error})"
+        if shown.get(status.name) != line:
+            shown[status.name] = line
+            lines.append(line)
+    return lines
+
+
 class DiagnosticsReporter:
     """Publishes ``report()`` on /diagnostics every ``period`` seconds, and on demand."""
 

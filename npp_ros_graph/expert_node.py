@@ -40,6 +40,7 @@ from npp_ros_graph.common import (
     run_node,
 )
 from npp_ros_graph.convert import state_layout, trajectory_to_response
+from npp_ros_graph.diagnostics import ERROR, OK, DiagnosticsReporter, Health
 from npp_ros_graph.parameters import Param, declare_settings, parameter_help
 from npp_ros_graph.seal import RunSeal, SealError
 
@@ -117,6 +118,10 @@ class ExpertNode(Node):
             qos_profile=SERVICE_QOS,
             callback_group=ReentrantCallbackGroup(),
         )
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            "serving" if self.expert else "waiting for a plant it can model",
+            {"waiting requests": self.waiting, "busy refusals": self.busy_refusals},
+            ERROR if self.refusal else OK, self.refusal or ""))  # fmt: skip
         self.get_logger().info(
             f"waiting for the plant description on {self._plant_sub.topic_name}; "
             f"serving {self.resolve_service_name(EXPERT_SERVICE)} (gamma {self.gamma}, max_horizon {self.max_horizon}, "

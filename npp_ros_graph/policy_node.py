@@ -49,6 +49,7 @@ from npp_ros_graph.common import (
     run_node,
 )
 from npp_ros_graph.convert import refill_action, state_from_joint_state, trajectory_from_msg
+from npp_ros_graph.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.parameters import declare_settings
 from npp_ros_graph.seal import RunSeal, SealError
 
@@ -115,6 +116,10 @@ class PolicyNode(Node):
         self.create_timer(REPORT_EVERY_S, self.report_dropped)
         self._worker = threading.Thread(target=self._work, name="npp-policy-worker", daemon=True)
         self._worker.start()
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            f"acting on {self.dataset.num_trajectories} trajectories" if self.policy else "waiting for data",
+            {"answered": self.answered, "dropped states": self.dropped, "waiting": len(self._inbox)},
+            error=self._warn.last))  # fmt: skip
 
     # ---------------------------------------------------------------- dataset
     def _foreign(self, topic: str, exc: SealError) -> None:

@@ -44,6 +44,7 @@ from npp_ros_graph.convert import (
     stamp,
     state_to_joint_state,
 )
+from npp_ros_graph.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.parameters import Param, StartupError, declare_settings, parameter_help
 from npp_ros_graph.seal import RunSeal, SealError
 
@@ -123,6 +124,9 @@ class SimNode(Node):
         self._build_timer = self.create_timer(0.0, self._build)  # MuJoCo loads after init, not inside it
         if self.resend_after > 0:
             self.create_timer(min(self.resend_after, 0.25), self._resend_if_unanswered)
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            f"episode {self.episode}, step {self.steps}" if self.state_stamp is not None else "waiting for a reset",
+            {"ignored actions": self.ignored_actions}, error=self._warn.last))  # fmt: skip
 
     def _build(self) -> None:
         self._build_timer.cancel()

@@ -76,6 +76,7 @@ from npp_ros_graph.convert import (
     trajectory_from_response,
     trajectory_to_msg,
 )
+from npp_ros_graph.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.parameters import Param, declare_settings, parameter_help
 from npp_ros_graph.seal import RunSeal, SealError
 
@@ -187,6 +188,10 @@ class SupervisorNode(Node):
         self.exit_code = 0
         self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
         self.worker.start()
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            f"episode {self.loop.next_episode}" + (", certified" if self.loop.certificate else "") if self.loop
+            else "waiting for the sim's plant description",
+            {"oracle calls": self.loop.oracle_calls if self.loop else 0}))  # fmt: skip
         self.get_logger().info("waiting for the sim's plant description")
 
     # ---------------------------------------------------------------- graph inputs
