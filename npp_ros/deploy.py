@@ -87,7 +87,7 @@ class Deployment:
     policy: NonparametricPolicy
     task: Task
     plant: Plant
-    initial_states: FloatArray  # every s0 the run drew from rho, in episode order
+    checked_starts: FloatArray  # the s0 ~ rho the run checked whose trajectory is not in the policy's data
     overridden: tuple[str, ...] = ()  # the reasons the gate gave and the operator overrode
 
     @property
@@ -142,9 +142,11 @@ def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
     count = int(certificate["policy_trajectories"]) if named else dataset.num_trajectories
     data = dataset if count == dataset.num_trajectories else dataset.prefix(count)
     policy = NonparametricPolicy(data, float(metadata.lipschitz))
-    initial_states = np.array([row.initial_state for row in rows], dtype=np.float64).reshape(len(rows), -1)
+    policy.act(data.states[0])  # builds the search index now: the first state on the robot must not wait for it
+    outside = [row.initial_state for row in rows if row.trajectory is None or row.trajectory >= count]
+    checked_starts = np.array(outside, dtype=np.float64).reshape(len(outside), metadata.state_dim)
     return Deployment(
-        run_file, metadata, certificate, policy, task, task.make_plant(int(metadata.seed)), initial_states,
+        run_file, metadata, certificate, policy, task, task.make_plant(int(metadata.seed)), checked_starts,
         tuple(reasons),
     )  # fmt: skip
 
@@ -424,17 +426,18 @@ class Coverage:
 
     @classmethod
     def of_deployment(cls, deployment: Deployment, radius: float = 0.0) -> Coverage:
-        """``radius`` 0: the farthest any s0 the run drew from rho lay from the policy's data (see
-        :meth:`farthest_start`)."""
+        """``radius`` 0: the farthest a checked s0 lay from the policy's data (see :meth:`farthest_start`)."""
         coverage = cls(deployment.policy.dataset.states, math.inf)
-        coverage.radius = radius if radius > 0 else coverage.farthest_start(deployment.initial_states)
+        coverage.radius = radius if radius > 0 else coverage.farthest_start(deployment.checked_starts)
         return coverage
 
-    def farthest_start(self, initial_states: FloatArray) -> float:
-        """The largest distance from a drawn s0 to the data: the certificate's checks met states that far out."""
-        if len(initial_states) == 0:
+    def farthest_start(self, starts: FloatArray) -> float:
+        """The largest distance from the data to an s0 ~ rho that the run checked and did not add to the policy's
+        data (a certified run's streak is made of them): fresh draws from rho came that far from the data.
+        Infinite when there is none (a run that never certified): then nothing calibrates a radius."""
+        if len(starts) == 0:
             return math.inf
-        return float(self._tree.query(initial_states)[0].max())
+        return float(self._tree.query(starts)[0].max())
 
     def distance(self, state: FloatArray) -> float:
         return float(self._tree.query(state)[0])

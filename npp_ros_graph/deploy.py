@@ -84,7 +84,7 @@ PARAMETERS = (
                0.0),
     Changeable("state_timeout", 0.1, "seconds without a new joint state before the safe command is sent", 1e-3),
     Changeable("coverage_radius", 0.0, "distance from the policy's data beyond which a state is reported as outside "
-               "the certificate's coverage; 0 = the farthest any s0 of the run lay from the data", 0.0),
+               "the certificate's coverage; 0 = the farthest a checked s0 of the run lay from it", 0.0),
     Changeable("stop_outside_coverage", False, "deactivate at the first state outside the coverage (or non-finite)"),
 )  # fmt: skip
 
@@ -205,6 +205,10 @@ class DeployNode(LifecycleNode):
             f"{self.command_pub.topic_name} ({settings.command_interface}), limits {self.limits.describe()}, "
             f"coverage radius {coverage.radius:.4g}"
         )
+        if math.isinf(coverage.radius):
+            self.get_logger().warning(
+                "no checked s0 outside the policy's data calibrates the coverage radius: set coverage_radius"
+            )
         return self._became("inactive")
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -344,6 +348,7 @@ class DeployNode(LifecycleNode):
         action, clamped = self.limits.clamp(deployment.policy.act(state))
         if clamped:
             self.counts["clamped entries"] += clamped
+            self._warn("clamped", f"command clamped to the actuator limits {self.limits.describe()}")
         self._command.data = float64_array(layout.command(action))
         assert self.command_pub is not None
         self.command_pub.publish(self._command)

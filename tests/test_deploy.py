@@ -206,7 +206,10 @@ def test_coverage_measures_the_distance_to_the_policy_data(runs) -> None:
     good, _ = runs
     deployment = load_deployment(good, ACCEPT)
     coverage = Coverage.of_deployment(deployment)
-    assert coverage.radius == pytest.approx(coverage.farthest_start(deployment.initial_states))
+    starts = deployment.checked_starts
+    assert len(starts) > 0 and coverage.radius == pytest.approx(coverage.farthest_start(starts)) and coverage.radius > 0
+    data = {tuple(row) for row in deployment.policy.dataset.states}
+    assert not any(tuple(s0) in data for s0 in starts)  # the policy's own trajectories start elsewhere
     assert coverage.covers(deployment.policy.dataset.states[5]) == (True, 0.0)
     far = deployment.policy.dataset.states[5] + np.array([0.0, 0.0, 100.0, 0.0])
     inside, distance = coverage.covers(far)

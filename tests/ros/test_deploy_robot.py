@@ -230,14 +230,16 @@ def test_when_states_stop_the_safe_command_follows_within_the_timeout(runs, laun
     assert "joint states flow again" in launch.log(proc)
 
 
-def test_the_stop_service_deactivates_at_once(runs, launch, ros_client) -> None:
+def test_commands_are_clamped_and_the_stop_service_deactivates_at_once(runs, launch, ros_client) -> None:
     good, _ = runs
     launch("npp-robot")
     launch("npp-deploy")
     client = ros_client("stop_test")
     deploy = Deploy(client)
-    deploy.deploy(good)
-    client.wait_for(lambda: any(any(c) for _, c in deploy.commands), 60.0, "commands")
+    deploy.deploy(good, effort_limit=1e-3)  # far below what the LQR policy asks for
+    client.wait_for(lambda: len([c for _, c in deploy.commands if any(c)]) >= 5, 60.0, "commands")
+    assert all(abs(c[0]) <= 1e-3 for _, c in deploy.commands)
+    client.wait_for(lambda: int(deploy.health(len(deploy.statuses)).values["clamped entries"]) > 0, 30.0, "clamps")
     answer = client.call(deploy.stopper, Trigger.Request())
     assert answer.success and "inactive" in answer.message
     assert deploy.state() == "inactive"
