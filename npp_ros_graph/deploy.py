@@ -336,7 +336,9 @@ class DeployNode(LifecycleNode):
     def _answer(self, raw: np.ndarray, deployment: Deployment, layout: JointLayout, started: float) -> None:
         state = stored_state(deployment.plant, raw)
         assert self.coverage is not None and self.limits is not None
-        inside, distance = self.coverage.covers(state)
+        policy = deployment.policy
+        chosen = policy.greedy_index(state)  # pi(s) = a_{i*}; s_{i*} spares the coverage check a search
+        inside, distance = self.coverage.covers(state, policy.dataset.states[chosen])
         if not inside:
             self.counts["outside coverage"] += 1
             problem = (
@@ -345,7 +347,7 @@ class DeployNode(LifecycleNode):
             )
             if self._outside(problem):
                 return
-        action, clamped = self.limits.clamp(deployment.policy.act(state))
+        action, clamped = self.limits.clamp(policy.dataset.actions[chosen])
         if clamped:
             self.counts["clamped entries"] += clamped
             self._warn("clamped", f"command clamped to the actuator limits {self.limits.describe()}")

@@ -215,6 +215,11 @@ def test_coverage_measures_the_distance_to_the_policy_data(runs) -> None:
     inside, distance = coverage.covers(far)
     assert not inside and distance > 50
     assert Coverage.of_deployment(deployment, radius=200.0).covers(far)[0]
+    # Near a given data point no search is needed; far from it the search decides.
+    near = deployment.policy.dataset.states[5]
+    assert coverage.covers(near + 1e-3, near) == (True, pytest.approx(2e-3))
+    assert coverage.covers(far, near) == (False, pytest.approx(distance))
+    assert coverage.covers(deployment.policy.dataset.states[7], far) == (True, 0.0)
 
 
 def test_parse_vector_refuses_what_is_not_a_state() -> None:
