@@ -119,7 +119,7 @@ class ExpertNode(Node):
             callback_group=ReentrantCallbackGroup(),
         )
         self.diagnostics = DiagnosticsReporter(self, lambda: Health(
-            "serving" if self.expert else "waiting for a plant it can model",
+            "serving" if self.expert is not None else "waiting for a plant it can model",
             {"waiting requests": self.waiting, "busy refusals": self.busy_refusals},
             ERROR if self.refusal else OK, self.refusal or ""))  # fmt: skip
         self.get_logger().info(

@@ -117,7 +117,8 @@ class PolicyNode(Node):
         self._worker = threading.Thread(target=self._work, name="npp-policy-worker", daemon=True)
         self._worker.start()
         self.diagnostics = DiagnosticsReporter(self, lambda: Health(
-            f"acting on {self.dataset.num_trajectories} trajectories" if self.policy else "waiting for data",
+            "waiting for data" if self.policy is None else f"acting on {self.policy.dataset.num_trajectories} "
+            "trajectories",
             {"answered": self.answered, "dropped states": self.dropped, "waiting": len(self._inbox)},
             error=self._warn.last))  # fmt: skip
 

@@ -189,9 +189,9 @@ class SupervisorNode(Node):
         self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
         self.worker.start()
         self.diagnostics = DiagnosticsReporter(self, lambda: Health(
-            f"episode {self.loop.next_episode}" + (", certified" if self.loop.certificate else "") if self.loop
-            else "waiting for the sim's plant description",
-            {"oracle calls": self.loop.oracle_calls if self.loop else 0}))  # fmt: skip
+            "waiting for the sim's plant description" if self.loop is None else f"episode {self.loop.next_episode}"
+            + (", certified" if self.loop.certificate else ""),
+            {"oracle calls": 0 if self.loop is None else self.loop.oracle_calls}))  # fmt: skip
         self.get_logger().info("waiting for the sim's plant description")
 
     # ---------------------------------------------------------------- graph inputs
