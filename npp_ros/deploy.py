@@ -20,6 +20,7 @@ writer who recomputes them is not detected.
 from __future__ import annotations
 
 import math
+import sqlite3
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -110,6 +111,16 @@ class Deployment:
 def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
     """The gate: the policy a run folder's certificate names, or a GateRefusal with every reason."""
     run_file = _run_file(Path(run_dir))
+    try:
+        return _pass_gate(run_file, acceptance)
+    except GateRefusal:
+        raise
+    except (RunFileError, KeyError, TypeError, ValueError, sqlite3.Error) as exc:  # a hand-edited or damaged file
+        what = f"no {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise GateRefusal(f"{run_file} cannot be read as a run ({what}): the run file was altered or damaged") from None
+
+
+def _pass_gate(run_file: Path, acceptance: Acceptance) -> Deployment:
     try:
         store = RunStore.open(run_file)
     except RunFileError as exc:

@@ -189,6 +189,8 @@ class DeployNode(LifecycleNode):
             coverage = Coverage.of_deployment(deployment, settings.coverage_radius)
         except (GateRefusal, ValueError) as exc:
             return self._refuse("configure", str(exc))
+        except Exception as exc:  # whatever it is, configure fails with its reason, never silently
+            return self._refuse("configure", f"{type(exc).__name__}: {exc}")
         for reason in deployment.overridden:
             self.get_logger().error(f"GATE OVERRIDDEN (override_gate is true): {reason}")
         self.deployment, self.layout, self.coverage = deployment, layout, coverage

@@ -81,6 +81,16 @@ def test_an_edit_of_both_the_run_and_its_certificate_does_not_follow_from_the_ep
         load_deployment(more, ACCEPT)
 
 
+def test_a_hand_edited_run_file_is_refused_with_a_reason_not_a_traceback(runs, tmp_path) -> None:
+    good, _ = runs
+    garbled = edited_certificate(good, tmp_path / "a", episodes="many")
+    without = altered_copy(good, tmp_path / "b", ("DELETE FROM meta WHERE key = 'epsilon'", ()))
+    missing = edited_certificate(good, tmp_path / "c", window=None)
+    for folder in (garbled, without, missing):
+        with pytest.raises(GateRefusal, match="altered"):
+            load_deployment(folder, ACCEPT)
+
+
 def test_the_gate_refuses_a_weaker_certificate_than_the_operator_accepts(runs) -> None:
     good, _ = runs
     with pytest.raises(GateRefusal, match=r"epsilon 2 is larger than this deployment accepts \(max_epsilon 1\)"):
