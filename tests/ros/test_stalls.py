@@ -17,14 +17,15 @@ import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import pytest
+from graph import graph_parameters, start_graph
 from npp_interfaces.msg import Certificate, GapReport
 from reference import ROLLOUT_FREE, assert_stored_run_is_uninterrupted
 
-from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
-from npp_ros_graph.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -45,14 +46,8 @@ def test_paused_nodes_catch_up_by_themselves(
     client = ros_client("stall_watcher")
     gaps: list[GapReport] = client.collect(GapReport, GAP, REPORT_QOS)
     certificates = client.collect(Certificate, CERTIFICATE, LATCHED_QOS)
-    params: dict[str, dict[str, Any]] = {
-        "sim": {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON},
-        "expert": {},
-        "policy": {},
-        "supervisor": {"run_dir": str(run_dir), "max_episodes": MAX_EPISODES, "rollout_timeout": 600.0,
-                       **ROLLOUT_FREE},
-    }  # fmt: skip
-    procs = {name: launch(f"npp_ros_graph.{name}_node", values, extra_env=key) for name, values in params.items()}
+    supervisor = {"max_episodes": MAX_EPISODES, "rollout_timeout": 600.0, **ROLLOUT_FREE}
+    procs = start_graph(launch, graph_parameters("lqr_2_1", 0, HORIZON, run_dir, supervisor=supervisor), extra_env=key)
 
     def pause(names: list[str], when: Callable[[], bool], label: str) -> float:
         """SIGSTOP the nodes once `when` holds, SIGCONT after PAUSE_S; seconds from SIGCONT to the next episode."""
