@@ -15,6 +15,12 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.registry import Plant, check_horizon
 
 
+def episode_return(rewards: ArrayLike) -> float:
+    """An episode's return from its per-step rewards: the one summation every rollout uses (numpy's
+    pairwise sum), so a return earned through the ROS graph equals the in-process one bit for bit."""
+    return float(np.asarray(rewards, dtype=np.float64).sum())
+
+
 @dataclass(frozen=True)
 class Rollout:
     states: FloatArray  # (T, n): s_0 .. s_{T-1}
@@ -23,7 +29,7 @@ class Rollout:
 
     @property
     def total_return(self) -> float:
-        return float(self.rewards.sum())
+        return episode_return(self.rewards)
 
 
 def rollout(

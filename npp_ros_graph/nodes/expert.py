@@ -191,8 +191,8 @@ class ExpertNode(Node):
                 "nothing was computed, ask again later",
                 request,
             )
-        assert self.expert is not None and self.seal is not None and self.description is not None
-        expert, seal, fingerprint = self.expert, self.seal, self.description.model_sha256
+        assert self.expert is not None and self.description is not None
+        expert, seal, fingerprint = self.expert, self._seal_for(request), self.description.model_sha256
         done = Future()
         self.waiting += 1
         try:
@@ -257,7 +257,15 @@ class ExpertNode(Node):
         self.get_logger().warning(f"refused a request: {message}", throttle_duration_sec=1.0)
         response.success = False
         response.message = message
-        return response if self.seal is None else self.seal.seal(response, answering=request)
+        seal = self._seal_for(request)
+        return response if seal is None else seal.seal(response, answering=request)
+
+    def _seal_for(self, request: ExpertTrajectory.Request) -> RunSeal | None:
+        """The asking run's seal (its identity comes with the request), or the plant's for a request that names no
+        run (someone querying the service by hand): an answer made for one run does not check in another."""
+        if self.seal is None or not request.run:
+            return self.seal
+        return self.seal.for_run(request.run)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -27,8 +27,8 @@ class ExpertUnavailable(RuntimeError):
 class RosExpert:
     """The oracle over /npp/expert/trajectory: a deadline per call, retries, clear failure.
 
-    It gets what it uses: the service client, the run's plant and its seal, the node's stop event and
-    logger, and a count of the service's servers (what a refusal names).
+    It gets what it uses: the service client, the run's plant, seal and identity, the node's stop event
+    and logger, and a count of the service's servers (what a refusal names).
     """
 
     def __init__(
@@ -36,6 +36,7 @@ class RosExpert:
         client: Client,
         plant: PlantDescription,
         seal: RunSeal,
+        run_id: str,
         *,
         stop: threading.Event,
         logger: RcutilsLogger,
@@ -43,7 +44,7 @@ class RosExpert:
         timeout: float,
         retries: int,
     ) -> None:
-        self.client, self.plant, self.seal = client, plant, seal
+        self.client, self.plant, self.seal, self.run_id = client, plant, seal, run_id
         self.stop, self.logger, self.servers = stop, logger, servers
         self.timeout, self.retries = timeout, retries
 
@@ -67,7 +68,7 @@ class RosExpert:
         """
         deadline = time.monotonic() + self.timeout
         pause = RETRY_PAUSE_S
-        request = ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0)
+        request = ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0, run=self.run_id)
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not self.client.wait_for_service(timeout_sec=remaining):

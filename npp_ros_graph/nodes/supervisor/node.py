@@ -38,7 +38,7 @@ from npp_ros.certificate.certifier import (
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
 from npp_ros.policy.dataset import Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.run.loop import NPPLoop
+from npp_ros.run.loop import EpisodeInterrupted, NPPLoop
 from npp_ros.run.setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import by_task, get_task
@@ -91,7 +91,8 @@ PARAMETERS = (
           1e-3),
     Param("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops", 1),
     Param("rollouts", True, "let the policy drive each episode through the sim (the sound checks need it)"),
-    Param("rollout_timeout", 120.0, "seconds to wait for the policy's episode before skipping its return", 1e-3),
+    Param("rollout_timeout", 120.0, "seconds an episode may run without a result before it is run again from its s0 "
+          "(a result lost in a pause is asked for again within seconds; no episode is skipped)", 1e-3),
 )  # fmt: skip
 
 
@@ -142,6 +143,9 @@ serves      /{DATASET_SERVICE}
 """
 
 
+STOP_WAIT_S = 10.0  # on Ctrl-C, how long the node waits for Algorithm 1 to finish its current write
+
+
 class SupervisorNode(Node):
     def __init__(self) -> None:
         super().__init__("npp_supervisor")
@@ -149,7 +153,9 @@ class SupervisorNode(Node):
         self.loop: NPPLoop | None = None
         self.plant: PlantDescription | None = None
         self.run_seal = RunSeal.from_environment()
-        self.seal: RunSeal | None = None  # the run's seal for its plant, once described
+        self.plant_seal: RunSeal | None = None  # the run key's seal for the plant, once described
+        self.run_id = ""  # the run's identity, from its run file
+        self.seal: RunSeal | None = None  # the seal of this run (key, plant and identity), once its file is open
         self.stop = threading.Event()
         self._plants: Mailbox[PlantDescription] = Mailbox(keep=1)
         self.handshake = RolloutHandshake()
@@ -188,7 +194,7 @@ class SupervisorNode(Node):
                     f"{publishers_of(self, PLANT)}); this run keeps its own, and refuses data for any other"
                 )
             return
-        self.seal = self.run_seal.for_plant(msg.model_sha256)
+        self.plant_seal = self.run_seal.for_plant(msg.model_sha256)
         self.plant = msg
         self._plants.put(msg)
 
@@ -205,18 +211,23 @@ class SupervisorNode(Node):
 
     def trajectory_msg(self, index: int, trajectory: Trajectory) -> TrajectoryMsg:
         assert self.seal is not None
-        return self.seal.seal(trajectory_to_msg(index, trajectory))
+        return self.seal.seal(trajectory_to_msg(index, trajectory, self.run_id))
 
     def serve_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
         loop = self.loop
         if loop is None:
             response.success = False
-            response.message = "the run has not started yet (no plant description from the sim)"
+            response.message = (
+                "the run has not started yet (no plant description from the sim)"
+                if self.plant is None
+                else "the run is starting (opening its run file)"
+            )
             return response
-        data = loop.dataset
+        data = loop.policy_data  # what the policy under test holds: never the trajectories a running test holds back
         total = data.num_trajectories
         count = min(request.max_count or 50, 200, max(total - request.start, 0))
         response.success = True
+        response.run = self.run_id
         response.total = total
         response.lipschitz = loop.spec.lipschitz.value
         response.lipschitz_source = loop.spec.lipschitz.source
@@ -233,7 +244,12 @@ class SupervisorNode(Node):
             return  # the node closed before the sim described its plant
         try:
             self._run_algorithm()
+        except EpisodeInterrupted as exc:
+            self.get_logger().info(f"stopped: {exc}")
         except Exception as exc:  # the run must never die silently: say why and exit non-zero
+            if self.stop.is_set():  # the node is closing: what failed was cut off by it
+                self.get_logger().info(f"stopped while {exc}")
+                return
             self.get_logger().fatal(f"Algorithm 1 stopped: {exc}")
             self.exit_code = 1
             rclpy.try_shutdown()
@@ -260,56 +276,64 @@ class SupervisorNode(Node):
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         store = RunStore.open_or_create(run_dir / "run.sqlite", config.metadata())  # RunFileError: refuse
-        assert self.seal is not None
-        log = self.get_logger()
-        reporter = GraphReporter(
-            gaps=self.gap_pub, episodes=self.episode_pub, certificates=self.certificate_pub,
-            send_trajectory=self.send_trajectory, run_seal=self.run_seal, clock=self.get_clock(), logger=log,
-            config=config, run_dir=run_dir,
-        )  # fmt: skip
-        expert_oracle = RosExpert(
-            self.expert, plant, self.seal, stop=self.stop, logger=log,
-            servers=lambda: self.count_services(EXPERT_SERVICE), timeout=s.expert_timeout, retries=s.expert_retries,
-        )  # fmt: skip
-        rollouts = RosRollouts(
-            self.reset, self.seal, self.handshake, self.publish_trajectories,
-            stop=self.stop, logger=log, timeout=s.rollout_timeout,
-        )  # fmt: skip
-        self.loop = NPPLoop(
-            config,
-            expert_oracle,
-            initial_state_fn(task, plant.seed),
-            store=store,
-            driver=rollouts if s.rollouts else None,
-            observers=[reporter],
-            expert_value=spec.expert_value(expert),
-            basis=value_basis(expert, lipschitz.value),
-        )
-        loop = self.loop
-        self.get_logger().info(
-            f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
-            f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
-        )
-        self.publish_trajectories(0, loop.dataset.num_trajectories)  # a restarted policy may also listen here
-        if loop.certificate is not None:
-            reporter.on_certificate(loop.certificate)
-        while not self.stop.is_set() and loop.certificate is None and loop.next_episode < s.max_episodes:
-            loop.run_episode()
-        if loop.certificate is None:
-            self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
-        store.close()
+        try:  # closed also on Ctrl-C, so that the file is one self-contained file again
+            assert self.plant_seal is not None
+            self.run_id = store.run_id
+            self.seal = self.plant_seal.for_run(self.run_id)
+            log = self.get_logger()
+            reporter = GraphReporter(
+                gaps=self.gap_pub, episodes=self.episode_pub, certificates=self.certificate_pub,
+                send_trajectory=self.send_trajectory, run_seal=self.run_seal, clock=self.get_clock(), logger=log,
+                config=config, run_dir=run_dir,
+            )  # fmt: skip
+            oracle = RosExpert(
+                self.expert, plant, self.seal, self.run_id, stop=self.stop, logger=log,
+                servers=lambda: self.count_services(EXPERT_SERVICE), timeout=s.expert_timeout, retries=s.expert_retries,
+            )  # fmt: skip
+            rollouts = RosRollouts(
+                self.reset, self.seal, self.run_id, self.handshake, self.publish_trajectories,
+                stop=self.stop, logger=log, timeout=s.rollout_timeout,
+            )  # fmt: skip
+            self.loop = loop = NPPLoop(
+                config,
+                oracle,
+                initial_state_fn(task, plant.seed),
+                store=store,
+                driver=rollouts if s.rollouts else None,
+                observers=[reporter],
+                expert_value=spec.expert_value(expert),
+                basis=value_basis(expert, lipschitz.value),
+            )
+            self.get_logger().info(
+                f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
+                f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
+            )
+            self.publish_trajectories(0, loop.policy_data.num_trajectories)  # a restarted policy may listen here
+            if loop.certificate is not None:
+                reporter.on_certificate(loop.certificate)
+            while not self.stop.is_set() and loop.certificate is None and loop.next_episode < s.max_episodes:
+                loop.run_episode()
+            if loop.certificate is None and not self.stop.is_set():
+                self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
+        finally:
+            store.close()
 
     def send_trajectory(self, index: int, trajectory: Trajectory) -> None:
-        """One trajectory to the policy (and whoever listens), sealed for this run's plant."""
+        """One trajectory to the policy (and whoever listens), sealed for this run."""
         self.trajectory_pub.publish(self.trajectory_msg(index, trajectory))
 
     def publish_trajectories(self, start: int, stop: int) -> None:
         assert self.loop is not None
         for k in range(start, stop):
-            self.trajectory_pub.publish(self.trajectory_msg(k, self.loop.dataset.trajectory(k)))
+            self.trajectory_pub.publish(self.trajectory_msg(k, self.loop.policy_data.trajectory(k)))
 
     def destroy_node(self) -> None:
+        """Stop Algorithm 1 between two of its steps: an episode under way is left unrecorded (a resumed run
+        plays it again), and the run file is closed before the process ends."""
+        self.stop.set()
         self._plants.close()
+        self.handshake.close()
+        self.worker.join(timeout=STOP_WAIT_S)
         super().destroy_node()
 
 
