@@ -22,6 +22,10 @@ class RunFileError(RuntimeError):
     """The run file is missing, damaged, of another version, or made for another run."""
 
 
+class MissingMetadata(RunFileError, AttributeError):
+    """A metadata key the run file lacks: a RunFileError naming it, and still an AttributeError for hasattr."""
+
+
 class RunMetadata(SimpleNamespace):
     """What a run file was made for: the meta table's values by name, as ``RunConfig.metadata()`` gives them.
 
@@ -30,6 +34,12 @@ class RunMetadata(SimpleNamespace):
 
     PROVENANCE = ("lipschitz_detail",)
     RECORDED_SINCE = ("plant_fingerprint",)  # absent from older files: the first resume records them
+
+    def __getattr__(self, name: str) -> object:
+        """Only called for a key the meta table lacks (a hand-edited or damaged file): say which."""
+        if name.startswith("__"):
+            raise AttributeError(name)
+        raise MissingMetadata(f"the run file's metadata has no {name!r} (hand-edited or damaged?)")
 
     def mismatches(self, asked: RunMetadata) -> list[str]:
         return [

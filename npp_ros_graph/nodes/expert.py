@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -26,7 +27,7 @@ from rclpy.task import Future
 
 from npp_ros.certificate.choices import check_gamma
 from npp_ros.policy.dataset import Trajectory
-from npp_ros.policy.vectors import finite_vector
+from npp_ros.policy.vectors import finite_vector, state_digest
 from npp_ros.tasks.registry import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
@@ -91,6 +92,7 @@ class ExpertNode(Node):
         self.options = settings.options()
         self.waiting = 0  # accepted requests not yet answered (executor thread only)
         self.busy_refusals = 0
+        self.computed = 0  # trajectories computed (worker thread only)
         self._jobs: Mailbox[tuple[Expert, np.ndarray, int, Future]] = Mailbox()
         self._worker = threading.Thread(target=self._work, name="npp-expert-worker", daemon=True)
         self._worker.start()
@@ -213,10 +215,17 @@ class ExpertNode(Node):
         while (job := self._jobs.take()) is not None:
             expert, state, horizon, done = job
             stops = expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
+            started = time.monotonic()
             try:
                 done.set_result(expert.trajectory(state, horizon or expert.horizon))
             except Exception as exc:  # reported to the waiting request, never kills the worker
                 done.set_exception(exc)
+            else:
+                self.computed += 1
+                self.get_logger().info(
+                    f"computed a trajectory from s0 {state_digest(state)} in {time.monotonic() - started:.3f} s "
+                    f"({self.computed} computed by this process)"
+                )
             if isinstance(expert, StopsAtTimeBudget) and expert.budget_stops > stops:
                 self.get_logger().warning(
                     f"the request from {np.array2string(np.asarray(state), precision=4)} stopped at the time budget "
