@@ -151,7 +151,9 @@ def tool_children(parent: int) -> dict[str, int]:
         except OSError:
             continue
         if int(stat.rsplit(")", 1)[1].split()[1]) == parent:
-            found.update({name: int(entry.name) for name in ("record", "dashboard") if f"npp_ros_graph.{name}" in argv})
+            found.update(
+                {name: int(entry.name) for name in ("record", "dashboard") if f"npp_ros_graph.tools.{name}" in argv}
+            )
     return found
 
 
