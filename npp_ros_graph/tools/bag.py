@@ -49,7 +49,7 @@ def _msg_dirs(package: str) -> list[Path]:
     """Where `package`'s .msg files may be: each ament prefix's share folder, then this repository's msgs_py."""
     prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p] + [sys.prefix]
     dirs = [Path(p) / "share" / package / "msg" for p in prefixes]
-    dirs.append(Path(__file__).resolve().parents[1] / "msgs_py" / package / "msg")
+    dirs.append(Path(__file__).resolve().parents[2] / "msgs_py" / package / "msg")
     return [d for d in dirs if d.is_dir()]
 
 
