@@ -2,7 +2,7 @@
 
 import sys
 
-from npp_ros_graph.deploy_ctl import main
+from npp_ros_graph.tools.deploy_ctl import main
 
 if __name__ == "__main__":
     sys.exit(main())

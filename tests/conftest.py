@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import pytest
 
-from npp_ros.dataset import Dataset
-from npp_ros.lqr import LQRExpert, episode_rng, sample_initial_state
+from npp_ros.policy.dataset import Dataset
+from npp_ros.tasks.lqr import LQRExpert, episode_rng, sample_initial_state
 
 SLOW_MODULES = {
     "test_experiment.py",  # npp-experiment end to end, several times

@@ -8,9 +8,9 @@ import shutil
 import sqlite3
 from pathlib import Path
 
-from npp_ros.certification import StoppingRule
-from npp_ros.run_setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
-from npp_ros.tasks import get_task
+from npp_ros.certificate.certifier import StoppingRule
+from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
+from npp_ros.tasks.registry import get_task
 
 TASK, SEED, HORIZON, EPSILON = "lqr_2_1", 0, 100, 2.0
 FINGERPRINT = plant_fingerprint(TASK, SEED)

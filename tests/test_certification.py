@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from npp_ros.certification import CertificationSpec, Certifier
-from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.certificate.certifier import CertificationSpec, Certifier
+from npp_ros.policy.lipschitz import LipschitzConstant
 
 
 def spec(condition: str = "i", **kw) -> CertificationSpec:

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from deploy_runs import FINGERPRINT, HORIZON, SEED, TASK, altered_copy, bad_folders, edited_certificate, make_run
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.deploy import (
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.run.deploy import (
     Acceptance,
     CommandLimits,
     Coverage,
@@ -28,9 +28,9 @@ from npp_ros.deploy import (
     safe_command,
     stored_state,
 )
-from npp_ros.lqr import rollout
-from npp_ros.storage import RunStore
-from npp_ros.tasks import get_task
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.rollout import rollout
 
 ACCEPT = Acceptance(model_fingerprint=FINGERPRINT)
 

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from npp_ros.experiment import Arm, ExperimentSettings, read_evaluations, verdict
-from npp_ros.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
-from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
-from npp_ros.storage import RunStore
+from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.rollout import rollout
 
 EXPERIMENT = [sys.executable, "-m", "npp_ros.cli.experiment"]
 REDUCED = ["--tasks", "lqr_2_1", "--seeds", "0", "--evaluate", "4", "--horizon", "200", "--jobs", "1"]

@@ -1,6 +1,6 @@
 """What a certificate may claim: the counterexample to Theorem 3.4, and the stopping rule under repeated looks.
 
-See ../shared/notes/certificate-soundness.md. The 1-D integrator f(s, a) = s + a with
+The counterexample in short: the 1-D integrator f(s, a) = s + a with
 r(s, a) = -|s| - 0.1|a| and gamma = 0.99 has V*(s) = -1.1|s|; L = 2.1 bounds the slope of Q*, and
 one expert trajectory from s0 = 1 is a consistent dataset. At s = 0.1 the greedy policy copies the
 data point at 0 (action 0) and stays at 0.1 forever: V^pi(0.1) = -10 while V_lb(0.1) = -0.21.
@@ -13,13 +13,13 @@ import math
 import numpy as np
 import pytest
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import STOPPING_RULES as RULES
-from npp_ros.certification import CertificationSpec, false_certificate_rate
-from npp_ros.dataset import Dataset, FloatArray, Trajectory
-from npp_ros.lipschitz import LipschitzConstant
-from npp_ros.loop import NPPLoop, RunConfig
-from npp_ros.values import ValueBasis, theorem_34_condition
+from npp_ros.certificate.certifier import STOPPING_RULES as RULES
+from npp_ros.certificate.certifier import CertificationSpec, false_certificate_rate
+from npp_ros.certificate.values import ValueBasis, theorem_34_condition
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.loop import NPPLoop, RunConfig
 
 GAMMA = 0.99
 L = 2.1

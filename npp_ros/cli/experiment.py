@@ -30,7 +30,7 @@ from pathlib import Path
 from distributed import Client, Future, LocalCluster, get_worker
 
 import npp_ros
-from npp_ros.certification import CERTIFY_MODES
+from npp_ros.certificate.certifier import CERTIFY_MODES
 from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
@@ -47,8 +47,9 @@ from npp_ros.experiment import (
     write_results,
 )
 from npp_ros.experiment.arms import HELD_OUT
-from npp_ros.lqr import TASKS
-from npp_ros.tasks import TASK_NAMES
+from npp_ros.tasks.lqr import TASKS
+from npp_ros.tasks.registry import TASK_NAMES, by_task
+from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 
 
 def parser() -> argparse.ArgumentParser:
@@ -65,7 +66,8 @@ def parser() -> argparse.ArgumentParser:
         "--lipschitz",
         nargs="+",
         default=list(LIPSCHITZ_SETTINGS),
-        help="L settings side by side: 'paper' (50 / 200, not a bound here), 'analytic' (sup of the expert's "
+        help=f"L settings side by side: 'paper' ({by_task('paper_lipschitz', tuple(TASKS))}, not a bound here), "
+        "'analytic' (sup of the expert's "
         "value slope |Px|, a true bound) or a number",
     )
     ap.add_argument(
@@ -102,7 +104,7 @@ def parser() -> argparse.ArgumentParser:
         "--epsilon",
         type=float,
         default=None,
-        help="epsilon for every task (default: the paper's, 50 for lqr_2_1 and 300 for lqr_6_2)",
+        help=f"epsilon for every task (default: the paper's, {by_task('paper_epsilon', tuple(TASKS))})",
     )
     ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
     ap.add_argument("--p", type=float, default=0.9, help="condition (i): probability level p")
@@ -111,7 +113,10 @@ def parser() -> argparse.ArgumentParser:
         "--control-weight", type=float, default=DETUNED_CONTROL_WEIGHT, help="detuned expert: control cost x this"
     )
     ap.add_argument(
-        "--time-budget", type=float, default=None, help="seconds per expert request (optimizer experts; default 5)"
+        "--time-budget",
+        type=float,
+        default=None,
+        help=f"seconds per expert request (optimizer experts; default {DEFAULT_TIME_BUDGET_S:g})",
     )
     ap.add_argument(
         "--held-out", type=positive_int, default=HELD_OUT, help="fresh s0 on which each certificate is checked"
@@ -375,7 +380,10 @@ def record_invocation(path: Path, argv: list[str] | None, wall: float, runs: int
 
 def report(records: list[RunRecord], settings: ExperimentSettings, out: Path) -> list[ResultRow]:
     """Figures per arm, then the table; the table's order is the arms' then the seeds'."""
-    from npp_ros.plots import gap_distributions, training_curves  # matplotlib: the parent only, not each worker
+    from npp_ros.experiment.plots import (  # matplotlib: the parent only, not each worker
+        gap_distributions,
+        training_curves,
+    )
 
     by_arm: dict[Arm, list[RunRecord]] = defaultdict(list)
     for record in sorted(records, key=lambda r: (r.arm.task, r.arm.expert, r.arm.lipschitz, r.seed)):

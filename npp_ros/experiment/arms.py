@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
-from npp_ros.dataset import FloatArray
-from npp_ros.tasks import TASK_NAMES, Expert, ExpertOptions, OptimizerTask, get_task
+from npp_ros.certificate.certifier import CERTIFY_MODES, STOPPING_RULES
+from npp_ros.policy.dataset import FloatArray
+from npp_ros.tasks.registry import TASK_NAMES, Expert, ExpertOptions, OptimizerTask, get_task
 
 EXPERTS = ("optimal", "detuned", "ilqr")  # every task's expert kinds (Task.experts)
 LIPSCHITZ_SETTINGS = ("paper", "analytic")

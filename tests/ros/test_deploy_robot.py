@@ -26,14 +26,13 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.lqr import rollout
-from npp_ros.storage import RunStore
-from npp_ros.tasks import get_task
-from npp_ros_graph.common import CONTROL_QOS
-from npp_ros_graph.convert import float64_array, stamp
-from npp_ros_graph.deploy import COMMANDS, JOINT_STATES
-from npp_ros_graph.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, ERROR, Health, health_of
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.rollout import rollout
+from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, ERROR, Health, health_of
+from npp_ros_graph.transport.convert import float64_array, stamp
+from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES
 
 START_TIMEOUT_S = 120.0  # processes importing rclpy and MuJoCo on a shared, busy machine
 BUSY_MACHINE_SLACK_S = 1.0  # what a loaded machine may add to the watchdog's reaction, beyond one period
@@ -65,7 +64,7 @@ def s0_text(state: np.ndarray) -> str:
 class Deploy:
     """A test's handle on one npp-deploy process: its lifecycle, its parameters, its diagnostics, the commands."""
 
-    def __init__(self, client: Any, node: str = "/npp_deploy", command_topic: str = COMMANDS) -> None:
+    def __init__(self, client: Any, node: str = "/npp_deploy", command_topic: str = FORWARD_COMMANDS) -> None:
         self.client, self.node = client, node
         self.change = client.client(ChangeState, f"{node}/change_state", START_TIMEOUT_S)
         self.get = client.client(GetState, f"{node}/get_state")
@@ -314,7 +313,7 @@ def test_bad_joint_states_are_refused_without_a_crash(runs, launch, ros_client) 
 
 
 def deploy_ctl(*args: str) -> subprocess.CompletedProcess[str]:
-    command = [sys.executable, "-m", "npp_ros_graph.deploy_ctl", *args, "--timeout", "120"]
+    command = [sys.executable, "-m", "npp_ros_graph.tools.deploy_ctl", *args, "--timeout", "120"]
     return subprocess.run(command, capture_output=True, text=True, timeout=300)
 
 
@@ -330,13 +329,13 @@ def test_npp_deploy_ctl_drives_the_lifecycle_and_prints_the_gate_reason(runs, la
         done = deploy_ctl(command)
         assert done.returncode == 0 and says in done.stdout, (command, done.stdout, done.stderr)
     gone = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.deploy_ctl", "state", "--node", "/nobody", "--timeout", "2"],
+        [sys.executable, "-m", "npp_ros_graph.tools.deploy_ctl", "state", "--node", "/nobody", "--timeout", "2"],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert gone.returncode == 2 and "not found" in gone.stderr
 
 
 def test_every_deploy_command_has_help() -> None:
-    for module in ("npp_ros_graph.deploy", "npp_ros_graph.deploy_ctl", "npp_ros_graph.robot"):
+    for module in ("npp_ros_graph.nodes.deploy", "npp_ros_graph.tools.deploy_ctl", "npp_ros_graph.nodes.robot"):
         shown = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=120)
         assert shown.returncode == 0 and ("usage" in shown.stdout.lower() or "subscribes" in shown.stdout), module

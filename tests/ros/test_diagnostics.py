@@ -10,7 +10,7 @@ from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
 
-from npp_ros_graph.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, ERROR, health_of
+from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, ERROR, health_of
 
 NODES = ("/npp_sim", "/npp_expert", "/npp_policy", "/npp_supervisor")
 
@@ -23,7 +23,9 @@ def test_every_node_reports_its_health_and_npp_monitor_shows_it(launch, ros_clie
     monitor_log = tmp_path / "monitor.log"
     with monitor_log.open("w") as out:  # npp-monitor --topics health, as a user starts it
         monitor = subprocess.Popen(
-            [sys.executable, "-m", "npp_ros_graph.monitor", "--topics", "health"], stdout=out, stderr=subprocess.STDOUT
+            [sys.executable, "-m", "npp_ros_graph.tools.monitor", "--topics", "health"],
+            stdout=out,
+            stderr=subprocess.STDOUT,
         )
     client = ros_client("diagnostics_test")
     statuses: dict[str, list] = {name: [] for name in NODES}
