@@ -91,8 +91,8 @@ PARAMETERS = (
     Param("certify", TASK_DEFAULT, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
           "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
           choices=(TASK_DEFAULT, *CERTIFY_MODES)),
-    Param("rule", "sequential", "stopping rule: sequential (valid however often it looks) or the paper's",
-          choices=STOPPING_RULES),
+    Param("rule", "sequential", "stopping rule: sequential (a streak per policy) or mixture (a screen, then a "
+          "failure-tolerant test), both valid however often they look, or the paper's", choices=STOPPING_RULES),
     Param("p", 0.9, "condition (i): share of initial states within epsilon, in (0, 1)", 0.0, 1.0),
     Param("delta", 0.1, "the claim holds with probability >= 1 - delta, in (0, 1)", 0.0, 1.0),
     Param("max_episodes", 1000, "stop uncertified after this many episodes", 1),

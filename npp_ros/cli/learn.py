@@ -59,8 +59,9 @@ def parser() -> argparse.ArgumentParser:
         "--rule",
         choices=STOPPING_RULES,
         default="sequential",
-        help="when to stop: sequential (valid however often it is checked) or paper (the one-shot test of "
-        "Theorem 4.1, to reproduce the paper)",
+        help="when to stop: sequential (a streak of passes per policy, valid however often it is checked), "
+        "mixture (a 20-pass screen, then a failure-tolerant mixture test of the frozen policy, also valid) or "
+        "paper (the one-shot test of Theorem 4.1, to reproduce the paper)",
     )
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
