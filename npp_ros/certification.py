@@ -45,6 +45,8 @@ Condition = Literal["i", "ii"]
 CheckedQuantity = Literal["rollout", "oracle", "surrogate"]
 StoppingRule = Literal["sequential", "mixture", "paper"]
 CONDITIONS: tuple[str, ...] = get_args(Condition)
+# The rule a run uses unless it names one, per checked quantity (README, "When to stop").
+DEFAULT_RULES: dict[str, StoppingRule] = {"rollout": "sequential", "oracle": "sequential", "surrogate": "sequential"}
 CERTIFY_MODES: tuple[str, ...] = get_args(CheckedQuantity)
 STOPPING_RULES: tuple[str, ...] = get_args(StoppingRule)
 

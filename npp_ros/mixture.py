@@ -230,12 +230,12 @@ def simulate_run(
         failed = not rng.random() < rate
         failures += failed
         stored += failed or every_check_asks
-        if isinstance(certifier, MixtureCertifier):
+        if isinstance(certifier, MixtureCertifier):  # the same decisions as observe(), without a status each time
             certifier.step(failed)
             certified, frozen = certifier.certified, certifier.frozen
         else:
-            certified = certifier.observe(0.0 if not failed else math.inf, failed).certified
-            frozen = not failed
+            status = certifier.observe(math.inf if failed else 0.0, failed)
+            certified, frozen = status.certified, status.frozen
         if certified:
             return SimulatedRun(episode + 1, stored, failures, True, rate)
         if not frozen:

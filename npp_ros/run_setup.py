@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import CertificationSpec, CheckedQuantity, Condition, StoppingRule
+from npp_ros.certification import DEFAULT_RULES, CertificationSpec, CheckedQuantity, Condition, StoppingRule
 from npp_ros.dataset import FloatArray
 from npp_ros.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
 from npp_ros.loop import NPPLoop, Observer, RunConfig
@@ -46,16 +46,18 @@ def build_config(
     horizon: int = 1000,
     gamma: float = 1.0,
     certify: CheckedQuantity | None = None,
-    rule: StoppingRule = "sequential",
+    rule: StoppingRule | None = None,
 ) -> RunConfig:
-    """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts).
+    """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
+    ``rule`` None the default rule of that checked quantity (DEFAULT_RULES).
 
     Refuses a bad combination (ValueError) when the run is defined, not episodes later.
     """
     definition = get_task(task)
+    certify = certify or definition.default_certify
     spec = CertificationSpec(
         condition, epsilon, p, delta, lipschitz, definition.initial_state_diameter,
-        certify=certify or definition.default_certify, rule=rule,
+        certify=certify, rule=rule or DEFAULT_RULES[certify],
     )  # fmt: skip
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,

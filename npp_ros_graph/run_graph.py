@@ -78,6 +78,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--certify", default="task", help="rollout, oracle or surrogate; task: the task's (lqr rollout, else oracle)"
     )
+    ap.add_argument("--rule", default="mode", help="sequential, mixture or paper; mode: the checked quantity's default")
     ap.add_argument("--time-budget", type=float, default=0.0, help="seconds per iLQR expert request; 0: the task's")
     ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
     ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
@@ -321,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
         "policy": {},
         "supervisor": {
             "epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
-            "max_episodes": args.max_episodes,
+            "rule": args.rule, "max_episodes": args.max_episodes,
             "run_dir": str(run_dir), "rollouts": not args.no_rollouts,
         },
     }  # fmt: skip
