@@ -50,3 +50,13 @@ def expert_dataset_2_1(expert_2_1: LQRExpert) -> Dataset:
     for episode in range(20):
         data.append(expert_2_1.trajectory(sample_initial_state("lqr_2_1", episode_rng(99, episode))))
     return data
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """Print what tests recorded with ``record_property("report", text)``: measured figures a passing test
+    states (a chaos test's faults and recoveries), shown by `make test` too, also from xdist workers."""
+    for report in terminalreporter.stats.get("passed", []):
+        for name, text in getattr(report, "user_properties", ()):
+            if name == "report":
+                terminalreporter.write_sep("-", report.nodeid)
+                terminalreporter.write_line(str(text))
