@@ -36,6 +36,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from npp_ros.certification import STOPPING_RULES
 from npp_ros.storage import RunFileError, _WriterLock
 from npp_ros.tasks import TASK_NAMES
 from npp_ros_graph.common import (
@@ -78,7 +79,11 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--certify", default="task", help="rollout, oracle or surrogate; task: the task's (lqr rollout, else oracle)"
     )
-    ap.add_argument("--rule", default="mode", help="sequential, mixture or paper; mode: the checked quantity's default")
+    ap.add_argument(
+        "--rule", default="mode", choices=("mode", *STOPPING_RULES),
+        help="when to stop: a streak per policy (sequential), a screen then a failure-tolerant test (mixture), or "
+        "the paper's one-shot rule; mode: the checked quantity's default (oracle: mixture, else sequential)",
+    )  # fmt: skip
     ap.add_argument("--time-budget", type=float, default=0.0, help="seconds per iLQR expert request; 0: the task's")
     ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
     ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
