@@ -10,9 +10,9 @@ included (chaos.py draws them from a seed). For every run:
   120 s rollout_timeout and a failed check), and after a restart within rollout_timeout.
 
 One run with each node paused past the middleware's lease, start-up included, then RUNS random runs of
-FAULTS faults each (`make test`: 2 of 2); a longer soak: NPP_CHAOS_RUNS=20 NPP_CHAOS_SEED=1
-pytest tests/ros/test_chaos.py -s. The report (every fault, what it cost) is printed at the end of the
-session.
+FAULTS faults each (`make test`: 2 of 2). A longer soak, outside `make test`:
+scripts/chaos_soak.sh RUNS SEED (its report goes to results/reliability/). The report (every fault,
+what it cost) is printed at the end of the session.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ HORIZON = 50
 RUNS = int(os.environ.get("NPP_CHAOS_RUNS", "2"))
 FAULTS = int(os.environ.get("NPP_CHAOS_FAULTS", "2"))
 SEED = int(os.environ.get("NPP_CHAOS_SEED", "18"))
+REPORT_FILE = os.environ.get("NPP_CHAOS_REPORT", "")  # also append the report to this file
 RECOVERY_S = 30.0  # "a few seconds", with room for a busy machine; waiting out rollout_timeout takes 120 s
 ROLLOUT_TIMEOUT_S = 120.0  # the supervisor's default
 
@@ -109,6 +110,9 @@ def chaos(
     report = "\n".join(lines)
     print("\n" + report)
     record_property("report", report)
+    if REPORT_FILE:
+        with open(REPORT_FILE, "a") as fh:
+            fh.write(report + "\n")
 
 
 def test_each_node_paused_past_the_lease_changes_nothing(chaos: Callable[[list[Fault]], Outcome]) -> None:
