@@ -29,6 +29,7 @@ from std_msgs.msg import UInt32
 from npp_ros.certificate.certifier import (
     CERTIFY_MODES,
     CONDITIONS,
+    DEFAULT_RULES,
     STOPPING_RULES,
     CertificationSpec,
     CheckedQuantity,
@@ -70,6 +71,7 @@ from npp_ros_graph.transport.topics import (
 )
 
 TASK_DEFAULT = "task"  # a choice the task decides, once the sim names it
+MODE_DEFAULT = "mode"  # the stopping rule the checked quantity defaults to (DEFAULT_RULES)
 
 PARAMETERS = (
     Param("epsilon", 0.0, f"target gap; 0 = the paper's value for the task ({by_task('paper_epsilon')})",
@@ -82,8 +84,9 @@ PARAMETERS = (
     Param("certify", TASK_DEFAULT, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
           "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
           choices=(TASK_DEFAULT, *CERTIFY_MODES)),
-    Param("rule", "sequential", "stopping rule: sequential (valid however often it looks) or the paper's",
-          choices=STOPPING_RULES),
+    Param("rule", MODE_DEFAULT, "stopping rule: sequential (a streak per policy) or mixture (a screen, then a "
+          "failure-tolerant test), both valid however often they look, or the paper's; mode = the checked "
+          "quantity's default", choices=(MODE_DEFAULT, *STOPPING_RULES)),
     Param("p", 0.9, "condition (i): share of initial states within epsilon, in (0, 1)", 0.0, 1.0),
     Param("delta", 0.1, "the claim holds with probability >= 1 - delta, in (0, 1)", 0.0, 1.0),
     Param("max_episodes", 1000, "stop uncertified after this many episodes", 1),
@@ -110,7 +113,7 @@ class SupervisorSettings:
     lipschitz: str | LipschitzConstant
     condition: Condition
     certify: CheckedQuantity | str
-    rule: StoppingRule
+    rule: StoppingRule | str
     p: float
     delta: float
     max_episodes: int
@@ -127,10 +130,11 @@ class SupervisorSettings:
         if isinstance(lipschitz, str) and lipschitz != TASK_DEFAULT:
             lipschitz = parse_lipschitz(lipschitz)
         object.__setattr__(self, "lipschitz", lipschitz)
+        certify = "rollout" if self.certify == TASK_DEFAULT else self.certify
         CertificationSpec(
             self.condition, self.epsilon or 1.0, self.p, self.delta,
             lipschitz if isinstance(lipschitz, LipschitzConstant) else LipschitzConstant(1.0, "user"),
-            1.0, certify="rollout" if self.certify == TASK_DEFAULT else self.certify, rule=self.rule,  # type: ignore[arg-type]
+            1.0, certify=certify, rule=DEFAULT_RULES[certify] if self.rule == MODE_DEFAULT else self.rule,  # type: ignore[arg-type]
         )  # fmt: skip
 
 
@@ -274,9 +278,10 @@ class SupervisorNode(Node):
             choice = spec.default_lipschitz_choice() if s.lipschitz == TASK_DEFAULT else s.lipschitz
             lipschitz = resolve_lipschitz(task, choice, expert)
         certify = None if s.certify == TASK_DEFAULT else s.certify
+        rule = None if s.rule == MODE_DEFAULT else s.rule
         config = build_config(
             task, plant.seed, lipschitz, epsilon,
-            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=s.rule,  # type: ignore[arg-type]
+            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=rule,  # type: ignore[arg-type]
         )  # fmt: skip
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
