@@ -289,3 +289,14 @@ def test_run_files_record_what_the_gate_reads(runs) -> None:
     with RunStore.open(good / "run.sqlite") as store:
         assert store.metadata.plant_fingerprint == FINGERPRINT
         assert json.dumps(store.certificate())  # a plain record
+
+
+def test_a_mixture_rule_certificate_deploys_its_policy_and_an_edited_one_is_refused(tmp_path) -> None:
+    run = make_run(tmp_path / "mixture", rule="mixture", max_episodes=1000)
+    with RunStore.open(run / "run.sqlite") as store:
+        certificate = store.certificate()
+    assert certificate is not None and certificate["rule"] == "mixture" and certificate["proven"]
+    assert load_deployment(run, ACCEPT).policy_trajectories == certificate["policy_trajectories"]
+    for name, value in (("failures", certificate.get("failures", 0) + 1), ("policy_trajectories", 2)):
+        with pytest.raises(GateRefusal, match="altered"):
+            load_deployment(edited_certificate(run, tmp_path / name, **{name: value}), ACCEPT)

@@ -32,7 +32,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from npp_ros.certificate.certifier import CertificationSpec, Certifier
+from npp_ros.certificate.certifier import CertificationSpec
+from npp_ros.certificate.mixture import certifier_for
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.policy.lipschitz import LipschitzConstant
@@ -237,20 +238,6 @@ def _inconsistencies(
         return [f"it names {trajectories} trajectories, the run stores {stored}"]
     if not 1 <= episodes <= len(rows):
         return [f"it was issued at episode {episodes}, the log holds {len(rows)}"]
-    called = sum(row.oracle_called for row in rows[:episodes])
-    # The policy under test holds every trajectory asked for so far, except (oracle checks) those of the
-    # passed checks of the certifying streak, held back so that the test saw one frozen policy.
-    held = 0
-    if metadata.certify == "oracle":
-        for row in reversed(rows[:episodes]):
-            if row.checked_gap is None or not row.checked_gap <= metadata.epsilon:
-                break
-            held += int(row.oracle_called)
-    if trajectories != called - held:
-        return [f"it names {trajectories} trajectories; the first {episodes} episodes gave the policy {called - held}"]
-    points = int(dataset.trajectory_offsets[trajectories])
-    if int(certificate["dataset_size"]) != points:
-        return [f"it names {certificate['dataset_size']} points; the first {trajectories} trajectories hold {points}"]
     try:
         spec = CertificationSpec(
             metadata.condition, metadata.epsilon, metadata.p, metadata.delta,
@@ -259,19 +246,28 @@ def _inconsistencies(
         )  # fmt: skip
     except (ValueError, TypeError) as exc:
         return [f"its specification is invalid: {exc}"]
-    certifier = Certifier(spec)
+    # Replay the run's checks through its rule, as a resumed run does: the certificate must be issued at its
+    # episode, and its policy holds every trajectory asked for except those a frozen test held back.
+    certifier = certifier_for(spec)
+    stored = joined = 0
     status = None
     for row in rows[:episodes]:
         passed = row.checked_gap is not None and row.checked_gap <= spec.epsilon
+        stored += int(row.oracle_called)
         status = certifier.observe(math.inf if row.checked_gap is None else row.checked_gap, not passed)
+        if not status.frozen:
+            joined = stored
     assert status is not None
-    found = {"window": status.window, "required": status.required, "test": status.test}
-    if not status.certified or any(int(certificate[name]) != value for name, value in found.items()):
-        return [
-            f"replaying its {episodes} episodes gives certified={status.certified}, window {status.window}, "
-            f"required {status.required}, test {status.test}; it says window {certificate['window']}, "
-            f"required {certificate['required']}, test {certificate['test']}"
-        ]
+    found = {"window": status.window, "required": status.required, "test": status.test, "failures": status.failures}
+    if not status.certified or any(int(certificate.get(name, 0)) != value for name, value in found.items()):
+        said = ", ".join(f"{name} {certificate.get(name, 0)}" for name in found)
+        got = ", ".join(f"{name} {value}" for name, value in found.items())
+        return [f"replaying its {episodes} episodes gives certified={status.certified}, {got}; it says {said}"]
+    if trajectories != joined:
+        return [f"it names {trajectories} trajectories; the first {episodes} episodes gave the policy {joined}"]
+    points = int(dataset.trajectory_offsets[trajectories])
+    if int(certificate["dataset_size"]) != points:
+        return [f"it names {certificate['dataset_size']} points; the first {trajectories} trajectories hold {points}"]
     return []
 
 
