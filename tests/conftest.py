@@ -16,6 +16,8 @@ SLOW_MODULES = {
     "test_cli_learn.py",  # npp-learn to a certificate
     "test_cli_args.py",  # command lines as processes
     "test_loop.py",  # Algorithm 1 to a certificate on lqr_2_1
+    "test_loop_mixture.py",  # the same under the mixture rule, twice
+    "test_expert_pool.py",  # worker processes running iLQR
     "test_soundness.py",  # 2,000 simulated runs per rule
     "test_storage_reliability.py",  # real second processes, tmpfs
     "test_trajopt.py",  # iLQR at H = 1000
@@ -23,6 +25,7 @@ SLOW_MODULES = {
     "test_cartpole.py",
     "test_bench.py",
     "test_theorems.py",  # greedy rollouts from 40 s0 per theorem
+    "test_deploy.py",  # three runs to a certificate, and the gate on each
 }
 
 

@@ -13,6 +13,7 @@ import math
 import numpy as np
 import pytest
 
+from npp_ros.certificate import mixture
 from npp_ros.certificate.certifier import STOPPING_RULES as RULES
 from npp_ros.certificate.certifier import CertificationSpec, false_certificate_rate
 from npp_ros.certificate.values import ValueBasis, theorem_34_condition
@@ -115,3 +116,14 @@ def test_sequential_rule_keeps_false_certificates_below_delta(q: float) -> None:
     paper = false_certificate_rate(rule["paper"], q, repetitions, seed=7)
     assert sequential + margin < delta, f"sequential rule: {sequential:.3%} false certificates"
     assert paper - margin > delta, f"paper's rule: {paper:.3%} false certificates"
+
+
+@pytest.mark.parametrize("q", [0.85, 0.9])
+def test_mixture_rule_keeps_false_certificates_below_delta(q: float) -> None:
+    """Every policy passes a check with probability q <= p = 0.9, so every certificate is false; the
+    simulation feeds the rule's own certifier pass/fail outcomes (no plant), 1,000 episodes a run."""
+    repetitions, delta = 2000, 0.1
+    margin = 3 * math.sqrt(delta * (1 - delta) / repetitions)  # 3 standard errors of a frequency at delta
+    spec = CertificationSpec("i", EPSILON, 0.9, delta, LipschitzConstant(L, "user"), rule="mixture")
+    rate = mixture.false_certificate_rate(spec, q, repetitions, seed=7)
+    assert rate + margin < delta, f"mixture rule at q = {q}: {rate:.3%} false certificates"

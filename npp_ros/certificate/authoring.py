@@ -7,6 +7,8 @@ spec and the certificate it fills in.
 
 from __future__ import annotations
 
+import math
+
 from npp_ros.certificate.certifier import Certificate, CertificationSpec, CertificationStatus, assumption_list
 from npp_ros.certificate.values import ValueBasis
 
@@ -43,9 +45,13 @@ def author_certificate(
         test=status.test,
         delta_spent=status.test_delta,
         value=value,
-        statement=spec.statement(status.window, value, policy_trajectories, status.test),
+        statement=spec.statement(
+            status.window, value, policy_trajectories, status.test, status.failures, status.log_mixture
+        ),
         proven=is_proven(spec, basis),
         assumptions=assumptions(spec, basis),
+        failures=status.failures,
+        mixture=math.exp(status.log_mixture) if status.log_mixture is not None else None,
     )
 
 
@@ -89,6 +95,11 @@ def assumptions(spec: CertificationSpec, basis: ValueBasis | None) -> tuple[str,
                  basis.theorem_34 if basis is not None and basis.theorem_34 else
                  "Theorem 3.4's condition was not checked for this plant",
                  "initial states are independent draws from rho"]  # fmt: skip
+    if spec.rule == "mixture":
+        items.append(
+            "the policy stayed frozen during its verification: the trajectories the verification asked for "
+            "joined it only afterwards, and its checks counted in the order the episodes ran"
+        )
     if spec.rule == "paper":
         items.append("the paper's one-shot test, though it is checked after every episode (not sequentially valid)")
     return assumption_list(items)

@@ -13,7 +13,7 @@ What each episode checks (``certify``), per episode at its initial state s0:
 
 When to stop (``rule``):
 
-- ``sequential`` (default). Each time the policy changes a new test starts; test k (k = 1, 2, ...)
+- ``sequential`` (default but in oracle mode). Each time the policy changes a new test starts; test k (k = 1, 2, ...)
   may spend delta_k = delta / (k (k + 1)), and sum_k delta_k = delta. Condition (i): test k
   certifies after n_k >= ln(1/delta_k) / (1 - p) passed checks in a row. Proof sketch: during a
   test the policy is frozen and every s0 is a fresh draw from rho, independent of the past; if the
@@ -23,6 +23,9 @@ When to stop (``rule``):
   tests gives a false certificate with probability at most delta, however many tests the run makes
   and whenever it stops. Condition (ii) (surrogate only) looks again after every check of a test,
   so the n-th look of test k spends delta_k / (n (n + 1)).
+- ``mixture`` (default in the oracle mode): screen a policy with 20 passes in a row, then verify
+  it with a mixture likelihood-ratio test that tolerates failures (npp_ros/mixture.py, with its
+  proof sketch).
 - ``paper``: Theorem 4.1 as the paper uses it: n >= ln(1/delta) / (1 - p) quiet episodes,
   checked after every episode, and for (ii) the best window over all episodes. Kept to reproduce
   the paper; repeated looks make its error rate exceed delta (see the note above).
@@ -32,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields, replace
 from typing import Any, Literal, get_args
 
 import numpy as np
@@ -41,8 +44,12 @@ from npp_ros.policy.lipschitz import LipschitzConstant
 
 Condition = Literal["i", "ii"]
 CheckedQuantity = Literal["rollout", "oracle", "surrogate"]
-StoppingRule = Literal["sequential", "paper"]
+StoppingRule = Literal["sequential", "mixture", "paper"]
 CONDITIONS: tuple[str, ...] = get_args(Condition)
+# The rule a run uses unless it names one, per checked quantity, as measured (README, "When to stop"): in
+# oracle mode every check is an expert call and the mixture rule needs fewer of them for a policy that
+# learns slowly or plateaus below 0.98; in rollout mode it cost lqr_2_1 more expert calls.
+DEFAULT_RULES: dict[str, StoppingRule] = {"rollout": "sequential", "oracle": "mixture", "surrogate": "sequential"}
 CERTIFY_MODES: tuple[str, ...] = get_args(CheckedQuantity)
 STOPPING_RULES: tuple[str, ...] = get_args(StoppingRule)
 
@@ -81,6 +88,8 @@ class CertificationSpec:
             raise ValueError(f"delta must lie in (0, 1), got {self.delta!r}")
         if self.condition == "ii" and (self.diameter is None or not self.diameter > 0):
             raise ValueError("condition (ii) needs diam(S0) > 0")
+        if self.condition == "ii" and self.rule == "mixture":
+            raise ValueError("the mixture rule tests condition (i): it counts passed and failed checks")
         if self.condition == "ii" and self.certify != "surrogate":
             raise ValueError(
                 f"condition (ii) cannot certify with certify={self.certify}: Hoeffding's bound needs a checked "
@@ -113,12 +122,23 @@ class CertificationSpec:
         spend = self.delta if delta is None else delta
         return 2 * self.lipschitz.value**2 * self.diameter**2 * math.log(1 / spend) / margin**2
 
-    def statement(self, episodes_used: int, value: str, policy_trajectories: int, test: int) -> str:
+    def statement(
+        self, episodes_used: int, value: str, policy_trajectories: int, test: int, failures: int = 0,
+        log_mixture: float | None = None,
+    ) -> str:  # fmt: skip
         """The claim in words: about which value, for which policy, at which confidence."""
         policy = f"the greedy policy over the first {policy_trajectories} expert trajectories"
         gap = "V^E(s0) - R^pi(s0)" if self.certify == "oracle" else "V(s0) - R^pi(s0)"
         confidence = f"With probability at least {1 - self.delta:.4g}"
         how = f"test {test} of a sequentially valid rule" if self.rule == "sequential" else "the paper's one-shot rule"
+        if self.rule == "mixture":
+            mixture = math.exp(log_mixture) if log_mixture is not None else math.nan
+            return (
+                f"{confidence}, P_(s0~rho)[{gap} <= {self.epsilon:.6g}] >= {self.p:.4g} for {policy}, where V is "
+                f"{value} and R^pi the policy's own return over the same horizon ({episodes_used} checks of "
+                f"{QUANTITY[self.certify]} with {failures} failed, verification {test} of the mixture rule: "
+                f"M = {mixture:.4g} >= 1/delta_v = {1 / self.test_delta(test):.4g})."
+            )
         if self.condition == "i":
             return (
                 f"{confidence}, P_(s0~rho)[{gap} <= {self.epsilon:.6g}] >= {self.p:.4g} for {policy}, where V is "
@@ -142,7 +162,10 @@ class CertificationStatus:
 
     ``window`` is the streak of passed checks (i) or the window length (ii); ``required`` what the
     current test needs of it; ``test`` the current test (0 before the first policy exists) and
-    ``test_delta`` the confidence it may spend.
+    ``test_delta`` the confidence it may spend. ``frozen``: the policy under test must stay as it is
+    (trajectories are stored but held back). The mixture rule (mixture.py) fills ``stage``
+    ("screen" or "verification"); in a verification ``window`` counts its checks, ``failures`` the
+    failed ones, and ``log_mixture`` is ln M.
     """
 
     certified: bool
@@ -152,6 +175,10 @@ class CertificationStatus:
     mean_gap: float | None = None
     test: int = 0
     test_delta: float = 0.0
+    frozen: bool = False
+    stage: str = ""
+    failures: int = 0
+    log_mixture: float | None = None
 
 
 @dataclass
@@ -167,6 +194,10 @@ class Certifier:
     quiet_episodes: int = 0
     tests: int = 0
     test_gaps: list[float] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.spec.rule == "mixture":
+            raise ValueError("the mixture rule has its own certifier (npp_ros.mixture.certifier_for)")
 
     def observe(self, gap: float, failed: bool) -> CertificationStatus:
         self.gaps.append(float(gap))
@@ -196,10 +227,11 @@ class Certifier:
                 quiet_episodes=self.quiet_episodes,
                 test=test,
                 test_delta=test_delta,
+                frozen=self.quiet_episodes > 0,
             )
         if spec.rule == "sequential":
-            return self._hoeffding_within_test(test, test_delta)
-        return self._hoeffding_best_window(test, test_delta)
+            return replace(self._hoeffding_within_test(test, test_delta), frozen=self.quiet_episodes > 0)
+        return replace(self._hoeffding_best_window(test, test_delta), frozen=self.quiet_episodes > 0)
 
     def _hoeffding_within_test(self, test: int, test_delta: float) -> CertificationStatus:
         """All checks of the current test form the window; the n-th look spends delta_k / (n (n + 1))."""
@@ -252,6 +284,8 @@ class Certificate:
     statement: str
     proven: bool
     assumptions: tuple[str, ...]
+    failures: int = 0  # the mixture rule: failed checks of the certifying verification (window = its checks)
+    mixture: float | None = None  # the mixture rule: M at certification (at least 1 / delta_spent)
 
     def summary(self) -> str:
         spec, lipschitz = self.spec, self.spec.lipschitz
@@ -266,7 +300,10 @@ class Certificate:
             f"  checked         {QUANTITY[spec.certify]}",
             f"  value           {self.value}",
             f"  test            {self.test}, spent delta {self.delta_spent:.4g}",
-            f"  window          {self.window} episodes (required {self.required})",
+            f"  window          {self.window} episodes (required {self.required})"
+            if spec.rule != "mixture"
+            else f"  verification    {self.window} checks, {self.failures} failed (required {self.required} at that "
+            f"count), M = {self.mixture:.4g} >= 1/delta_v = {1 / self.delta_spent:.4g}",
             f"  proven          {proof}",
             f"  statement       {self.statement}",
             "  assumptions",
@@ -283,8 +320,11 @@ class Certificate:
 
     @classmethod
     def from_record(cls, record: Mapping[str, Any], spec: CertificationSpec) -> Certificate:
-        """Rebuild from a stored record, for the run ``spec`` describes (a resume has checked they agree)."""
-        found = {f.name: record[f.name] for f in fields(cls) if f.name != "spec"}
+        """Rebuild from a stored record, for the run ``spec`` describes (a resume has checked they agree).
+
+        Records from before the mixture rule lack its fields and keep their defaults."""
+        stored = [f.name for f in fields(cls) if f.name != "spec" and (f.name in record or f.default is MISSING)]
+        found = {name: record[name] for name in stored}
         return cls(spec=spec, **{**found, "assumptions": tuple(found["assumptions"])})
 
 

@@ -96,9 +96,18 @@ def parser() -> argparse.ArgumentParser:
         choices=("paper", *CERTIFY_MODES),
         default=None,
         help="what certifies, side by side: 'paper' (the surrogate gap V_ub - V_lb under the paper's one-shot "
-        "rule, to reproduce it) or a mode under the sequentially valid rule: rollout (V_ub + tail - the "
+        "rule, to reproduce it) or a mode under a sequentially valid rule (--rules): rollout (V_ub + tail - the "
         "policy's return), oracle (the expert's return - the policy's), surrogate; default: paper for the lqr "
         "tasks, the task's own sound mode (oracle) for tasks with a suboptimal optimizer expert",
+    )
+    ap.add_argument(
+        "--rules",
+        nargs="+",
+        choices=("sequential", "mixture"),
+        default=None,
+        help="the stopping rules the sound modes run under, side by side: sequential (a streak of passes per "
+        "policy) or mixture (a 20-pass screen, then a failure-tolerant test of the frozen policy); default: "
+        "each mode's own",
     )
     ap.add_argument(
         "--epsilon",
@@ -274,7 +283,7 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
     )
     for task in args.tasks:
         settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
-    return settings, default_arms(args.tasks, args.lipschitz, args.experts, args.certify)
+    return settings, default_arms(args.tasks, args.lipschitz, args.experts, args.certify, args.rules)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from npp_ros.certificate.certifier import CERTIFY_MODES, STOPPING_RULES
+from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
 from npp_ros.cli.args import nonnegative_int, positive_int
 from npp_ros.policy.bounds import NonparametricPolicy
@@ -62,9 +62,11 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--rule",
         choices=STOPPING_RULES,
-        default="sequential",
-        help="when to stop: sequential (valid however often it is checked) or paper (the one-shot test of "
-        "Theorem 4.1, to reproduce the paper)",
+        default=None,
+        help="when to stop: sequential (a streak of passes per policy, valid however often it is checked), "
+        "mixture (a 20-pass screen, then a failure-tolerant mixture test of the frozen policy, also valid) or "
+        "paper (the one-shot test of Theorem 4.1, to reproduce the paper); default: the checked quantity's "
+        f"({', '.join(f'{mode} {rule}' for mode, rule in DEFAULT_RULES.items())})",
     )
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")

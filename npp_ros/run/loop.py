@@ -16,6 +16,10 @@ Order within an episode, per mode:
   episode; the check is V^E(s0) - R^pi(s0). A test must see one frozen policy, so trajectories
   from passed checks are held back (stored at once, never lost) and join the policy's data when
   the streak ends: with a failed check, or after the certificate is issued.
+
+Under the ``mixture`` rule (mixture.py) a verification also holds back its failed checks'
+trajectories, in every mode, until it certifies or gives up: the certifier's status says when the
+policy is frozen, and the loop only follows it.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import numpy as np
 
 from npp_ros.certificate.authoring import author_certificate
 from npp_ros.certificate.certifier import Certificate, CertificationSpec, CertificationStatus, Certifier
+from npp_ros.certificate.mixture import MixtureCertifier, certifier_for
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
@@ -138,7 +143,7 @@ class NPPLoop:
         self.observers = list(observers)
         self.expert_value = expert_value
         self.basis = basis
-        self.certifier = Certifier(self.spec)
+        self.certifier = certifier_for(self.spec)
         self.rows: list[EpisodeRow] = []
         self.certificate: Certificate | None = None
         self.dataset = Dataset(config.state_dim, config.action_dim)  # every stored trajectory, in order
@@ -158,23 +163,27 @@ class NPPLoop:
 
     @property
     def held_back(self) -> int:
-        """Stored trajectories not yet part of the policy (oracle mode, during a streak)."""
+        """Stored trajectories not yet part of the policy (oracle mode during a streak; a verification)."""
         return self.dataset.num_trajectories - self.policy_data.num_trajectories
 
     def _passed(self, row: EpisodeRow) -> bool:
         return row.checked_gap is not None and row.checked_gap <= self.spec.epsilon
 
     def held_back_after(self, episodes: int) -> int:
-        """Oracle mode: trajectories of the passed checks since the last failed one, among the first
-        ``episodes`` episodes; they were stored but not yet part of the policy."""
-        if self.spec.certify != "oracle":
-            return 0
-        held = 0
-        for row in reversed(self.rows[:episodes]):
-            if not self._passed(row):
-                break
-            held += int(row.oracle_called)
-        return held
+        """Trajectories stored among the first ``episodes`` episodes but not yet part of the policy
+        then (held while its test ran); replays the rule's decisions."""
+        rows = self.rows[:episodes]
+        return sum(row.oracle_called for row in rows) - self._replay(rows)[1]
+
+    def _replay(self, rows: Sequence[EpisodeRow]) -> tuple[Certifier | MixtureCertifier, int]:
+        """A fresh certifier fed ``rows``, and how many stored trajectories the policy held after them."""
+        certifier = certifier_for(self.spec)
+        stored = joined = 0
+        for row in rows:
+            stored += int(row.oracle_called)
+            if not certifier.observe(row.checked_gap, not self._passed(row)).frozen:
+                joined = stored
+        return certifier, joined
 
     def _resume(self, store: RunStore) -> None:
         problems = store.metadata.mismatches(self.config.metadata())
@@ -186,7 +195,7 @@ class NPPLoop:
         for expected, row in enumerate(self.rows):
             if row.episode != expected:
                 raise RunFileError(f"{store.path} is damaged: episode {expected} is missing from its log")
-            self.certifier.observe(row.checked_gap, not self._passed(row))
+        self.certifier, joined = self._replay(self.rows)
         called = sum(row.oracle_called for row in self.rows)
         if called != self.dataset.num_trajectories:
             raise RunFileError(
@@ -196,8 +205,8 @@ class NPPLoop:
         stored = store.certificate()
         if stored is not None:
             self.certificate = Certificate.from_record(stored, self.spec)
-        elif self.spec.certify == "oracle":
-            self._set_policy_prefix(self.dataset.num_trajectories - self.held_back_after(len(self.rows)))
+        else:
+            self._set_policy_prefix(joined)
 
     def _set_policy_prefix(self, count: int) -> None:
         self.policy_data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
@@ -253,6 +262,7 @@ class NPPLoop:
         failed = not checked <= epsilon
         index = self.dataset.num_trajectories if trajectory is not None else None
         status = self.certifier.preview(checked, failed)
+        joins = 0 if status.frozen or trajectory is None else len(trajectory)  # this episode's data, joining now
         expert_value = self.expert_value(s0) if self.expert_value is not None else None
         if expert_value is None and trajectory is not None:
             expert_value = float(trajectory.values[0])
@@ -264,7 +274,7 @@ class NPPLoop:
             gap=gap,
             oracle_called=trajectory is not None,
             trajectory=index,
-            dataset_size=len(self.dataset) + len(trajectory) if failed and trajectory else len(self.policy_data),
+            dataset_size=len(self.policy_data) if status.frozen else len(self.dataset) + joins,
             oracle_calls=self.oracle_calls + int(trajectory is not None),
             quiet_episodes=status.quiet_episodes,
             window=status.window,
@@ -282,12 +292,14 @@ class NPPLoop:
             self.store.record_episode(row, trajectory)
         if trajectory is not None:
             self.dataset.append(trajectory)
-            if not failed:  # oracle mode: the policy under test stays frozen until its streak ends
+            if status.frozen:  # the policy under test stays as it is until its test ends
                 self._hold_back()
             elif self.policy_data is self.dataset:
                 self._joined(index)
             else:
                 self._release_held()
+        elif not status.frozen and self.held_back:  # a verification ended on a check without a trajectory
+            self._release_held()
         self.certifier.observe(checked, failed)
         self.rows.append(row)
         if mode == "surrogate" and self.driver is not None:

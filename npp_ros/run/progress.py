@@ -20,6 +20,11 @@ def status_text(row: EpisodeRow, epsilon: float, status: CertificationStatus, co
         if condition == "i"
         else f"test {status.test} window {status.window} needs {status.required or '-'}"
     )
+    if status.stage == "screen":
+        streak = f"screen {status.quiet_episodes}/{status.required}"
+    elif status.stage == "verification":
+        failed = f"{status.failures} failed"
+        streak = f"verification {status.test}: {status.window} checks, {failed}, needs {status.required}"
     return (
         f"episode {row.episode + 1:5d} | checked {checked} / eps {epsilon:g} {mark} | "
         f"|D| {row.dataset_size:8d} | oracle calls {row.oracle_calls:4d} | {streak}"

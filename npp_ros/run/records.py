@@ -77,7 +77,7 @@ class EpisodeRow:
     policy_return: float | None = None
     wall_time: float = 0.0
     checked_gap: float = math.inf  # the quantity the certification checked (see npp_ros.certificate)
-    test: int = 0  # the test this episode belongs to (0: no policy yet)
+    test: int = 0  # the test this episode belongs to (0: no policy yet; the mixture rule: no verification runs)
     test_delta: float = 0.0  # the confidence that test may spend
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from npp_ros.certificate.certifier import CertificationSpec, CheckedQuantity, Condition, StoppingRule
+from npp_ros.certificate.certifier import DEFAULT_RULES, CertificationSpec, CheckedQuantity, Condition, StoppingRule
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
@@ -45,16 +45,18 @@ def build_config(
     horizon: int = 1000,
     gamma: float = 1.0,
     certify: CheckedQuantity | None = None,
-    rule: StoppingRule = "sequential",
+    rule: StoppingRule | None = None,
 ) -> RunConfig:
-    """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts).
+    """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
+    ``rule`` None the default rule of that checked quantity (DEFAULT_RULES).
 
     Refuses a bad combination (ValueError) when the run is defined, not episodes later.
     """
     definition = get_task(task)
+    certify = certify or definition.default_certify
     spec = CertificationSpec(
         condition, epsilon, p, delta, lipschitz, definition.initial_state_diameter,
-        certify=certify or definition.default_certify, rule=rule,
+        certify=certify, rule=rule or DEFAULT_RULES[certify],
     )  # fmt: skip
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,

@@ -4,7 +4,8 @@ The expert is built from the sim's latched plant description, never from its own
 proves it models the same plant by comparing model fingerprints. Every request is validated; a bad
 one gets success = false and a message naming the problem, and the node keeps serving.
 
-Trajectories are computed by the node's worker thread, handed over through a Mailbox, while the
+Trajectories are computed by the node's worker thread, handed over through a Mailbox (an optimizer
+expert's by a pool of worker processes the thread hands them to, npp_ros.expert_pool), while the
 executor keeps taking requests off the wire, so the node always knows its backlog: beyond
 `max_queue` waiting requests it answers at once with success = false and a message starting
 "busy:", instead of letting the middleware's queue overflow and drop requests silently.
@@ -16,6 +17,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from concurrent.futures import Future as PoolFuture
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,7 +30,9 @@ from rclpy.task import Future
 from npp_ros.certificate.choices import check_gamma
 from npp_ros.policy.dataset import Trajectory
 from npp_ros.policy.vectors import finite_vector, state_digest
+from npp_ros.tasks.expert_pool import ExpertPool, PooledAnswer, default_workers
 from npp_ros.tasks.registry import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros_graph.runtime.diagnostics import ERROR, OK, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import state_layout, trajectory_to_response
@@ -42,7 +46,9 @@ PARAMETERS = (
     Param("max_queue", 100, "requests that may wait for the worker; more are refused at once with 'busy:'", 1),
     Param("time_budget", 0.0, "seconds per request for an optimizer (iLQR) expert; 0 = the task's default", 0.0),
     Param("max_iterations", 0, "iLQR iterations per request for an optimizer expert; 0 = the task's default", 0),
-)
+    Param("workers", 0, "processes computing an optimizer expert's requests at once (answers are the one-at-a-time "
+          "answers); 0 = one per core; a closed-form expert answers in the node", 0),
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -54,6 +60,7 @@ class ExpertSettings:
     max_queue: int
     time_budget: float
     max_iterations: int
+    workers: int
 
     def __post_init__(self) -> None:
         check_gamma(self.gamma)
@@ -71,7 +78,8 @@ USAGE = f"""npp-expert: the task's expert oracle as a ROS 2 service (node "npp_e
 
 Builds the expert the task registry names for the plant the sim publishes (lqr: the closed-form
 optimal controller; swing-up tasks: iLQR within time_budget seconds per request) and answers
-trajectory requests from any state, one at a time. A long request never blocks the service: others
+trajectory requests from any state, one at a time (an optimizer expert: `workers` at once, in worker
+processes, each answer the one-at-a-time answer). A long request never blocks the service: others
 wait their turn, and beyond max_queue are refused at once with "busy:". Bad requests get
 success = false and a precise message.
 
@@ -92,7 +100,12 @@ class ExpertNode(Node):
         self.options = settings.options()
         self.waiting = 0  # accepted requests not yet answered (executor thread only)
         self.busy_refusals = 0
-        self.computed = 0  # trajectories computed (worker thread only)
+        self.computed = 0  # trajectories computed (by the worker thread, or under _counting by the pool's)
+        self.workers = settings.workers or default_workers()
+        self._pool: ExpertPool | None = None  # an optimizer expert's worker processes (started by the worker thread)
+        self._pool_for: tuple[str, int, int] | None = None  # the plant they model: task, seed, horizon
+        self._pool_budget_stops = 0  # answers of the pool the time budget cut (under _counting)
+        self._counting = threading.Lock()
         self._jobs: Mailbox[tuple[Expert, np.ndarray, int, Future]] = Mailbox()
         self._worker = threading.Thread(target=self._work, name="npp-expert-worker", daemon=True)
         self._worker.start()
@@ -111,6 +124,10 @@ class ExpertNode(Node):
             qos_profile=SERVICE_QOS,
             callback_group=ReentrantCallbackGroup(),
         )
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            "serving" if self.expert is not None else "waiting for a plant it can model",
+            {"waiting requests": self.waiting, "busy refusals": self.busy_refusals},
+            ERROR if self.refusal else OK, self.refusal or ""))  # fmt: skip
         self.get_logger().info(
             f"waiting for the plant description on {self._plant_sub.topic_name}; "
             f"serving {self.resolve_service_name(EXPERT_SERVICE)} (gamma {self.gamma}, max_horizon {self.max_horizon}, "
@@ -164,6 +181,8 @@ class ExpertNode(Node):
             self.get_logger().error(self.refusal)
             return
         self.expert, self.seal = expert, self.run_seal.for_plant(mine)
+        if self.workers > 1 and isinstance(expert, StopsAtTimeBudget):
+            self._pool_for = (desc.task, int(desc.seed), int(desc.horizon))
         self.get_logger().info(
             f"modelling {desc.task} seed {desc.seed} (state_dim {expert.plant.state_dim}, "
             f"action_dim {expert.plant.action_dim}, default horizon {expert.horizon}, fingerprint {mine[:12]})"
@@ -214,6 +233,9 @@ class ExpertNode(Node):
         """Worker thread: one trajectory at a time, in arrival order; wakes the executor when one is done."""
         while (job := self._jobs.take()) is not None:
             expert, state, horizon, done = job
+            if self._pool_for is not None:
+                self._hand_to_pool(expert, state, horizon, done)
+                continue
             stops = expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
             started = time.monotonic()
             try:
@@ -236,9 +258,50 @@ class ExpertNode(Node):
             if executor is not None:
                 executor.wake()
 
+    def _hand_to_pool(self, expert: Expert, state: np.ndarray, horizon: int, done: Future) -> None:
+        """Worker thread: pass a request to a free worker process, without waiting for its answer."""
+        if self._pool is None:
+            assert self._pool_for is not None
+            self._pool = ExpertPool(*self._pool_for, self.options, self.workers)
+            self.get_logger().info(f"computing trajectories in {self.workers} worker processes")
+        started = time.monotonic()
+        self._pool.submit(state, horizon).add_done_callback(
+            lambda answer: self._pooled_answer(expert, state, done, started, answer)
+        )
+
+    def _pooled_answer(
+        self, expert: Expert, state: np.ndarray, done: Future, started: float, answer: PoolFuture[PooledAnswer]
+    ) -> None:
+        """A worker process answered (called on the pool's thread): as the worker thread reports its own."""
+        try:
+            pooled = answer.result()
+        except Exception as exc:  # reported to the waiting request (a cancelled one too)
+            done.set_exception(exc)
+        else:
+            with self._counting:
+                self.computed += 1
+                self._pool_budget_stops += pooled.budget_stopped
+                computed, stops = self.computed, self._pool_budget_stops
+            done.set_result(pooled.trajectory)
+            self.get_logger().info(
+                f"computed a trajectory from s0 {state_digest(state)} in {time.monotonic() - started:.3f} s "
+                f"({computed} computed by this process)"
+            )
+            if pooled.budget_stopped and isinstance(expert, StopsAtTimeBudget):
+                self.get_logger().warning(
+                    f"the request from {np.array2string(np.asarray(state), precision=4)} stopped at the time budget "
+                    f"({expert.time_budget:g} s) before converging: its answer depends on this machine's speed "
+                    f"({stops} such requests so far; a larger time_budget keeps answers reproducible)"
+                )
+        executor = self.executor
+        if executor is not None:
+            executor.wake()
+
     def destroy_node(self) -> None:
         self._jobs.close()
         self._worker.join(timeout=5.0)
+        if self._pool is not None:
+            self._pool.close()
         super().destroy_node()
 
     def _problem(self, state: Sequence[float], horizon: int) -> str | None:

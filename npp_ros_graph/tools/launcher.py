@@ -36,6 +36,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from npp_ros.certificate.certifier import STOPPING_RULES
 from npp_ros.run.records import RunFileError
 from npp_ros.run.store import WriterLock
 from npp_ros.tasks.registry import TASK_NAMES, by_task
@@ -83,6 +84,11 @@ def parser() -> argparse.ArgumentParser:
         default=0.0,
         help=f"seconds per iLQR expert request; 0: the task's ({DEFAULT_TIME_BUDGET_S:g})",
     )
+    ap.add_argument(
+        "--rule", default="mode", choices=("mode", *STOPPING_RULES),
+        help="when to stop: a streak per policy (sequential), a screen then a failure-tolerant test (mixture), or "
+        "the paper's one-shot rule; mode: the checked quantity's default (oracle: mixture, else sequential)",
+    )  # fmt: skip
     ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
     ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")
@@ -323,6 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         args.task, args.seed, args.horizon, run_dir,
         expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},
         supervisor={"epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
+                    "rule": args.rule,
                     "max_episodes": args.max_episodes, "rollouts": not args.no_rollouts},
     )  # fmt: skip
     for signum in (signal.SIGHUP, signal.SIGTERM):

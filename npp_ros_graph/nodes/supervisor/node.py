@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from std_msgs.msg import UInt32
 from npp_ros.certificate.certifier import (
     CERTIFY_MODES,
     CONDITIONS,
+    DEFAULT_RULES,
     STOPPING_RULES,
     CertificationSpec,
     CheckedQuantity,
@@ -36,15 +38,16 @@ from npp_ros.certificate.certifier import (
     StoppingRule,
 )
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
-from npp_ros.policy.dataset import Trajectory
+from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.run.loop import EpisodeInterrupted, NPPLoop
+from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
 from npp_ros.run.setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros_graph.nodes.supervisor.expert import RosExpert
 from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
 from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollouts
+from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import (
@@ -69,6 +72,7 @@ from npp_ros_graph.transport.topics import (
 )
 
 TASK_DEFAULT = "task"  # a choice the task decides, once the sim names it
+MODE_DEFAULT = "mode"  # the stopping rule the checked quantity defaults to (DEFAULT_RULES)
 
 PARAMETERS = (
     Param("epsilon", 0.0, f"target gap; 0 = the paper's value for the task ({by_task('paper_epsilon')})",
@@ -81,8 +85,9 @@ PARAMETERS = (
     Param("certify", TASK_DEFAULT, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
           "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
           choices=(TASK_DEFAULT, *CERTIFY_MODES)),
-    Param("rule", "sequential", "stopping rule: sequential (valid however often it looks) or the paper's",
-          choices=STOPPING_RULES),
+    Param("rule", MODE_DEFAULT, "stopping rule: sequential (a streak per policy) or mixture (a screen, then a "
+          "failure-tolerant test), both valid however often they look, or the paper's; mode = the checked "
+          "quantity's default", choices=(MODE_DEFAULT, *STOPPING_RULES)),
     Param("p", 0.9, "condition (i): share of initial states within epsilon, in (0, 1)", 0.0, 1.0),
     Param("delta", 0.1, "the claim holds with probability >= 1 - delta, in (0, 1)", 0.0, 1.0),
     Param("max_episodes", 1000, "stop uncertified after this many episodes", 1),
@@ -90,6 +95,9 @@ PARAMETERS = (
     Param("expert_timeout", 30.0, "seconds one expert attempt may take (a busy or not-ready expert is asked again)",
           1e-3),
     Param("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops", 1),
+    Param("expert_ahead", 2, "oracle mode: how many later episodes' expert answers are asked for while an episode "
+          "runs (their s0 are known in advance; an expert with several workers computes them at once); 0 = none",
+          0),
     Param("rollouts", True, "let the policy drive each episode through the sim (the sound checks need it)"),
     Param("rollout_timeout", 120.0, "seconds an episode may run without a result before it is run again from its s0 "
           "(a result lost in a pause is asked for again within seconds; no episode is skipped)", 1e-3),
@@ -109,13 +117,14 @@ class SupervisorSettings:
     lipschitz: str | LipschitzConstant
     condition: Condition
     certify: CheckedQuantity | str
-    rule: StoppingRule
+    rule: StoppingRule | str
     p: float
     delta: float
     max_episodes: int
     run_dir: str
     expert_timeout: float
     expert_retries: int
+    expert_ahead: int
     rollouts: bool
     rollout_timeout: float
 
@@ -126,10 +135,11 @@ class SupervisorSettings:
         if isinstance(lipschitz, str) and lipschitz != TASK_DEFAULT:
             lipschitz = parse_lipschitz(lipschitz)
         object.__setattr__(self, "lipschitz", lipschitz)
+        certify = "rollout" if self.certify == TASK_DEFAULT else self.certify
         CertificationSpec(
             self.condition, self.epsilon or 1.0, self.p, self.delta,
             lipschitz if isinstance(lipschitz, LipschitzConstant) else LipschitzConstant(1.0, "user"),
-            1.0, certify="rollout" if self.certify == TASK_DEFAULT else self.certify, rule=self.rule,  # type: ignore[arg-type]
+            1.0, certify=certify, rule=DEFAULT_RULES[certify] if self.rule == MODE_DEFAULT else self.rule,  # type: ignore[arg-type]
         )  # fmt: skip
 
 
@@ -172,6 +182,10 @@ class SupervisorNode(Node):
         self.exit_code = 0
         self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
         self.worker.start()
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            "waiting for the sim's plant description" if self.loop is None else f"episode {self.loop.next_episode}"
+            + (", certified" if self.loop.certificate else ""),
+            {"oracle calls": 0 if self.loop is None else self.loop.oracle_calls}))  # fmt: skip
         self.get_logger().info("waiting for the sim's plant description")
 
     # ---------------------------------------------------------------- graph inputs
@@ -269,9 +283,10 @@ class SupervisorNode(Node):
             choice = spec.default_lipschitz_choice() if s.lipschitz == TASK_DEFAULT else s.lipschitz
             lipschitz = resolve_lipschitz(task, choice, expert)
         certify = None if s.certify == TASK_DEFAULT else s.certify
+        rule = None if s.rule == MODE_DEFAULT else s.rule
         config = build_config(
             task, plant.seed, lipschitz, epsilon,
-            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=s.rule,  # type: ignore[arg-type]
+            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=rule,  # type: ignore[arg-type]
         )  # fmt: skip
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -289,6 +304,7 @@ class SupervisorNode(Node):
             oracle = RosExpert(
                 self.expert, plant, self.seal, self.run_id, stop=self.stop, logger=log,
                 servers=lambda: self.count_services(EXPERT_SERVICE), timeout=s.expert_timeout, retries=s.expert_retries,
+                ahead=self.upcoming_states(config, s.expert_ahead),
             )  # fmt: skip
             rollouts = RosRollouts(
                 self.reset, self.seal, self.run_id, self.handshake, self.publish_trajectories,
@@ -321,6 +337,18 @@ class SupervisorNode(Node):
     def send_trajectory(self, index: int, trajectory: Trajectory) -> None:
         """One trajectory to the policy (and whoever listens), sealed for this run."""
         self.trajectory_pub.publish(self.trajectory_msg(index, trajectory))
+
+    def upcoming_states(self, config: RunConfig, count: int) -> Callable[[], list[FloatArray]]:
+        """The s0 of the `count` episodes after the running one, where every episode asks the expert (oracle)."""
+        if config.spec.certify != "oracle" or count == 0:
+            return list
+        s0 = initial_state_fn(config.task, config.seed)
+
+        def upcoming() -> list[FloatArray]:
+            loop = self.loop
+            return [] if loop is None else [s0(k) for k in range(loop.next_episode + 1, loop.next_episode + 1 + count)]
+
+        return upcoming
 
     def publish_trajectories(self, start: int, stop: int) -> None:
         assert self.loop is not None
