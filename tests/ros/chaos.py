@@ -93,6 +93,7 @@ class ChaosRun:
         self.spin, self.arrivals, self.say = spin, arrivals, say
         self.proc: subprocess.Popen[bytes] | None = None
         self.outcome = Outcome(faults)
+        self._log_read = False  # whether this start's expert log has been counted
 
     # ------------------------------------------------------------------ npp-run
     def _start(self) -> float:
@@ -104,6 +105,7 @@ class ChaosRun:
             out = open(self.run_dir.parent / f"{self.run_dir.name}-npp-run.out", "ab")
             self.proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
             out.close()
+            self._log_read = False
             started = time.monotonic()
             self.outcome.starts += 1
             self.spin(12.0 if self.outcome.starts > 1 else 0.0)
@@ -145,9 +147,11 @@ class ChaosRun:
         self.outcome.restarts_at.append(len(self.outcome.computed))
 
     def _read_expert_log(self) -> None:
+        """Once per start of npp-run, after it ended: the next start replaces the log."""
         log = self.run_dir / "logs" / "expert.log"
-        if log.exists():
+        if log.exists() and not self._log_read:
             self.outcome.computed += COMPUTED.findall(log.read_text(errors="replace"))
+        self._log_read = True
 
     # ------------------------------------------------------------------ the run
     def run(self, limit: float = 1800.0) -> Outcome:
