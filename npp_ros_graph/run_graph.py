@@ -36,8 +36,9 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from npp_ros.cli.args import TASK_HELP, ListTasks, task_name
 from npp_ros.storage import RunFileError, _WriterLock
-from npp_ros.tasks import TASK_NAMES
+from npp_ros.task_registry import short_name
 from npp_ros_graph.common import (
     CERTIFICATE,
     GAP,
@@ -68,7 +69,8 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="npp-run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--task", default="lqr_2_1", choices=TASK_NAMES, help="dm_control task (npp_ros.tasks)")
+    ap.add_argument("--task", default="lqr_2_1", type=task_name, help=TASK_HELP)
+    ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
     ap.add_argument("--seed", type=int, default=0, help="task seed")
     ap.add_argument("--horizon", type=int, default=1000, help="episode length")
     ap.add_argument("--epsilon", type=float, default=0.0, help="target gap > 0; 0: the paper's (50 / 300 / 130)")
@@ -303,7 +305,7 @@ def _stopped(pid: int) -> bool:
 # --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    run_dir = (args.run_dir or Path("runs") / f"graph-{args.task}-seed{args.seed}").resolve()
+    run_dir = (args.run_dir or Path("runs") / f"graph-{short_name(args.task)}-seed{args.seed}").resolve()
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     in_use = folder_in_use(run_dir)
     if in_use is not None:  # before any node: a second graph would only be refused by its supervisor

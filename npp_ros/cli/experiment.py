@@ -29,7 +29,7 @@ from pathlib import Path
 from distributed import Client, Future, LocalCluster, get_worker
 
 from npp_ros.certification import CERTIFY_MODES
-from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints
+from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints, task_name
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
     DETUNED_CONTROL_WEIGHT,
@@ -46,7 +46,6 @@ from npp_ros.experiment import (
 )
 from npp_ros.experiment.arms import HELD_OUT
 from npp_ros.lqr import TASKS
-from npp_ros.tasks import TASK_NAMES
 
 
 def parser() -> argparse.ArgumentParser:
@@ -54,7 +53,7 @@ def parser() -> argparse.ArgumentParser:
         prog="npp-experiment", description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     ap.add_argument(
-        "--tasks", nargs="+", choices=TASK_NAMES, default=sorted(TASKS), help="tasks (default: the paper's lqr tasks)"
+        "--tasks", nargs="+", type=task_name, default=sorted(TASKS), help="tasks (default: the paper's lqr tasks)"
     )
     ap.add_argument(
         "--seeds", nargs="+", type=nonnegative_int, default=[0, 1, 2, 3], help="seeds (plant and s0 streams)"

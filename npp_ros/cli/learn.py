@@ -19,13 +19,14 @@ import numpy as np
 
 from npp_ros.bounds import NonparametricPolicy
 from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
-from npp_ros.cli.args import nonnegative_int, positive_int
+from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int, task_name
 from npp_ros.evaluation import check_policy
 from npp_ros.lipschitz import LipschitzWarning
 from npp_ros.progress import Counter, StatusLine
 from npp_ros.run_setup import LIPSCHITZ_CHOICES, build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.storage import EpisodeRow, RunFileError
-from npp_ros.tasks import TASK_NAMES, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros.task_registry import short_name
+from npp_ros.tasks import ExpertOptions, StopsAtTimeBudget, get_task
 
 
 def parser() -> argparse.ArgumentParser:
@@ -34,7 +35,8 @@ def parser() -> argparse.ArgumentParser:
         description=__doc__,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    ap.add_argument("--task", choices=TASK_NAMES, default="lqr_2_1", help="dm_control task (npp_ros.tasks)")
+    ap.add_argument("--task", type=task_name, default="lqr_2_1", help=TASK_HELP)
+    ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
     ap.add_argument("--seed", type=nonnegative_int, default=0, help="task seed (plant) and initial-state stream")
     ap.add_argument(
         "--epsilon", type=float, default=None, help="target suboptimality; default: the paper's (50 / 300 / 130)"
@@ -91,7 +93,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     task = get_task(args.task)
-    run_dir = args.run_dir or Path("runs") / f"learn-{args.task}-seed{args.seed}"
+    run_dir = args.run_dir or Path("runs") / f"learn-{short_name(args.task)}-seed{args.seed}"
     try:
         epsilon = task.epsilon(args.epsilon)
         options = ExpertOptions(gamma=args.gamma, time_budget=args.time_budget, values=args.values)
