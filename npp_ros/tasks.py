@@ -145,6 +145,7 @@ class Task:
     paper_lipschitz_note: str = "the paper's choice (Section 5); not a bound on V*"
     no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"
     optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
+    default_horizon: int = 1000  # the episode length when a command line gives none
 
     # ------------------------------------------------------------------ what each task provides
     def make_plant(self, seed: int) -> Plant:

@@ -39,6 +39,7 @@ from rclpy.signals import SignalHandlerOptions
 from npp_ros.cli.args import TASK_HELP, ListTasks, task_name
 from npp_ros.storage import RunFileError, _WriterLock
 from npp_ros.task_registry import short_name
+from npp_ros.tasks import get_task
 from npp_ros_graph.common import (
     CERTIFICATE,
     GAP,
@@ -72,7 +73,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--task", default="lqr_2_1", type=task_name, help=TASK_HELP)
     ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
     ap.add_argument("--seed", type=int, default=0, help="task seed")
-    ap.add_argument("--horizon", type=int, default=1000, help="episode length")
+    ap.add_argument("--horizon", type=int, default=None, help="episode length; default: the task's (1000)")
     ap.add_argument("--epsilon", type=float, default=0.0, help="target gap > 0; 0: the paper's (50 / 300 / 130)")
     ap.add_argument(
         "--lipschitz", default="task", help="'analytic' (lqr), 'paper' (not a bound) or a number; task: the task's"
@@ -318,7 +319,7 @@ def main(argv: list[str] | None = None) -> int:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", KEY_ENV) if k in env})
     params = {
-        "sim": {"task": args.task, "seed": args.seed, "horizon": args.horizon},
+        "sim": {"task": args.task, "seed": args.seed, "horizon": args.horizon or get_task(args.task).default_horizon},
         "expert": {"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},
         "policy": {},
         "supervisor": {

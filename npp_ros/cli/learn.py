@@ -67,7 +67,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
     ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
-    ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
+    ap.add_argument("--horizon", type=positive_int, default=None, help="episode length H; default: the task's (1000)")
     ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
     ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
     ap.add_argument(
@@ -93,6 +93,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     task = get_task(args.task)
+    args.horizon = args.horizon or task.default_horizon
     run_dir = args.run_dir or Path("runs") / f"learn-{short_name(args.task)}-seed{args.seed}"
     try:
         epsilon = task.epsilon(args.epsilon)
