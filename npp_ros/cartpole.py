@@ -189,4 +189,5 @@ SWINGUP = OptimizerTask(
     expert_factory=CartpoleExpert,
     sampler=sample_initial_state,
     default_time_budget=DEFAULT_TIME_BUDGET,
+    reward_range=(0.0, 1.0),  # dm_control's tolerance-based reward
 )

@@ -734,5 +734,6 @@ def _task(path: Path, digest: str, content: bytes) -> FileTask:
         paper_lipschitz_note="the task file's choice (its key lipschitz); not a bound on the expert's value",
         default_time_budget=definition.expert.get("time_budget", 5.0),
         default_horizon=definition.horizon,
+        reward_range=definition.reward.bounds() if isinstance(definition.reward, TermReward) else None,
         definition=definition,
     )

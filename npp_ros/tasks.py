@@ -146,6 +146,7 @@ class Task:
     no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"
     optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
     default_horizon: int = 1000  # the episode length when a command line gives none
+    reward_range: tuple[float, float] | None = None  # what one step's reward can be, where known (answer checks)
 
     # ------------------------------------------------------------------ what each task provides
     def make_plant(self, seed: int) -> Plant:

@@ -29,6 +29,7 @@ from rclpy.client import Client
 from rclpy.node import Node
 from std_msgs.msg import UInt32
 
+from npp_ros.answer_check import AnswerCheck
 from npp_ros.bounds import NonparametricPolicy
 from npp_ros.certification import (
     CERTIFY_MODES,
@@ -282,9 +283,11 @@ class SupervisorNode(Node):
         run_dir.mkdir(parents=True, exist_ok=True)
         store = RunStore.open_or_create(run_dir / "run.sqlite", config.metadata())  # RunFileError: refuse
         reporter = GraphReporter(self, config, run_dir)
+        # Every answer is replayed on the supervisor's own plant before anything of it is stored.
+        check = AnswerCheck(spec.make_plant(plant.seed), plant.horizon, expert.value_basis().tail, spec.reward_range)
         self.loop = NPPLoop(
             config,
-            RosExpert(self, plant, s.expert_timeout, s.expert_retries),
+            RosExpert(self, plant, s.expert_timeout, s.expert_retries, check),
             initial_state_fn(task, plant.seed),
             store=store,
             driver=RosRollouts(self, s.rollout_timeout) if s.rollouts else None,
@@ -351,10 +354,17 @@ class SupervisorNode(Node):
 
 
 class RosExpert:
-    """The oracle over /npp/expert/trajectory: a deadline per call, retries, clear failure."""
+    """The oracle over /npp/expert/trajectory: a deadline per call, retries, clear failure.
 
-    def __init__(self, node: SupervisorNode, plant: PlantDescription, timeout: float, retries: int) -> None:
-        self.node, self.plant, self.timeout, self.retries = node, plant, timeout, retries
+    An answer that fails the AnswerCheck (wrong dimensions, non-finite values, values that contradict
+    its own trajectory on the supervisor's plant) counts as a failed attempt, with the reason; nothing
+    of it is stored.
+    """
+
+    def __init__(
+        self, node: SupervisorNode, plant: PlantDescription, timeout: float, retries: int, check: AnswerCheck
+    ) -> None:
+        self.node, self.plant, self.timeout, self.retries, self.check = node, plant, timeout, retries, check
 
     def trajectory(self, initial_state: FloatArray) -> Trajectory:
         log = self.node.get_logger()
@@ -362,7 +372,12 @@ class RosExpert:
         for attempt in range(1, self.retries + 1):
             response, last = self._attempt(initial_state)
             if response is not None:
-                return trajectory_from_response(response)
+                try:
+                    answer = trajectory_from_response(response)
+                    self.check(answer, initial_state)
+                    return answer
+                except ValueError as exc:  # DatasetError, AnswerError: the answer is wrong, not the link
+                    last = f"refused the expert's answer: {exc}"
             log.warning(f"expert call {attempt}/{self.retries} failed: {last}")
             if attempt < self.retries:
                 self.node.stop.wait(min(self.timeout, RETRY_PAUSE_S * 2 ** (attempt - 1)))
