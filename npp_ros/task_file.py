@@ -538,15 +538,15 @@ class TermCost:
     Gauss-Newton. Small velocity and control weights keep the problem well posed.
     """
 
-    def __init__(self, definition: TaskDefinition, model: Any, options: dict[str, Any]) -> None:
+    def __init__(self, terms: tuple[Term, ...], model: Any, options: dict[str, Any]) -> None:
         import mujoco
 
         self._mujoco = mujoco
         self.model = model
         self.data = mujoco.MjData(model)
         self.nq, self.nu = int(model.nq), int(model.nu)
-        self.state_terms_list = [t for t in definition.cost_terms if not t.on_control]
-        self.control_terms_list = [t for t in definition.cost_terms if t.on_control]
+        self.state_terms_list = [t for t in terms if not t.on_control]
+        self.control_terms_list = [t for t in terms if t.on_control]
         self.velocity_weight = float(options.get("velocity_weight", 1e-4))
         self.control_weight = float(options.get("control_weight", 1e-3))
         self._jac = np.zeros((3, model.nv))
@@ -644,7 +644,7 @@ class FileExpert(OptimizingExpert):
         zero = np.zeros(plant.action_dim)
         super().__init__(
             plant,
-            TermCost(definition, plant.physics.model.ptr, definition.expert),
+            TermCost(definition.cost_terms, plant.physics.model.ptr, definition.expert),
             lambda _x: zero,
             definition.represent,
             horizon=definition.horizon if horizon is None else horizon,

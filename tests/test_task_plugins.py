@@ -33,7 +33,7 @@ def plugin_on_path(demo_plugin: Path) -> Iterator[Path]:
 
 
 def test_plugin_tasks_join_the_built_in_ones(plugin_on_path: Path) -> None:
-    assert set(task_names()) == {*TASK_NAMES, "demo_pendulum", "demo_broken"}
+    assert set(task_names()) == {*TASK_NAMES, "acrobot_swingup", "demo_pendulum", "demo_broken"}
     task = get_task("demo_pendulum")
     assert task.name == "demo_pendulum" and task.state_dim == 2
     plant = task.make_plant(0)
@@ -70,7 +70,8 @@ def test_the_listing_says_where_each_task_comes_from(plugin_on_path: Path) -> No
 
 
 def test_unknown_names_list_every_task(plugin_on_path: Path) -> None:
-    with pytest.raises(UnknownTaskError, match=r"unknown task 'nope'; known tasks: cartpole_swingup, demo_broken, "):
+    known = r"unknown task 'nope'; known tasks: acrobot_swingup, cartpole_swingup, demo_broken, demo_pendulum, lqr_2_1"
+    with pytest.raises(UnknownTaskError, match=known):
         get_task("nope")
 
 
@@ -101,3 +102,20 @@ def test_command_lines_take_plugin_tasks(demo_plugin: Path, tmp_path: Path) -> N
     assert learned.returncode in (0, 1), learned.stderr
     assert "npp-learn: demo_pendulum seed 0" in learned.stderr
     assert (tmp_path / "run" / "run.sqlite").exists()
+
+
+def test_npp_ros_registers_the_acrobot_the_way_a_plugin_does() -> None:
+    origin = task_registry.sources()["acrobot_swingup"].origin
+    assert origin.startswith("plug-in npp_ros ")  # an entry point of npp_ros's own package
+    task = get_task("acrobot_swingup")
+    plant = task.make_plant(0)
+    assert (plant.task, plant.state_dim, plant.action_dim, plant.actuated_joint_names) == (
+        "acrobot_swingup",
+        4,
+        1,
+        ["elbow"],
+    )
+    s0 = task.initial_state(0, 0)
+    assert s0.shape == (4,) and (s0[2:] == 0).all()
+    plant.reset(s0)
+    assert 0.0 <= plant.step([1.0]) <= 1.0
