@@ -10,6 +10,7 @@ import numpy as np
 
 from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
 from npp_ros.dataset import FloatArray
+from npp_ros.task_registry import short_name
 from npp_ros.tasks import Expert, ExpertOptions, OptimizerTask, get_task
 
 EXPERTS = ("optimal", "detuned", "ilqr")  # every task's expert kinds (Task.experts)
@@ -55,7 +56,7 @@ class Arm:
 
     @property
     def name(self) -> str:
-        base = f"{self.task}-{self.expert}-L{self.lipschitz}"
+        base = f"{short_name(self.task)}-{self.expert}-L{self.lipschitz}"  # a task file's path is no folder name
         return base if self.paper_certification else f"{base}-{self.certify}-{self.rule}"
 
     @property
