@@ -41,8 +41,15 @@ class Oracle(Protocol):
     def trajectory(self, initial_state: FloatArray) -> Trajectory: ...
 
 
+class EpisodeInterrupted(RuntimeError):
+    """The run is stopping while an episode is under way: nothing of the episode is recorded, and a
+    resumed run plays it again from the same s0 (a pause or a restart never decides a check)."""
+
+
 class EpisodeDriver(Protocol):
-    """Lets the current policy drive one episode from s0; returns its return (or None)."""
+    """Lets the current policy drive one episode from s0; returns its return, or None when the policy
+    cannot drive at all (no data). A driver that loses a result asks for it again or runs the episode
+    again; it raises EpisodeInterrupted only when the run is stopping."""
 
     def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None: ...
 

@@ -147,6 +147,12 @@ class LQRPlant:
         return float(self._task.get_reward(self.physics))
 
 
+def episode_return(rewards: ArrayLike) -> float:
+    """An episode's return from its per-step rewards: the one summation every rollout uses (numpy's
+    pairwise sum), so a return earned through the ROS graph equals the in-process one bit for bit."""
+    return float(np.asarray(rewards, dtype=np.float64).sum())
+
+
 @dataclass(frozen=True)
 class Rollout:
     states: FloatArray  # (T, n): s_0 .. s_{T-1}
@@ -155,7 +161,7 @@ class Rollout:
 
     @property
     def total_return(self) -> float:
-        return float(self.rewards.sum())
+        return episode_return(self.rewards)
 
 
 def rollout(

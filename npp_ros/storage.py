@@ -3,7 +3,9 @@
 The file is SQLite (format "npp_ros.run", version FORMAT_VERSION), readable by the sqlite3 shell, pandas,
 R or any language; no pickle. Tables (see README, "Run file format"):
 
-- ``meta(key, value)``: format, format_version, created, the run's metadata (``RunConfig.metadata()``:
+- ``meta(key, value)``: format, format_version, created, run_id (the run's identity: random, drawn when the file
+  is made, recorded at the next writable open of a file from before it existed; the ROS graph seals every
+  message of the run with it), the run's metadata (``RunConfig.metadata()``:
   task, seed, dims, horizon, gamma, the plant's model fingerprint, what it certifies, L with its source), and the
   certificate (JSON) once issued. A resumed run must ask for the same values; a file from before the
   fingerprint was recorded records its resuming run's;
@@ -46,6 +48,7 @@ import hashlib
 import json
 import math
 import os
+import secrets
 import shlex
 import shutil
 import sqlite3
@@ -64,7 +67,8 @@ from npp_ros.dataset import Dataset, DatasetError, FloatArray, Trajectory
 
 FORMAT_NAME = "npp_ros.run"
 FORMAT_VERSION = 2  # 2: certification mode, stopping rule, checked gap and test per episode
-_FILE_KEYS = ("format", "format_version", "created", "certificate")  # meta keys that are not the run's metadata
+# Meta keys that are not the run's metadata (RunConfig.metadata()): the file's own, and what the run adds.
+_FILE_KEYS = ("format", "format_version", "created", "certificate", "run_id")
 
 # How long a write waits for another connection's write transaction (a user's sqlite3 shell
 # writing to the file, say) before it gives up. Readers never make a writer wait (WAL).
@@ -78,6 +82,10 @@ class RunFileError(RuntimeError):
     """The run file is missing, damaged, of another version, or made for another run."""
 
 
+class MissingMetadata(RunFileError, AttributeError):
+    """A metadata key the run file lacks: a RunFileError naming it, and still an AttributeError for hasattr."""
+
+
 class RunMetadata(SimpleNamespace):
     """What a run file was made for: the meta table's values by name, as ``RunConfig.metadata()`` gives them.
 
@@ -86,6 +94,12 @@ class RunMetadata(SimpleNamespace):
 
     PROVENANCE = ("lipschitz_detail",)
     RECORDED_SINCE = ("plant_fingerprint",)  # absent from older files: the first resume records them
+
+    def __getattr__(self, name: str) -> object:
+        """Only called for a key the meta table lacks (a hand-edited or damaged file): say which."""
+        if name.startswith("__"):
+            raise AttributeError(name)
+        raise MissingMetadata(f"the run file's metadata has no {name!r} (hand-edited or damaged?)")
 
     def mismatches(self, asked: RunMetadata) -> list[str]:
         return [
@@ -227,7 +241,8 @@ class RunStore:
                 "certified INTEGER NOT NULL, expert_value REAL, policy_return REAL, wall_time REAL, "
                 "checked_gap REAL, test INTEGER NOT NULL, test_delta REAL NOT NULL)"
             )
-            rows = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "created": str(time.time())}
+            rows = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "created": str(time.time()),
+                    "run_id": new_run_id()}  # fmt: skip
             rows.update({k: json.dumps(v) for k, v in vars(metadata).items()})
             conn.executemany("INSERT INTO meta VALUES (?, ?)", rows.items())
 
@@ -283,6 +298,9 @@ class RunStore:
             store._lock = lock
             store._use_wal()
             store._record_meta(store.metadata.unrecorded(metadata))
+            if store._meta_value("run_id") is None:  # a file from before runs had an identity gets one now
+                with _transaction(store._conn, store.path):
+                    store._conn.execute("INSERT INTO meta VALUES ('run_id', ?)", (new_run_id(),))
             return store
         except BaseException:
             store.close()
@@ -400,9 +418,18 @@ class RunStore:
             if self._conn.in_transaction:
                 self._conn.execute("COMMIT")
 
+    def _meta_value(self, key: str) -> str | None:
+        row = self._conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else str(row[0])
+
+    @property
+    def run_id(self) -> str:
+        """The run's identity ("" for a file from before runs had one, until a writer opens it)."""
+        return self._meta_value("run_id") or ""
+
     def certificate(self) -> dict[str, Any] | None:
-        row = self._conn.execute("SELECT value FROM meta WHERE key = 'certificate'").fetchone()
-        return None if row is None else json.loads(row[0])
+        value = self._meta_value("certificate")
+        return None if value is None else json.loads(value)
 
     def episodes(self) -> list[EpisodeRow]:
         cur = self._conn.execute(f"SELECT {', '.join(_EPISODE_COLUMNS)} FROM episodes ORDER BY episode")
@@ -647,6 +674,11 @@ def _command_line() -> str:
         words = [Path(sys.orig_argv[0]).name, *sys.orig_argv[1:]]
     line = " ".join(shlex.join(words).split())  # one line, whatever a -c script holds
     return line if len(line) <= 200 else line[:197] + "..."
+
+
+def new_run_id() -> str:
+    """A fresh run identity: 128 random bits, so that no two runs share one."""
+    return secrets.token_hex(16)
 
 
 def state_tuple(state: FloatArray) -> tuple[float, ...]:

@@ -13,6 +13,8 @@ MAX_MAGNITUDE keep every square below 1e301, so sums over any realistic dimensio
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -63,3 +65,9 @@ def bounded(arr: FloatArray, what: str = "state") -> FloatArray:
             f"+-{MAX_MAGNITUDE:g} (beyond that the squared distances overflow and no bound can be computed)"
         )
     return arr
+
+
+def state_digest(state: ArrayLike) -> str:
+    """A short name for a state, the same in every process: the first 12 hex digits of the SHA-256 of its
+    float64 bytes (logs name the states an expert computed from, so that repeats can be found)."""
+    return hashlib.sha256(np.ascontiguousarray(state, dtype="<f8").tobytes()).hexdigest()[:12]

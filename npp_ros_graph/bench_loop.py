@@ -43,6 +43,7 @@ from std_msgs.msg import UInt32
 
 from npp_ros.dataset import Dataset
 from npp_ros.lqr import LQRExpert, sample_initial_state
+from npp_ros.storage import new_run_id
 from npp_ros_graph.common import (
     ACTION,
     CONTROL_QOS,
@@ -100,7 +101,8 @@ class Driver(Node):
         self.create_subscription(UInt32, POLICY_STATUS, self.on_status, LATCHED_QOS)
         self.create_service(GetTrajectories, DATASET_SERVICE, self.on_dataset, qos_profile=SERVICE_QOS)
         run_seal = RunSeal.from_environment()
-        self.seal = run_seal.for_plant(plant.model_sha256())
+        self.run = new_run_id()  # the bench plays one run's supervisor and sim
+        self.seal = run_seal.for_plant(plant.model_sha256()).for_run(self.run)
         self.plant_pub.publish(run_seal.seal(plant_description(plant, seed, expert.horizon)))
         self.held = 0
         self.answer: JointState | None = None
@@ -112,11 +114,11 @@ class Driver(Node):
     def on_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
         total = self.data.num_trajectories
         lip = self.expert.analytic_lipschitz()
-        response.success, response.total = True, total
+        response.success, response.total, response.run = True, total, self.run
         response.lipschitz, response.lipschitz_source = lip.value, lip.source
         stop = min(total, request.start + (request.max_count or 50))
         for k in range(request.start, stop):
-            response.trajectories.append(self.seal.seal(trajectory_to_msg(k, self.data.trajectory(k))))
+            response.trajectories.append(self.seal.seal(trajectory_to_msg(k, self.data.trajectory(k), self.run)))
         return self.seal.seal(response, answering=request)
 
     def on_action(self, msg: JointState) -> None:

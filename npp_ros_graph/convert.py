@@ -67,8 +67,10 @@ def _trajectory(states: Sequence[float], actions: Sequence[float], values: Seque
     return Trajectory.validated(s.reshape(steps, state_dim), a.reshape(steps, action_dim), values)
 
 
-def trajectory_to_msg(index: int, trajectory: Trajectory) -> TrajectoryMsg:
+def trajectory_to_msg(index: int, trajectory: Trajectory, run: str = "") -> TrajectoryMsg:
+    """Trajectory `index` of the dataset of run `run` (its identity: see seal.py)."""
     return TrajectoryMsg(
+        run=run,
         index=index,
         state_dim=trajectory.states.shape[1],
         action_dim=trajectory.actions.shape[1],

@@ -311,15 +311,18 @@ def start_server(hub: Hub, host: str, port: int) -> tuple[ThreadingHTTPServer, s
     return server, f"http://{'127.0.0.1' if host == '0.0.0.0' else host}:{bound}/"
 
 
-def start_dashboard(run_dir: Path, env: dict[str, str], port: int) -> subprocess.Popen[bytes]:
+def start_dashboard(
+    run_dir: Path, env: dict[str, str], port: int, setup: Callable[[], None]
+) -> subprocess.Popen[bytes]:
     """npp-run --dashboard: npp-dashboard as a process (log in RUN_DIR/logs/dashboard.log), started before the
-    nodes so that it shows every episode; returns once it serves."""
+    nodes so that it shows every episode; returns once it serves. ``setup`` runs in the child before exec
+    (npp-run's: the child dies with npp-run)."""
     log_path = run_dir / "logs" / "dashboard.log"
     log = log_path.open("ab")
     start = log_path.stat().st_size
     proc = subprocess.Popen(
         [sys.executable, "-m", "npp_ros_graph.dashboard", "--port", str(port)],
-        stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=setup,
     )  # fmt: skip
     deadline = time.monotonic() + 60
     url = ""

@@ -45,10 +45,13 @@ class AnswerSeal:
         """Set ``response.plant`` to the plant's fingerprint and ``response.seal`` to the tag over the response
         and the request it answers (an answer cannot be passed off for another request); returns ``response``.
 
-        Call it last: the tag covers every field, so a field set afterwards breaks the seal.
+        The tag is made for the asking run, whose identity comes with the request (``request.run``): an
+        answer made for one run does not check in another. Call it last: the tag covers every field, so a
+        field set afterwards breaks the seal.
         """
         response.plant = self.fingerprint
-        return self.run_seal.seal(response, answering=request)
+        seal = self.run_seal.for_run(request.run) if request.run else self.run_seal
+        return seal.seal(response, answering=request)
 
 
 def answer_seal(description: Any, key: str | None = None) -> AnswerSeal:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -27,7 +28,7 @@ from rclpy.task import Future
 from npp_ros.choices import check_gamma
 from npp_ros.dataset import Trajectory
 from npp_ros.tasks import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
-from npp_ros.vectors import finite_vector
+from npp_ros.vectors import finite_vector, state_digest
 from npp_ros_graph.common import (
     BUSY,
     EXPERT_SERVICE,
@@ -99,6 +100,7 @@ class ExpertNode(Node):
         self.options = settings.options()
         self.waiting = 0  # accepted requests not yet answered (executor thread only)
         self.busy_refusals = 0
+        self.computed = 0  # trajectories computed (worker thread only)
         self._jobs: Mailbox[tuple[Expert, np.ndarray, int, Future]] = Mailbox()
         self._worker = threading.Thread(target=self._work, name="npp-expert-worker", daemon=True)
         self._worker.start()
@@ -199,8 +201,8 @@ class ExpertNode(Node):
                 "nothing was computed, ask again later",
                 request,
             )
-        assert self.expert is not None and self.seal is not None and self.description is not None
-        expert, seal, fingerprint = self.expert, self.seal, self.description.model_sha256
+        assert self.expert is not None and self.description is not None
+        expert, seal, fingerprint = self.expert, self._seal_for(request), self.description.model_sha256
         done = Future()
         self.waiting += 1
         try:
@@ -221,10 +223,17 @@ class ExpertNode(Node):
         while (job := self._jobs.take()) is not None:
             expert, state, horizon, done = job
             stops = expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
+            started = time.monotonic()
             try:
                 done.set_result(expert.trajectory(state, horizon or expert.horizon))
             except Exception as exc:  # reported to the waiting request, never kills the worker
                 done.set_exception(exc)
+            else:
+                self.computed += 1
+                self.get_logger().info(
+                    f"computed a trajectory from s0 {state_digest(state)} in {time.monotonic() - started:.3f} s "
+                    f"({self.computed} computed by this process)"
+                )
             if isinstance(expert, StopsAtTimeBudget) and expert.budget_stops > stops:
                 self.get_logger().warning(
                     f"the request from {np.array2string(np.asarray(state), precision=4)} stopped at the time budget "
@@ -265,7 +274,15 @@ class ExpertNode(Node):
         self.get_logger().warning(f"refused a request: {message}", throttle_duration_sec=1.0)
         response.success = False
         response.message = message
-        return response if self.seal is None else self.seal.seal(response, answering=request)
+        seal = self._seal_for(request)
+        return response if seal is None else seal.seal(response, answering=request)
+
+    def _seal_for(self, request: ExpertTrajectory.Request) -> RunSeal | None:
+        """The asking run's seal (its identity comes with the request), or the plant's for a request that names no
+        run (someone querying the service by hand): an answer made for one run does not check in another."""
+        if self.seal is None or not request.run:
+            return self.seal
+        return self.seal.for_run(request.run)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

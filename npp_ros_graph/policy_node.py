@@ -84,7 +84,9 @@ class PolicyNode(Node):
         declare_settings(self, (), PolicySettings)
         self.plant: PlantDescription | None = None
         self.run_seal = RunSeal.from_environment()
-        self.seal: RunSeal | None = None  # the run's seal for the plant, once described
+        self.plant_seal: RunSeal | None = None  # the run key's seal for the plant, once described
+        self.run = ""  # the identity of the run whose data the policy holds (the supervisor's answers name it)
+        self.seal: RunSeal | None = None  # that run's seal
         self._action = JointState()
         self.dataset: Dataset | None = None
         self.policy: NonparametricPolicy | None = None
@@ -131,15 +133,15 @@ class PolicyNode(Node):
             self.get_logger().error(f"plant changed from {self.plant.task} to {msg.task}; restart the policy")
             return
         if self.plant is None:
-            self.seal = self.run_seal.for_plant(msg.model_sha256)
+            self.plant_seal = self.run_seal.for_plant(msg.model_sha256)
             self.plant = msg
             self._action = JointState(name=list(msg.actuated_joint_names))  # refilled for every answer
             self.dataset = Dataset(msg.state_dim, msg.action_dim)
             self.get_logger().info(f"plant {msg.task} seed {msg.seed}; catching up with the dataset")
 
     def on_trajectory(self, msg: TrajectoryMsg) -> None:
-        if self.dataset is None or self.policy is None or self.seal is None:
-            self._catch_up_needed = True
+        if self.dataset is None or self.policy is None or self.seal is None or msg.run != self.run:
+            self._catch_up_needed = True  # the supervisor's dataset service says which run is its own
             return
         try:
             self.seal.check(msg, f"trajectory {msg.index}")
@@ -194,15 +196,23 @@ class PolicyNode(Node):
         if response is None or not response.success:
             self.get_logger().warning(f"catch-up failed: {getattr(response, 'message', 'no response')}")
             return
-        assert self.seal is not None
+        assert self.plant_seal is not None and self.dataset is not None
         try:
-            self.seal.check(response, "the dataset service's answer", answering=request)
+            seal = self.plant_seal.for_run(response.run)
+            seal.check(response, "the dataset service's answer", answering=request)
             for msg in response.trajectories:
-                self.seal.check(msg, f"trajectory {msg.index} of the dataset service's answer")
+                if msg.run != response.run:
+                    raise SealError(f"trajectory {msg.index} of the dataset service's answer belongs to another run")
+                seal.check(msg, f"trajectory {msg.index} of the dataset service's answer")
         except SealError as exc:
             self._catch_up_needed = True
             self._warn("foreign dataset", f"catch-up answer refused: {exc}")
             return
+        if response.run != self.run:
+            self._start_run(response.run, seal)
+            if request.start != 0:
+                self._catch_up_needed = True  # this answer paged from the old run's count: ask from the start
+                return
         if self.policy is None:
             assert self.dataset is not None
             with self._data_lock:
@@ -215,6 +225,19 @@ class PolicyNode(Node):
         self.status_pub.publish(UInt32(data=self.dataset.num_trajectories))
         if not self._catch_up_needed:
             self.get_logger().info(f"holding {self.dataset.num_trajectories} trajectories ({len(self.dataset)} points)")
+
+    def _start_run(self, run: str, seal: RunSeal) -> None:
+        """Hold the data of `run` from now on: the supervisor's run is another than the one the data came from
+        (a new run file), so the old data go and the new run's are fetched."""
+        assert self.plant is not None
+        if self.run:
+            self.get_logger().warning(
+                f"the supervisor now runs {run[:12]}, not {self.run[:12]} whose data this policy held; starting over"
+            )
+        with self._data_lock:
+            self.run, self.seal = run, seal
+            self.dataset = Dataset(self.plant.state_dim, self.plant.action_dim)
+            self.policy = None
 
     # ---------------------------------------------------------------- acting
     @property
@@ -246,6 +269,7 @@ class PolicyNode(Node):
                 state, episode = self._state(msg)
             except SealError as exc:
                 self._foreign(STATE, exc)
+                self._catch_up_needed = True  # a state of another run: has the supervisor started a new one?
             except ValueError as exc:
                 problem = str(exc)
                 self._warn(problem.split(":")[0], f"state refused: {problem}")
@@ -262,8 +286,10 @@ class PolicyNode(Node):
         """The state a message carries and its episode, if the policy can answer it; else a ValueError
         (a SealError for a state from outside the run) saying why not."""
         plant, seal = self.plant, self.seal
-        if plant is None or seal is None:
+        if plant is None:
             raise ValueError("no plant description yet: cannot read states")
+        if seal is None:
+            raise ValueError("no data yet: the policy has no action to give")
         episode = seal.check_header(msg, "a state")
         if self.policy is None or self.dataset is None or len(self.dataset) == 0:
             raise ValueError("no data yet: the policy has no action to give")

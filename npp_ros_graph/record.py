@@ -22,6 +22,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -146,14 +147,17 @@ def next_bag_dir(run_dir: Path) -> Path:
     return candidate
 
 
-def start_recorder(run_dir: Path, env: dict[str, str], timeout: float = 60.0) -> subprocess.Popen[bytes]:
+def start_recorder(
+    run_dir: Path, env: dict[str, str], setup: Callable[[], None], timeout: float = 60.0
+) -> subprocess.Popen[bytes]:
     """npp-run --record: npp-record as a process writing RUN_DIR/bag (log in RUN_DIR/logs/record.log),
-    returned once its bag exists, so that the nodes started next are recorded from their first message."""
+    returned once its bag exists, so that the nodes started next are recorded from their first message.
+    ``setup`` runs in the child before exec (npp-run's: the child dies with npp-run)."""
     bag = next_bag_dir(run_dir)
     log = (run_dir / "logs" / "record.log").open("ab")
     proc = subprocess.Popen(
         [sys.executable, "-m", "npp_ros_graph.record", "--output", str(bag)],
-        stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=setup,
     )  # fmt: skip
     deadline = time.monotonic() + timeout
     while not (bag / "metadata.yaml").exists() and proc.poll() is None and time.monotonic() < deadline:

@@ -348,11 +348,11 @@ def main(argv: list[str] | None = None) -> int:
         if other is not None:
             say(f"npp-run: another graph is running on {where()}: {other}; not starting. {TWO_GRAPHS}")
             return 2
+        setup = child_setup(os.getpid())  # every child, the recorder and the dashboard too, dies with npp-run
         if args.dashboard is not None:  # first: a port in use stops npp-run before any node started
-            extras["dashboard"] = procs["dashboard"] = start_dashboard(run_dir, env, args.dashboard)
+            extras["dashboard"] = procs["dashboard"] = start_dashboard(run_dir, env, args.dashboard, setup)
         if args.record:
-            extras["record"] = procs["record"] = start_recorder(run_dir, env)
-        setup = child_setup(os.getpid())
+            extras["record"] = procs["record"] = start_recorder(run_dir, env, setup)
         for name, values in params.items():
             cmd = [sys.executable, "-m", f"npp_ros_graph.{name}_node", "--ros-args"]
             for key, value in values.items():

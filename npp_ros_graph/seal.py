@@ -11,9 +11,16 @@ environment (``NPP_RUN_KEY``). Nodes started by hand share a key by exporting th
 its own is still kept apart, and data for another plant is still refused (below), but anyone on
 the domain can then forge a tag.
 
-The plant: everything but the plant description is sealed under a key derived from the run key and
-the plant's model fingerprint (:meth:`RunSeal.for_plant`), so an expert's answer, a state or a
-rollout made for another plant fails the check even under the same run key.
+The plant and the run: everything but the plant description is sealed under a key derived from the
+run key, the plant's model fingerprint (:meth:`RunSeal.for_plant`) and the run's identity
+(:meth:`RunSeal.for_run`), a random id the supervisor draws when it creates the run file and keeps
+in it. So an expert's answer, a state or a rollout made for another plant, or recorded in another
+run with the same key (an ``NPP_RUN_KEY`` exported once and reused for two runs), fails the check.
+The identity travels in clear with what starts an exchange (a reset, an expert request, a dataset
+trajectory); the receiver checks the message under that run's key and answers under it. The
+supervisor alone knows which run is its own, and checks everything that may enter its data, returns
+or certificate under its run's key: a replayed message of another run can at worst delay a node
+that took it, never enter the run.
 
 Where a tag goes: messages with a header carry ``context|tag`` in ``header.frame_id``, the context
 being what the message does not say itself (the episode a state belongs to: sim stamps restart
@@ -68,6 +75,13 @@ class RunSeal:
     def for_plant(self, model_sha256: str) -> RunSeal:
         """The seal for everything about one plant: a tag made for another plant does not check."""
         return RunSeal(hmac.digest(self.key, b"plant:" + model_sha256.encode(), "sha256"), self.private)
+
+    def for_run(self, run: str) -> RunSeal:
+        """The seal for one run (of a plant seal): a tag made in another run does not check, even under the
+        same key. ``run`` is the run's identity, as the supervisor's run file keeps it."""
+        if not run:
+            raise SealError("no run identity: only this run's supervisor names the run a message belongs to")
+        return RunSeal(hmac.digest(self.key, b"run:" + run.encode(), "sha256"), self.private)
 
     def _tag(self, *messages: Any) -> str:
         parts: list[bytes] = []

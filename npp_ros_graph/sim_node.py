@@ -20,6 +20,7 @@ from npp_interfaces.srv import ResetEpisode
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
+from npp_ros.lqr import episode_return
 from npp_ros.task_registry import describe_tasks
 from npp_ros.tasks import MAX_HORIZON, Plant, Task, check_horizon, get_task
 from npp_ros.vectors import finite_vector
@@ -83,7 +84,9 @@ publishes   /{PLANT} (npp_interfaces/msg/PlantDescription, latched)
 subscribes  /{ACTION} (sensor_msgs/JointState: effort = action, name = actuated joints or empty,
             stamp = the stamp of the state it answers; anything else is ignored with a warning)
 serves      /{RESET_SERVICE} (npp_interfaces/srv/ResetEpisode: empty state = sample s0 ~ rho for
-            the given episode index, else reset to the given state)
+            the given episode index, else reset to the given state; asked again for the same run,
+            episode, attempt and state it does not restart the episode but says where it stands,
+            and sends a finished episode's result again, so a result lost in a pause is not lost)
 
 {parameter_help(PARAMETERS)}
 """
@@ -105,13 +108,17 @@ class SimNode(Node):
         # The running episode; `state_stamp` is the last published state's time, None when no episode runs.
         self.episode = 0
         self.steps = 0
-        self.episode_return = 0.0
+        self.rewards: list[float] = []
         self.initial_state = np.zeros(0)
         self.state_stamp: Time | None = None
         # Which data the policy drove the running episode with ("trajectories held", from each action's seal).
         self.drivers: set[str] = set()
         self.run_seal = RunSeal.from_environment()
-        self.seal: RunSeal | None = None  # the run's seal for this plant, once built
+        self.plant_seal: RunSeal | None = None  # the run key's seal for this plant, once built
+        self.seal: RunSeal | None = None  # the seal of the run the current episode belongs to (set by its reset)
+        # The reset that started the current episode (run, episode, attempt, s0), and its result once finished.
+        self._started: tuple[str, int, int, tuple[float, ...]] | None = None
+        self._result: EpisodeResult | None = None
         self._last_state: JointState | None = None
         self._last_sent = 0.0
         self.ignored_actions = 0
@@ -132,7 +139,7 @@ class SimNode(Node):
             plant = self.spec.make_plant(self.seed)
         except Exception as exc:  # run_node turns this into a clean exit with the reason
             raise StartupError(f"cannot build the plant {self.task} seed {self.seed}: {exc}") from exc
-        self.seal = self.run_seal.for_plant(plant.model_sha256())
+        self.plant_seal = self.run_seal.for_plant(plant.model_sha256())
         self.plant = plant
         self.dt_ns = round(plant.dt * 1e9)
         self.plant_pub.publish(self.run_seal.seal(plant_description(plant, self.seed, self.horizon)))
@@ -144,27 +151,41 @@ class SimNode(Node):
     # ------------------------------------------------------------------ reset
     def on_reset(self, request: ResetEpisode.Request, response: ResetEpisode.Response) -> ResetEpisode.Response:
         try:
-            problem = self._reset(request)
+            problem, news = self._reset(request)
         except Exception as exc:  # never let an exception escape into the executor
             self.get_logger().error(f"reset failed: {type(exc).__name__}: {exc}")
-            problem = f"internal error during reset: {exc}"
+            problem, news = f"internal error during reset: {exc}", ""
         if problem is not None:
             self.get_logger().warning(f"refused a reset: {problem}", throttle_duration_sec=1.0)
             response.success, response.message = False, problem
         else:
             response.success = True
-            response.message = f"episode {self.episode} started"
+            response.message = news
             response.state = float64_array(self.initial_state)
-        return response if self.seal is None else self.seal.seal(response, answering=request)
-
-    def _reset(self, request: ResetEpisode.Request) -> str | None:
-        plant, seal = self.plant, self.seal
-        if plant is None or seal is None:
-            return f"the plant {self.task} seed {self.seed} is still being built; retry shortly"
         try:
+            seal = self.plant_seal.for_run(request.run) if self.plant_seal is not None else None
+        except SealError:
+            seal = self.plant_seal
+        return response if seal is None else seal.seal(response, answering=request)
+
+    def _reset(self, request: ResetEpisode.Request) -> tuple[str | None, str]:
+        """(why the reset is refused, or None; what it did). A repeat of the reset that started the current
+        episode leaves the episode as it is: the supervisor asks again when it lost track (a pause)."""
+        plant, plant_seal = self.plant, self.plant_seal
+        if plant is None or plant_seal is None:
+            return f"the plant {self.task} seed {self.seed} is still being built; retry shortly", ""
+        try:
+            seal = plant_seal.for_run(request.run)
             seal.check(request, "the reset request")
         except SealError as exc:
-            return f"{exc}; only this run's supervisor resets the sim"
+            return f"{exc}; only this run's supervisor resets the sim", ""
+        started = (request.run, int(request.episode), int(request.attempt), tuple(request.state))
+        if started == self._started:
+            if self.state_stamp is not None:
+                return None, f"episode {self.episode} under way at step {self.steps}"
+            if self._result is not None:
+                self.done_pub.publish(self._result)
+                return None, f"episode {self.episode} done; its result sent again"
         if len(request.state) == 0:
             s0 = self.spec.initial_state(self.seed, request.episode)
         else:
@@ -172,16 +193,17 @@ class SimNode(Node):
             try:
                 s0 = finite_vector(request.state, plant.state_dim, "state", layout)
             except ValueError as exc:
-                return str(exc)
+                return str(exc), ""
         if self.state_stamp is not None:
             self.get_logger().info(f"episode {self.episode} abandoned after {self.steps} steps by a reset")
         self.initial_state = plant.reset(s0)
+        self.seal, self._started, self._result = seal, started, None
         self.episode = int(request.episode)
         self.steps = 0
-        self.episode_return = 0.0
+        self.rewards.clear()
         self.drivers.clear()
         self._publish_state()
-        return None
+        return None, f"episode {self.episode} started"
 
     # -------------------------------------------------------------- lockstep
     def on_action(self, msg: JointState) -> None:
@@ -218,7 +240,7 @@ class SimNode(Node):
             u = action_from_joint_state(msg, plant.actuated_joint_names)
         except ValueError as exc:
             return str(exc)
-        self.episode_return += plant.step(u)
+        self.rewards.append(plant.step(u))
         self.drivers.add(driver)
         self.steps += 1
         if self.steps >= self.horizon:
@@ -249,15 +271,15 @@ class SimNode(Node):
             self._send(self._last_state)
 
     def _finish(self) -> None:
-        result = rollout_result(
-            self.episode, self.episode_return, self.steps, self.initial_state, stamp(self.steps * self.dt_ns)
-        )
+        total = episode_return(self.rewards)
+        result = rollout_result(self.episode, total, self.steps, self.initial_state, stamp(self.steps * self.dt_ns))
         self.state_stamp = None  # no more states until the next reset
         assert self.seal is not None
         # The context names the data the policy drove with: a return counts only for the policy it certifies.
-        self.done_pub.publish(self.seal.seal_header(result, ",".join(sorted(self.drivers))))
+        self._result = self.seal.seal_header(result, ",".join(sorted(self.drivers)))
+        self.done_pub.publish(self._result)
         self.get_logger().info(
-            f"episode {self.episode} done: {self.steps} steps, return {self.episode_return:.3f}"
+            f"episode {self.episode} done: {self.steps} steps, return {total:.3f}"
             + (f", {self.ignored_actions} actions ignored so far" if self.ignored_actions else "")
         )
 

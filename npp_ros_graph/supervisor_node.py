@@ -45,7 +45,7 @@ from npp_ros.certification import (
 from npp_ros.choices import LIPSCHITZ_NAMED, parse_lipschitz
 from npp_ros.dataset import FloatArray, Trajectory
 from npp_ros.lipschitz import LipschitzConstant
-from npp_ros.loop import NPPLoop, Observer, RunConfig
+from npp_ros.loop import EpisodeInterrupted, NPPLoop, Observer, RunConfig
 from npp_ros.run_setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
 from npp_ros.storage import EpisodeRow, RunStore
 from npp_ros.tasks import get_task
@@ -102,7 +102,8 @@ PARAMETERS = (
           1e-3),
     Param("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops", 1),
     Param("rollouts", True, "let the policy drive each episode through the sim (the sound checks need it)"),
-    Param("rollout_timeout", 120.0, "seconds to wait for the policy's episode before skipping its return", 1e-3),
+    Param("rollout_timeout", 120.0, "seconds an episode may run without a result before it is run again from its s0 "
+          "(a result lost in a pause is asked for again within seconds; no episode is skipped)", 1e-3),
 )  # fmt: skip
 
 
@@ -160,6 +161,9 @@ RETRY_PAUSE_S = 0.25  # first pause between expert attempts; doubles each time, 
 RESEND_S = 2.0
 
 
+STOP_WAIT_S = 10.0  # on Ctrl-C, how long the node waits for Algorithm 1 to finish its current write
+
+
 class ExpertUnavailable(RuntimeError):
     pass
 
@@ -171,7 +175,9 @@ class SupervisorNode(Node):
         self.loop: NPPLoop | None = None
         self.plant: PlantDescription | None = None
         self.run_seal = RunSeal.from_environment()
-        self.seal: RunSeal | None = None  # the run's seal for its plant, once described
+        self.plant_seal: RunSeal | None = None  # the run key's seal for the plant, once described
+        self.run_id = ""  # the run's identity, from its run file
+        self.seal: RunSeal | None = None  # the seal of this run (key, plant and identity), once its file is open
         self.stop = threading.Event()
         self._plants: Mailbox[PlantDescription] = Mailbox(keep=1)
         self.handshake = RolloutHandshake()
@@ -210,7 +216,7 @@ class SupervisorNode(Node):
                     f"{publishers_of(self, PLANT)}); this run keeps its own, and refuses data for any other"
                 )
             return
-        self.seal = self.run_seal.for_plant(msg.model_sha256)
+        self.plant_seal = self.run_seal.for_plant(msg.model_sha256)
         self.plant = msg
         self._plants.put(msg)
 
@@ -227,18 +233,23 @@ class SupervisorNode(Node):
 
     def trajectory_msg(self, index: int, trajectory: Trajectory) -> TrajectoryMsg:
         assert self.seal is not None
-        return self.seal.seal(trajectory_to_msg(index, trajectory))
+        return self.seal.seal(trajectory_to_msg(index, trajectory, self.run_id))
 
     def serve_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
         loop = self.loop
         if loop is None:
             response.success = False
-            response.message = "the run has not started yet (no plant description from the sim)"
+            response.message = (
+                "the run has not started yet (no plant description from the sim)"
+                if self.plant is None
+                else "the run is starting (opening its run file)"
+            )
             return response
-        data = loop.dataset
+        data = loop.policy_data  # what the policy under test holds: never the trajectories a running test holds back
         total = data.num_trajectories
         count = min(request.max_count or 50, 200, max(total - request.start, 0))
         response.success = True
+        response.run = self.run_id
         response.total = total
         response.lipschitz = loop.spec.lipschitz.value
         response.lipschitz_source = loop.spec.lipschitz.source
@@ -255,7 +266,12 @@ class SupervisorNode(Node):
             return  # the node closed before the sim described its plant
         try:
             self._run_algorithm()
+        except EpisodeInterrupted as exc:
+            self.get_logger().info(f"stopped: {exc}")
         except Exception as exc:  # the run must never die silently: say why and exit non-zero
+            if self.stop.is_set():  # the node is closing: what failed was cut off by it
+                self.get_logger().info(f"stopped while {exc}")
+                return
             self.get_logger().fatal(f"Algorithm 1 stopped: {exc}")
             self.exit_code = 1
             rclpy.try_shutdown()
@@ -282,37 +298,42 @@ class SupervisorNode(Node):
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         store = RunStore.open_or_create(run_dir / "run.sqlite", config.metadata())  # RunFileError: refuse
-        reporter = GraphReporter(self, config, run_dir)
-        # Every answer is replayed on the supervisor's own plant before anything of it is stored.
-        check = AnswerCheck(spec.make_plant(plant.seed), plant.horizon, expert.value_basis().tail, spec.reward_range)
-        self.loop = NPPLoop(
-            config,
-            RosExpert(self, plant, s.expert_timeout, s.expert_retries, check),
-            initial_state_fn(task, plant.seed),
-            store=store,
-            driver=RosRollouts(self, s.rollout_timeout) if s.rollouts else None,
-            observers=[reporter],
-            expert_value=spec.expert_value(expert),
-            basis=value_basis(expert, lipschitz.value),
-        )
-        loop = self.loop
-        self.get_logger().info(
-            f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
-            f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
-        )
-        self.publish_trajectories(0, loop.dataset.num_trajectories)  # a restarted policy may also listen here
-        if loop.certificate is not None:
-            reporter.on_certificate(loop.certificate)
-        while not self.stop.is_set() and loop.certificate is None and loop.next_episode < s.max_episodes:
-            loop.run_episode()
-        if loop.certificate is None:
-            self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
-        store.close()
+        try:  # closed also on Ctrl-C, so that the file is one self-contained file again
+            assert self.plant_seal is not None
+            self.run_id = store.run_id
+            self.seal = self.plant_seal.for_run(self.run_id)
+            reporter = GraphReporter(self, config, run_dir)
+            # Every answer is replayed on the supervisor's own plant before anything of it is stored.
+            tail = expert.value_basis().tail
+            check = AnswerCheck(spec.make_plant(plant.seed), plant.horizon, tail, spec.reward_range)
+            self.loop = loop = NPPLoop(
+                config,
+                RosExpert(self, plant, s.expert_timeout, s.expert_retries, check),
+                initial_state_fn(task, plant.seed),
+                store=store,
+                driver=RosRollouts(self, s.rollout_timeout) if s.rollouts else None,
+                observers=[reporter],
+                expert_value=spec.expert_value(expert),
+                basis=value_basis(expert, lipschitz.value),
+            )
+            self.get_logger().info(
+                f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
+                f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
+            )
+            self.publish_trajectories(0, loop.policy_data.num_trajectories)  # a restarted policy may listen here
+            if loop.certificate is not None:
+                reporter.on_certificate(loop.certificate)
+            while not self.stop.is_set() and loop.certificate is None and loop.next_episode < s.max_episodes:
+                loop.run_episode()
+            if loop.certificate is None and not self.stop.is_set():
+                self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
+        finally:
+            store.close()
 
     def publish_trajectories(self, start: int, stop: int) -> None:
         assert self.loop is not None
         for k in range(start, stop):
-            self.trajectory_pub.publish(self.trajectory_msg(k, self.loop.dataset.trajectory(k)))
+            self.trajectory_pub.publish(self.trajectory_msg(k, self.loop.policy_data.trajectory(k)))
 
     def call(self, client: Client, request, timeout: float):
         """One service call with a deadline; an unanswered request is withdrawn, not left pending forever.
@@ -349,7 +370,12 @@ class SupervisorNode(Node):
             )
 
     def destroy_node(self) -> None:
+        """Stop Algorithm 1 between two of its steps: an episode under way is left unrecorded (a resumed run
+        plays it again), and the run file is closed before the process ends."""
+        self.stop.set()
         self._plants.close()
+        self.handshake.close()
+        self.worker.join(timeout=STOP_WAIT_S)
         super().destroy_node()
 
 
@@ -392,7 +418,7 @@ class RosExpert:
         """
         deadline = time.monotonic() + self.timeout
         pause = RETRY_PAUSE_S
-        request = ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0)
+        request = ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0, run=self.node.run_id)
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not self.node.expert.wait_for_service(timeout_sec=remaining):
@@ -443,6 +469,13 @@ class RolloutHandshake:
         self._changed = threading.Condition()
         self._policy_holds = -1  # trajectories the policy reported last (-1: no report yet)
         self._results: dict[int, tuple[EpisodeResult, str]] = {}  # episode -> (result, data it was driven with)
+        self.closed = False
+
+    def close(self) -> None:
+        """Wake every waiter: the node is closing."""
+        with self._changed:
+            self.closed = True
+            self._changed.notify_all()
 
     def on_policy_status(self, msg: UInt32) -> None:
         with self._changed:
@@ -464,15 +497,20 @@ class RolloutHandshake:
     def wait_for_policy(self, trajectories: int, deadline: float) -> bool:
         """Whether the policy holds at least `trajectories` by the deadline (time.monotonic)."""
         with self._changed:
-            return self._changed.wait_for(
-                lambda: self._policy_holds >= trajectories, max(deadline - time.monotonic(), 0.0)
+            return (
+                self._changed.wait_for(
+                    lambda: self._policy_holds >= trajectories or self.closed, max(deadline - time.monotonic(), 0.0)
+                )
+                and not self.closed
             )
 
     def wait_for_rollout(self, episode: int, deadline: float) -> tuple[EpisodeResult, str] | None:
         """The sim's result for `episode` and the data it was driven with, or None when the deadline passes
         first; results of earlier episodes that finish late (skipped ones) are discarded."""
         with self._changed:
-            self._changed.wait_for(lambda: episode in self._results, max(deadline - time.monotonic(), 0.0))
+            self._changed.wait_for(
+                lambda: episode in self._results or self.closed, max(deadline - time.monotonic(), 0.0)
+            )
             result = self._results.pop(episode, None)
             for late in [k for k in self._results if k < episode]:
                 del self._results[late]
@@ -480,79 +518,100 @@ class RolloutHandshake:
 
 
 class RosRollouts:
-    """Episode driver: reset the sim to s0 and let the policy node drive; returns the sim's return."""
+    """Episode driver: reset the sim to s0 and let the policy node drive; returns the sim's return.
+
+    A check is decided by the policy's return, never by a fault: nothing here gives an episode up. A
+    result lost on its way (a pause past the middleware's lease, a restarted node, a dropped message) is
+    asked for again every RESEND_S by repeating the reset, which the sim answers without restarting the
+    episode (it sends a finished episode's result again); an attempt that has run `timeout` seconds with
+    no result, or whose result was earned by a policy over other data, is run again from the same s0
+    (the plant is deterministic and the policy under test frozen, so the return is the same). While it
+    waits it says for what; when the node closes it raises EpisodeInterrupted and nothing is recorded.
+    """
 
     def __init__(self, node: SupervisorNode, timeout: float) -> None:
         self.node, self.timeout = node, timeout
 
-    def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None:
-        log, handshake = self.node.get_logger(), self.node.handshake
+    def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float:
+        node = self.node
+        assert node.seal is not None
         held = policy.dataset.num_trajectories
-        deadline = time.monotonic() + self.timeout
-        if not self._policy_up_to_date(held, deadline):
-            log.warning(f"episode {episode}: the policy is not up to date; no rollout this episode")
-            return None
-        problem = self._reset(episode, initial_state, deadline)
-        if problem is not None:
-            log.warning(f"episode {episode}: {problem}; no rollout this episode")
-            return None
-        outcome = handshake.wait_for_rollout(episode, max(deadline, time.monotonic() + 1.0))
-        if outcome is None:
-            log.warning(f"episode {episode}: the policy's episode did not finish in time; no return recorded")
-            return None
-        result, driven_with = outcome
-        if driven_with != str(held):
-            log.error(
+        attempt = 0
+        while True:
+            self._policy_up_to_date(episode, held)
+            request = node.seal.seal(
+                ResetEpisode.Request(state=float64_array(initial_state), episode=episode, attempt=attempt,
+                                     run=node.run_id)
+            )  # fmt: skip
+            outcome = self._result(episode, request)
+            attempt += 1
+            if outcome is None:
+                node.get_logger().warning(
+                    f"episode {episode}: no result after {self.timeout:g} s (rollout_timeout); running it again"
+                )
+                continue
+            result, driven_with = outcome
+            if driven_with == str(held):
+                return float(result.policy_return)
+            node.get_logger().error(
                 f"episode {episode}: the return was earned by a policy over {driven_with or 'unknown'} trajectories, "
-                f"not the {held} under test; no return recorded"
+                f"not the {held} under test; running the episode again"
             )
-            return None
-        return float(result.policy_return)
 
-    def _policy_up_to_date(self, held: int, deadline: float) -> bool:
+    def _interrupted(self, episode: int) -> None:
+        if self.node.stop.is_set():
+            raise EpisodeInterrupted(f"the node is closing during episode {episode}; it is not recorded")
+
+    def _result(self, episode: int, request: ResetEpisode.Request) -> tuple[EpisodeResult, str] | None:
+        """The sim's result for this attempt, or None once it has run `timeout` seconds without one."""
+        node, handshake = self.node, self.node.handshake
+        started = time.monotonic()
+        while time.monotonic() - started < self.timeout:
+            self._interrupted(episode)
+            problem = self._reset(request)
+            if problem is not None:
+                node.get_logger().warning(f"episode {episode} waits for the sim: {problem}", throttle_duration_sec=10.0)
+                node.stop.wait(RESEND_S / 4)
+                continue
+            outcome = handshake.wait_for_rollout(episode, time.monotonic() + RESEND_S)
+            if outcome is not None:
+                return outcome
+            node.get_logger().info(
+                f"episode {episode} waits for the policy's rollout ({time.monotonic() - started:.0f} s); "
+                "asking the sim where it stands",
+                throttle_duration_sec=10.0,
+            )
+        self._interrupted(episode)
+        return None
+
+    def _policy_up_to_date(self, episode: int, held: int) -> None:
         """Wait until the policy holds `held` trajectories; what it still lacks is sent again every RESEND_S."""
         node, handshake = self.node, self.node.handshake
-        while not handshake.policy_holds(held):
-            now = time.monotonic()
-            if now >= deadline:
-                return False
-            if handshake.wait_for_policy(held, min(deadline, now + RESEND_S)):
-                return True
+        while not handshake.wait_for_policy(held, time.monotonic() + RESEND_S):
+            self._interrupted(episode)
             reported = handshake.policy_reported
             node.get_logger().info(
-                f"the policy holds {max(reported, 0)} of {held} trajectories; sending the missing ones again",
+                f"episode {episode} waits for the policy: it holds {max(reported, 0)} of {held} trajectories; "
+                "sending the missing ones again",
                 throttle_duration_sec=10.0,
             )
             node.publish_trajectories(max(reported, 0), held)
-        return True
 
-    def _reset(self, episode: int, initial_state: FloatArray, deadline: float) -> str | None:
-        """Reset the sim for `episode`, asking again every RESEND_S: a paused sim loses requests, and an
-        answer that is not this run's sim's (a second sim on the domain) does not count. None once done."""
+    def _reset(self, request: ResetEpisode.Request) -> str | None:
+        """Ask the sim to start (or, repeated, to report on) the episode: None once it has, else why not."""
         node = self.node
         assert node.seal is not None
-        request = node.seal.seal(ResetEpisode.Request(state=float64_array(initial_state), episode=episode))
-        problem = "sim reset service unavailable"
-        while (remaining := deadline - time.monotonic()) > 0:
-            if not node.reset.wait_for_service(timeout_sec=min(remaining, RESEND_S)):
-                continue
-            response = node.call(node.reset, request, min(remaining, RESEND_S))
-            if response is None:
-                problem = "no answer to the sim reset"
-                continue
-            try:
-                node.seal.check(response, "the sim's reset answer", answering=request)
-            except SealError as exc:
-                problem = f"refused: {exc} (servers of /{RESET_SERVICE}: a second sim on the domain?)"
-                node.get_logger().warning(problem, throttle_duration_sec=5.0)
-                node.stop.wait(0.05)  # the other sim's answer may win every race; let ours arrive
-                continue
-            if response.success:
-                return None
-            problem = f"sim reset failed: {response.message}"
-            if node.stop.wait(min(RESEND_S, max(deadline - time.monotonic(), 0.0))):
-                break
-        return problem
+        if not node.reset.wait_for_service(timeout_sec=RESEND_S):
+            return f"the reset service /{RESET_SERVICE} is not available"
+        response = node.call(node.reset, request, RESEND_S)
+        if response is None:
+            return "no answer to the reset"
+        try:
+            node.seal.check(response, "the sim's reset answer", answering=request)
+        except SealError as exc:
+            node.stop.wait(0.05)  # the other sim's answer may win every race; let ours arrive
+            return f"refused: {exc} (servers of /{RESET_SERVICE}: a second sim on the domain?)"
+        return None if response.success else f"the sim refused the reset: {response.message}"
 
 
 class GraphReporter(Observer):

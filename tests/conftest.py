@@ -59,3 +59,13 @@ def demo_plugin(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from plugin_env import install_demo_plugin
 
     return install_demo_plugin(tmp_path_factory.mktemp("plugin"))
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """Print what tests recorded with ``record_property("report", text)``: measured figures a passing test
+    states (a chaos test's faults and recoveries), shown by `make test` too, also from xdist workers."""
+    for report in terminalreporter.stats.get("passed", []):
+        for name, text in getattr(report, "user_properties", ()):
+            if name == "report":
+                terminalreporter.write_sep("-", report.nodeid)
+                terminalreporter.write_line(str(text))

@@ -9,6 +9,8 @@ times a run took may differ.
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import socket
 import sqlite3
 import subprocess
@@ -17,8 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from distributed import LocalCluster
+from distributed import Client, LocalCluster
 
+import npp_ros
 from npp_ros.cli.experiment import parser, plan, report
 from npp_ros.experiment import run_arm_seed
 
@@ -31,7 +34,8 @@ REDUCED = [
     "--seeds", "0", "1", "--horizon", "50", "--max-episodes", "40", "--checkpoints", "10,40",
     "--evaluate", "4", "--held-out", "10",
 ]  # fmt: skip
-TIMES = {"wall_time", "wall_time_s", "created"}  # how long a run took and when: the only values allowed to differ
+# How long a run took, when, and its random identity: the only values allowed to differ.
+TIMES = {"wall_time", "wall_time_s", "created", "run_id"}
 
 
 def exact(value: Any) -> Any:
@@ -124,3 +128,32 @@ def test_unreachable_scheduler_is_one_line_after_the_timeout(tmp_path: Path) -> 
     errors = [line for line in run.stderr.splitlines() if "cannot reach" in line]
     assert len(errors) == 1 and errors[0].startswith(f"npp-experiment: cannot reach the Dask scheduler at {address}: ")
     assert not (tmp_path / "results.json").exists()
+
+
+def test_workers_of_another_npp_ros_are_refused_by_name(tmp_path: Path) -> None:
+    """A worker started from another checkout (one changed line) would compute other numbers: refused, named."""
+    other = tmp_path / "other"
+    shutil.copytree(Path(npp_ros.__file__).parent, other / "npp_ros", ignore=shutil.ignore_patterns("__pycache__"))
+    with (other / "npp_ros" / "bounds.py").open("a") as fh:
+        fh.write("# another version\n")
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0"
+    ) as cluster:
+        stranger = subprocess.Popen(
+            [sys.executable, "-m", "distributed.cli.dask_worker", cluster.scheduler_address, "--nthreads", "1",
+             "--name", "stranger", "--no-dashboard", "--no-nanny"],
+            env={**os.environ, "PYTHONPATH": str(other)}, cwd=other,  # not this checkout's folder: -m puts it first
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        try:
+            with Client(cluster) as client:
+                client.wait_for_workers(2, timeout=120)
+            run = experiment(tmp_path / "out", "--scheduler", cluster.scheduler_address, timeout=300)
+        finally:
+            stranger.terminate()
+            stranger.wait(timeout=30)
+    assert run.returncode == 1, run.stderr
+    assert "Traceback" not in run.stderr
+    refusals = [line for line in run.stderr.splitlines() if "run another npp_ros" in line]
+    assert len(refusals) == 1 and "1 of 2 Dask workers" in refusals[0] and "stranger at tcp://" in refusals[0]
+    assert not (tmp_path / "out" / "results.json").exists()

@@ -123,3 +123,20 @@ def test_metadata_that_lies_about_the_columns_fails_to_load_unchanged(
         open_and_load(path)
     assert_untouched(path, before)
     tried["lying metadata"] += 1
+
+
+@pytest.mark.parametrize("key", ["task", "horizon", "epsilon"])
+def test_a_missing_metadata_key_is_named(good_file: Path, tmp_path_factory: pytest.TempPathFactory, key: str) -> None:
+    """A hand-edited file without one of its metadata keys: readers get a RunFileError that names the key."""
+    path = copy(good_file, tmp_path_factory)
+    conn = sqlite3.connect(path)
+    with conn:
+        conn.execute("DELETE FROM meta WHERE key = ?", (key,))
+    conn.close()
+    before = digest(path)
+    with RunStore.open(path) as store:
+        assert not hasattr(store.metadata, key)
+        with pytest.raises(RunFileError, match=f"metadata has no '{key}'"):
+            getattr(store.metadata, key)
+    assert_untouched(path, before)
+    tried["metadata key missing"] += 1

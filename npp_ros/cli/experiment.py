@@ -14,6 +14,7 @@ process writes the tables and figures from them.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -28,6 +29,7 @@ from pathlib import Path
 
 from distributed import Client, Future, LocalCluster, get_worker
 
+import npp_ros
 from npp_ros.certification import CERTIFY_MODES
 from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints, task_name
 from npp_ros.experiment import (
@@ -175,7 +177,37 @@ def dask_client(scheduler: str, jobs: int, connect_timeout: float) -> Iterator[C
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise SchedulerUnreachable(f"cannot reach the Dask scheduler at {scheduler}: {reason}") from None
     with client:
+        refuse_other_versions(client)
         yield client
+
+
+class OtherVersion(RuntimeError):
+    """Workers that run another npp_ros than this command: their numbers would not be this code's."""
+
+
+def code_fingerprint() -> str:
+    """This npp_ros's source, as a digest: two processes with the same one compute the same numbers."""
+    root = Path(npp_ros.__file__).parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def refuse_other_versions(client: Client) -> None:
+    """Every worker of a running cluster must run this npp_ros (the same source): refuse by name those that do not."""
+    mine = code_fingerprint()
+    answers = client.run(code_fingerprint, on_error="return")
+    others = {worker: ("cannot run npp_ros's check" if isinstance(found, BaseException) else f"npp_ros {found}")
+              for worker, found in answers.items() if found != mine}  # fmt: skip
+    if others:
+        workers = client.scheduler_info()["workers"]
+        names = {address: info.get("name", address) for address, info in workers.items()}
+        named = ", ".join(
+            f"{names.get(worker, worker)} at {worker} ({what})" for worker, what in sorted(others.items())
+        )
+        raise OtherVersion(f"{len(others)} of {len(answers)} Dask workers run another npp_ros than this one "
+                           f"(npp_ros {mine}): {named}; start them from this checkout")  # fmt: skip
 
 
 class Status:
@@ -255,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     try:
         records, failures = run_on_cluster(jobs, settings, args)
-    except SchedulerUnreachable as exc:
+    except (SchedulerUnreachable, OtherVersion) as exc:
         print(f"npp-experiment: {exc}", file=sys.stderr)
         return 1
     wall = time.perf_counter() - started

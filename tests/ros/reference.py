@@ -48,12 +48,25 @@ def assert_stored_run_is_uninterrupted(
     """A graph run on the surrogate check (ROLLOUT_FREE) that was disturbed ends exactly as the in-process run:
     the same certificate, decisions and dataset. Returns the stored dataset and rows, and the in-process loop."""
     time.sleep(0.5)  # the supervisor's worker closes the run file after certifying
+    local_loop, local = uninterrupted_run(horizon=horizon, max_episodes=max_episodes, **ROLLOUT_FREE)
+    data, rows = assert_same_run(run_file, local_loop, local, returns=False)
+    return data, rows, local_loop
+
+
+def assert_same_run(
+    run_file: Path, local_loop: NPPLoop, local: RunResult, returns: bool = True
+) -> tuple[Dataset, list[EpisodeRow]]:
+    """The run file holds exactly the in-process run: its certificate, every episode's decision (and, with
+    `returns`, the policy's return and the checked quantity, bit for bit), and its dataset."""
     with RunStore.open(run_file) as store:
         data, rows, certificate = store.load_dataset(), store.episodes(), store.certificate()
-    local_loop, local = uninterrupted_run(horizon=horizon, max_episodes=max_episodes, **ROLLOUT_FREE)
     assert local.certificate is not None and certificate == local.certificate.record()
     assert decisions(rows) == decisions(local.rows)
+    if returns:
+        assert [(r.policy_return, r.checked_gap) for r in rows] == [
+            (r.policy_return, r.checked_gap) for r in local.rows
+        ]
     np.testing.assert_array_equal(data.states, local_loop.dataset.states)
     np.testing.assert_array_equal(data.actions, local_loop.dataset.actions)
     np.testing.assert_array_equal(data.values, local_loop.dataset.values)
-    return data, rows, local_loop
+    return data, rows

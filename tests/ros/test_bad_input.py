@@ -74,7 +74,9 @@ FUZZ = settings(
 tried: Counter[str] = Counter()
 # The test plays this run's sim and supervisor, so what it sends carries the run's seal: the malformed
 # content is what is tested (what lacks the seal is refused before it is read: tests/ros/test_cross_talk.py).
-SEAL = RunSeal.from_environment().for_plant(LQRPlant("lqr_2_1", 0).model_sha256())
+PLANT_SEAL = RunSeal.from_environment().for_plant(LQRPlant("lqr_2_1", 0).model_sha256())
+RUN = "bad-input-run"  # the identity of the run whose supervisor the test plays to a sim of its own
+SEAL = PLANT_SEAL.for_run(RUN)
 
 
 def sha256(path: Path) -> str:
@@ -94,6 +96,8 @@ class Graph:
         self.launch, self.client, self.run_dir = launch, client, run_dir
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.run_hash = ""
+        self.run_id = ""
+        self.seal = SEAL  # the graph's run's seal, once its run file names the run
         self.expert: Client | None = None
 
     @property
@@ -124,6 +128,9 @@ def graph(launch_module: Launcher, ros_client_module: Callable[..., RosClient], 
     client.wait_for(lambda: bool(certificates), 600.0, "the certificate of the /bad graph")
     time.sleep(0.5)  # the supervisor's worker closes the run file after certifying
     g.run_hash = sha256(g.run_file)
+    with RunStore.open(g.run_file) as store:
+        g.run_id = store.run_id
+    g.seal = PLANT_SEAL.for_run(g.run_id)
     g.expert = client.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT)
     wait_until_modelling(client, g.expert)
     return g
@@ -215,8 +222,8 @@ def test_policy_refuses_malformed_states_and_keeps_answering(
     bad.header.stamp = Time(sec=1000 + n)
     probe = JointState(name=JOINTS, position=[0.1, 0.2], velocity=[0.0, -0.1])
     probe.header.stamp = Time(sec=100_000 + n)
-    publisher.publish(SEAL.seal_header(bad, "0"))
-    publisher.publish(SEAL.seal_header(probe, "0"))  # answered only after the bad one was handled: in order
+    publisher.publish(graph.seal.seal_header(bad, "0"))
+    publisher.publish(graph.seal.seal_header(probe, "0"))  # answered only after the bad one was handled: in order
     graph.client.wait_for(lambda: any(a.header.stamp.sec == 100_000 + n for a in actions), TIMEOUT, "the probe")
     tried["policy states"] += 1
     tried[f"policy states: {kind}"] += 1
@@ -231,7 +238,8 @@ def test_policy_logged_each_kind_and_still_drives_an_episode(
         assert f"state refused: {kind}" in log
     results = graph.client.collect(EpisodeResult, ROLLOUT_DONE, REPORT_QOS)
     reset = graph.client.client(ResetEpisode, RESET_SERVICE, TIMEOUT)
-    answer = graph.client.call(reset, SEAL.seal(ResetEpisode.Request(state=[0.2, 0.1, 0.0, 0.0], episode=9999)))
+    request = ResetEpisode.Request(state=[0.2, 0.1, 0.0, 0.0], episode=9999, run=graph.run_id)
+    answer = graph.client.call(reset, graph.seal.seal(request))
     assert answer.success, answer.message
     graph.client.wait_for(lambda: any(r.episode == 9999 for r in results), TIMEOUT, "the policy's episode")
     graph.all_alive()
@@ -255,7 +263,7 @@ class SimAlone:
         client.wait_for(lambda: self.actions.get_subscription_count() > 0, TIMEOUT, "the sim's action subscription")
         while True:  # reset, and make sure our subscription got the first state
             seen = len(self.states)
-            reset = SEAL.seal(ResetEpisode.Request(state=[0.4, -0.3, 0.2, 0.1], episode=0))
+            reset = SEAL.seal(ResetEpisode.Request(state=[0.4, -0.3, 0.2, 0.1], episode=0, run=RUN))
             assert client.call(self.reset, reset).success
             try:
                 client.wait_for(lambda s=seen: len(self.states) > s, 3.0)

@@ -45,12 +45,14 @@ DATA = Trajectory(
 
 
 RUN_SEAL = RunSeal.from_environment()
-SEAL = RUN_SEAL.for_plant("test")  # the test plays this run's sim and supervisor
+RUN = "huge-state-run"
+SEAL = RUN_SEAL.for_plant("test").for_run(RUN)  # the test plays this run's sim and supervisor
 
 
 def serve_dataset(request: Any, response: Any) -> Any:
     response.success, response.total, response.lipschitz, response.lipschitz_source = True, 1, 1.0, "user"
-    response.trajectories = [SEAL.seal(trajectory_to_msg(0, DATA))] if request.start == 0 else []
+    response.run = RUN
+    response.trajectories = [SEAL.seal(trajectory_to_msg(0, DATA, RUN))] if request.start == 0 else []
     return SEAL.seal(response, answering=request)
 
 

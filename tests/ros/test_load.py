@@ -126,7 +126,8 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
     plant = LQRPlant("lqr_2_1", 0)
     plant_pub = node.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
     run_seal = RunSeal.from_environment()  # the test plays this run's sim and supervisor
-    seal = run_seal.for_plant(plant.model_sha256())
+    run = "load-test-run"
+    seal = run_seal.for_plant(plant.model_sha256()).for_run(run)
     plant_pub.publish(
         run_seal.seal(PlantDescription(
             task="lqr_2_1", seed=0, horizon=1000, timestep=plant.dt, state_dim=4, action_dim=1,
@@ -136,10 +137,10 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
     )  # fmt: skip
 
     def serve(req: GetTrajectories.Request, res: GetTrajectories.Response) -> GetTrajectories.Response:
-        res.success, res.total = True, data.num_trajectories
+        res.success, res.total, res.run = True, data.num_trajectories, run
         res.lipschitz, res.lipschitz_source = lipschitz, "lqr-analytic"
         stop = min(req.start + (req.max_count or 50), data.num_trajectories)
-        res.trajectories = [seal.seal(trajectory_to_msg(k, data.trajectory(k))) for k in range(req.start, stop)]
+        res.trajectories = [seal.seal(trajectory_to_msg(k, data.trajectory(k), run)) for k in range(req.start, stop)]
         return seal.seal(res, answering=req)
 
     node.create_service(GetTrajectories, DATASET_SERVICE, serve)

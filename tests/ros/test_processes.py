@@ -118,6 +118,41 @@ def test_nodes_die_with_npp_run(tmp_path: Path, ros_domain: int, signum: signal.
         assert f"{signum.name} received; stopping the nodes" in out.read_text()
 
 
+def test_recorder_and_dashboard_die_with_a_killed_npp_run(tmp_path: Path, ros_domain: int) -> None:
+    """npp-run --record --dashboard, SIGKILLed: the recorder and the dashboard end with the nodes."""
+    run_dir, out = tmp_path / "run", tmp_path / "npp-run.out"
+    with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), "--record", "--dashboard", "0",
+                                                        log=out)) as run:  # fmt: skip
+        children = nodes_up(run_dir, run.pid)
+        extras = {name: pid for name, pid in tool_children(run.pid).items()}
+        assert set(extras) == {"record", "dashboard"}, extras
+        os.kill(run.pid, signal.SIGKILL)
+        run.wait(60)
+        everyone = {**children, **extras}
+        try:
+            wait_until(lambda: not any(alive(pid) for pid in everyone.values()), GONE_TIMEOUT_S, "every child to end")
+        finally:
+            for pid in everyone.values():
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+
+
+def tool_children(parent: int) -> dict[str, int]:
+    """The recorder and the dashboard npp-run started: name -> pid."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == parent:
+            found.update({name: int(entry.name) for name in ("record", "dashboard") if f"npp_ros_graph.{name}" in argv})
+    return found
+
+
 # ----------------------------------------------------------------------------- 2. a node that refuses
 def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "run"

@@ -29,6 +29,7 @@ TIMEOUT = 60.0
 HORIZON = 20
 DT_NS = 30_000_000  # lqr timestep 0.03 s
 QUIET_S = 0.5  # how long "nothing happens" is watched for
+RUN = "sim-test-run"  # the identity of the run whose supervisor the test plays
 
 
 @dataclass
@@ -52,7 +53,7 @@ class SimHandle:
         self.episode = episode
         while True:
             seen = len(self.states)
-            request = self.seal.seal(ResetEpisode.Request(state=state, episode=episode))
+            request = self.seal.seal(ResetEpisode.Request(state=state, episode=episode, run=RUN))
             answer = self.client.call(self.reset, request, TIMEOUT)
             self.seal.check(answer, "the reset answer", answering=request)
             if not answer.success:
@@ -105,7 +106,7 @@ def sim(launch_module: Launcher, ros_client_module: Callable[..., RosClient]) ->
     launch.assert_alive(proc)
     run_seal = RunSeal.from_environment()
     run_seal.check(plants[-1], "the plant description")
-    seal = run_seal.for_plant(plants[-1].model_sha256)
+    seal = run_seal.for_plant(plants[-1].model_sha256).for_run(RUN)
     return SimHandle(launch, proc, client, reset, action_pub, states, results, plants[-1], seal)
 
 
@@ -151,11 +152,22 @@ def test_lockstep_episode_follows_the_plant_and_reports_its_return(sim: SimHandl
     assert not result.expert_value_known
     replay = rollout(LQRPlant("lqr_2_1", 0), _replayer(actions), s0, HORIZON)
     np.testing.assert_allclose(replay.states, np.array(visited), rtol=0, atol=1e-12)
-    assert result.policy_return == pytest.approx(replay.total_return, rel=1e-12, abs=1e-12)
+    assert result.policy_return == replay.total_return  # the core's summation: equal to the in-process return
 
     # The episode is over: even an action answering the last state moves nothing.
     sim.act([0.0], msg.header.stamp)
     assert sim.nothing_arrives(len(sim.states), len(sim.results))
+
+    # The same reset again (a supervisor that lost the result in a pause asks where the episode stands): the
+    # sim does not restart the episode, it sends the finished episode's result again.
+    states, results = len(sim.states), len(sim.results)
+    again = sim.seal.seal(ResetEpisode.Request(state=s0, episode=5, run=RUN))
+    answer = sim.client.call(sim.reset, again, TIMEOUT)
+    sim.seal.check(answer, "the reset answer", answering=again)
+    assert answer.success and "result sent again" in answer.message, answer.message
+    sim.client.wait_for(lambda: len(sim.results) > results, TIMEOUT, "the result sent again")
+    assert sim.results[-1] == result
+    assert sim.nothing_arrives(states)
 
 
 def _replayer(actions: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
@@ -211,10 +223,10 @@ def test_only_this_runs_resets_and_actions_move_the_plant(sim: SimHandle) -> Non
     first, seen = sim.states[-1], len(sim.states)
     assert sim.seal.check_header(first, "the state") == "3"
 
-    stray = ResetEpisode.Request(state=[0.9, 0.9, 0.9, 0.9], episode=4)  # unsealed: a user's hand-made call
+    stray = ResetEpisode.Request(state=[0.9, 0.9, 0.9, 0.9], episode=4, run=RUN)  # unsealed: a user's hand-made call
     refused = sim.client.call(sim.reset, stray, TIMEOUT)
     assert not refused.success and "seal" in refused.message, refused.message
-    other_run = RunSeal(b"another run's key", private=True).for_plant(sim.plant.model_sha256)
+    other_run = RunSeal(b"another run's key", private=True).for_plant(sim.plant.model_sha256).for_run(RUN)
     refused = sim.client.call(sim.reset, other_run.seal(stray), TIMEOUT)
     assert not refused.success and "seal" in refused.message, refused.message
 
