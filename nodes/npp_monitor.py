@@ -2,7 +2,7 @@
 
 import sys
 
-from npp_ros_graph.monitor import main
+from npp_ros_graph.tools.monitor import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -2,7 +2,7 @@
 
 import sys
 
-from npp_ros_graph.sim_node import main
+from npp_ros_graph.nodes.sim import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from npp_ros.certification import STOPPING_RULES, CertificationSpec, false_certificate_rate
-from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.certificate.certifier import STOPPING_RULES, CertificationSpec, false_certificate_rate
+from npp_ros.policy.lipschitz import LipschitzConstant
 
 
 def main() -> None:

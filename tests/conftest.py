@@ -10,14 +10,16 @@ from pathlib import Path
 
 import pytest
 
-from npp_ros.dataset import Dataset
-from npp_ros.lqr import LQRExpert, episode_rng, sample_initial_state
+from npp_ros.policy.dataset import Dataset
+from npp_ros.tasks.lqr import LQRExpert, episode_rng, sample_initial_state
 
 SLOW_MODULES = {
     "test_experiment.py",  # npp-experiment end to end, several times
     "test_cli_learn.py",  # npp-learn to a certificate
     "test_cli_args.py",  # command lines as processes
     "test_loop.py",  # Algorithm 1 to a certificate on lqr_2_1
+    "test_loop_mixture.py",  # the same under the mixture rule, twice
+    "test_expert_pool.py",  # worker processes running iLQR
     "test_soundness.py",  # 2,000 simulated runs per rule
     "test_storage_reliability.py",  # real second processes, tmpfs
     "test_trajopt.py",  # iLQR at H = 1000

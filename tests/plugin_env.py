@@ -8,6 +8,7 @@ entry points exactly as it sees an installed package's, and nothing outside the 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -16,10 +17,15 @@ PLUGIN_SOURCE = Path(__file__).resolve().parent / "plugins" / "npp_demo_tasks"
 
 
 def install_demo_plugin(target: Path) -> Path:
-    """pip install --no-deps the demo plug-in into ``target``; returns ``target``."""
+    """pip install --no-deps the demo plug-in into ``target``; returns ``target``.
+
+    Built from a copy beside ``target``: a build leaves build/ and egg-info folders in its source tree.
+    """
+    source = target.parent / f"{target.name}-source"
+    shutil.copytree(PLUGIN_SOURCE, source, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
     subprocess.run(
         [sys.executable, "-m", "pip", "install", "--quiet", "--disable-pip-version-check", "--no-deps",
-         "--no-build-isolation", "--no-index", "--target", str(target), str(PLUGIN_SOURCE)],
+         "--no-build-isolation", "--no-index", "--target", str(target), str(source)],
         check=True, capture_output=True, text=True,
     )  # fmt: skip
     return target

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from npp_ros.answer_check import AnswerCheck, AnswerError
-from npp_ros.dataset import Trajectory
-from npp_ros.tasks import ExpertOptions, get_task
+from npp_ros.policy.dataset import Trajectory
+from npp_ros.run.answer_check import AnswerCheck, AnswerError
+from npp_ros.tasks.registry import ExpertOptions, get_task
 
 CASES = [
     ("lqr_2_1", 1000, ExpertOptions()),

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from npp_ros.cli.bench import UPRIGHT_DEGREES, Progress, machine_info, main, time_expert
-from npp_ros.tasks import get_task
+from npp_ros.bench.measure import UPRIGHT_DEGREES, Progress, machine_info, time_expert
+from npp_ros.cli.bench import main
+from npp_ros.tasks.registry import get_task
 
 
 def test_quick_bench_writes_markdown_and_json_with_exactness(tmp_path: Path, capsys) -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from npp_ros.bounds import EmptyDatasetError, NonparametricPolicy
-from npp_ros.dataset import Dataset, DatasetError
+from npp_ros.policy.bounds import EmptyDatasetError, NonparametricPolicy
+from npp_ros.policy.dataset import Dataset, DatasetError
 
 
 def random_dataset(rng: np.random.Generator, size: int, state_dim: int = 3, action_dim: int = 2) -> Dataset:

@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from npp_ros.certification import CertificationSpec, Certifier
-from npp_ros.lipschitz import LipschitzConstant
+from npp_ros.certificate.certifier import CertificationSpec, Certifier
+from npp_ros.policy.lipschitz import LipschitzConstant
 
 
 def spec(condition: str = "i", **kw) -> CertificationSpec:
@@ -137,5 +137,5 @@ def test_sequential_condition_ii_spends_per_look() -> None:
 def test_unknown_mode_and_rule_are_refused() -> None:
     with pytest.raises(ValueError, match="certify must be one of rollout, oracle, surrogate"):
         spec(certify="vibes")
-    with pytest.raises(ValueError, match="rule must be one of sequential, paper"):
+    with pytest.raises(ValueError, match="rule must be one of sequential, mixture, paper"):
         spec(rule="sometimes")

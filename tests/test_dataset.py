@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from npp_ros.dataset import Dataset, DatasetError, Trajectory
+from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
 
 
 def make(steps: int = 3, n: int = 2, m: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from npp_ros.experiment import Arm, ExperimentSettings, read_evaluations, verdict
-from npp_ros.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
-from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
-from npp_ros.storage import RunStore
+from npp_ros.certificate.certifier import DEFAULT_RULES
+from npp_ros.experiment import Arm, ExperimentSettings, default_arms, read_evaluations, verdict
+from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.rollout import rollout
 
 EXPERIMENT = [sys.executable, "-m", "npp_ros.cli.experiment"]
 REDUCED = ["--tasks", "lqr_2_1", "--seeds", "0", "--evaluate", "4", "--horizon", "200", "--jobs", "1"]
@@ -171,8 +173,9 @@ def test_arms_and_settings_reject_unknown_names() -> None:
 
 def test_sound_modes_are_arms_and_every_certificate_is_checked_on_held_out_states(tmp_path: Path) -> None:
     run = run_experiment(
-        tmp_path, 60, "--lipschitz", "analytic", "--experts", "optimal", "--certify", "rollout", "oracle"
-    )
+        tmp_path, 60, "--lipschitz", "analytic", "--experts", "optimal", "--certify", "rollout", "oracle",
+        "--rules", "sequential",
+    )  # fmt: skip
     assert run.returncode == 0, run.stderr
     rows = {r["certify"]: r for r in results(tmp_path)}
     assert set(rows) == {"rollout", "oracle"} and all(r["rule"] == "sequential" for r in rows.values())
@@ -187,3 +190,14 @@ def test_sound_modes_are_arms_and_every_certificate_is_checked_on_held_out_state
     assert oracle["held_out_verdict"].startswith("held")
     table = (tmp_path / "results.md").read_text()
     assert "| lqr_2_1 | optimal | analytic | oracle (sequential) | 1/1 |" in table
+
+
+def test_sound_modes_run_under_their_default_rule_or_the_rules_asked_for() -> None:
+    arms = default_arms(["lqr_2_1"], ["analytic"], ["optimal"], ["rollout", "oracle"])
+    assert [(a.certify, a.rule) for a in arms] == [(mode, DEFAULT_RULES[mode]) for mode in ("rollout", "oracle")]
+    assert DEFAULT_RULES == {"rollout": "sequential", "oracle": "mixture", "surrogate": "sequential"}
+    both = default_arms(["lqr_2_1"], ["analytic"], ["optimal"], ["oracle", "paper"], ["sequential", "mixture"])
+    assert [a.name for a in both] == [
+        "lqr_2_1-optimal-Lanalytic-oracle-sequential", "lqr_2_1-optimal-Lanalytic-oracle-mixture",
+        "lqr_2_1-optimal-Lanalytic",
+    ]  # fmt: skip

@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from npp_ros.certification import Certificate, CertificationStatus
-from npp_ros.lipschitz import LipschitzWarning
-from npp_ros.loop import Observer
-from npp_ros.lqr import LQRExpert
-from npp_ros.run_setup import build_config, build_loop, lipschitz_checks, resolve_lipschitz
-from npp_ros.storage import EpisodeRow, RunFileError, RunStore
+from npp_ros.certificate.certifier import Certificate, CertificationStatus
+from npp_ros.policy.lipschitz import LipschitzWarning
+from npp_ros.run.loop import Observer
+from npp_ros.run.records import EpisodeRow, RunFileError
+from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, resolve_lipschitz
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.lqr import LQRExpert
 
 
 class Recorder(Observer):

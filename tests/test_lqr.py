@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from npp_ros.dataset import DatasetError
-from npp_ros.lqr import (
+from npp_ros.policy.dataset import DatasetError
+from npp_ros.tasks.lqr import (
     LQRExpert,
     LQRPlant,
     UnknownTaskError,

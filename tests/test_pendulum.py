@@ -8,9 +8,10 @@ import warnings
 import numpy as np
 import pytest
 
-from npp_ros.dataset import DatasetError, Trajectory
-from npp_ros.lipschitz import LipschitzConstant, LipschitzWarning
-from npp_ros.pendulum import (
+from npp_ros.policy.dataset import DatasetError, Trajectory
+from npp_ros.policy.lipschitz import LipschitzConstant, LipschitzWarning
+from npp_ros.run.setup import build_config, build_loop, lipschitz_checks
+from npp_ros.tasks.pendulum import (
     PAPER_LIPSCHITZ,
     PendulumExpert,
     PendulumPlant,
@@ -18,8 +19,7 @@ from npp_ros.pendulum import (
     sample_initial_state,
     wrap_angle,
 )
-from npp_ros.run_setup import build_config, build_loop, lipschitz_checks
-from npp_ros.trajopt import replay_return_to_go
+from npp_ros.trajopt.ilqr import replay_return_to_go
 
 COS_8 = math.cos(math.radians(8.0))
 HANGING = np.array([math.pi, 0.0])
@@ -28,7 +28,7 @@ HANGING = np.array([math.pi, 0.0])
 @pytest.fixture(scope="module")
 def expert() -> PendulumExpert:
     # A generous budget: the assertions are about what the optimizer finds, not its speed.
-    return PendulumExpert(seed=0, time_budget=60.0)
+    return PendulumExpert(seed=0, time_budget=60.0, values="return-to-go")  # the values test checks this mode
 
 
 @pytest.fixture(scope="module")
@@ -196,7 +196,10 @@ def test_importing_the_plants_loads_no_numba() -> None:
     import subprocess
     import sys
 
-    code = "import sys, npp_ros.pendulum, npp_ros.cartpole; print(any(m.startswith('numba') for m in sys.modules))"
+    code = (
+        "import sys, npp_ros.tasks.pendulum, npp_ros.tasks.cartpole; "
+        "print(any(m.startswith('numba') for m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "False"
 

@@ -1,6 +1,6 @@
 """What a certificate may claim: the counterexample to Theorem 3.4, and the stopping rule under repeated looks.
 
-See ../shared/notes/certificate-soundness.md. The 1-D integrator f(s, a) = s + a with
+The counterexample in short: the 1-D integrator f(s, a) = s + a with
 r(s, a) = -|s| - 0.1|a| and gamma = 0.99 has V*(s) = -1.1|s|; L = 2.1 bounds the slope of Q*, and
 one expert trajectory from s0 = 1 is a consistent dataset. At s = 0.1 the greedy policy copies the
 data point at 0 (action 0) and stays at 0.1 forever: V^pi(0.1) = -10 while V_lb(0.1) = -0.21.
@@ -13,13 +13,14 @@ import math
 import numpy as np
 import pytest
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import STOPPING_RULES as RULES
-from npp_ros.certification import CertificationSpec, false_certificate_rate
-from npp_ros.dataset import Dataset, FloatArray, Trajectory
-from npp_ros.lipschitz import LipschitzConstant
-from npp_ros.loop import NPPLoop, RunConfig
-from npp_ros.values import ValueBasis, theorem_34_condition
+from npp_ros.certificate import mixture
+from npp_ros.certificate.certifier import STOPPING_RULES as RULES
+from npp_ros.certificate.certifier import CertificationSpec, false_certificate_rate
+from npp_ros.certificate.values import ValueBasis, theorem_34_condition
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.loop import NPPLoop, RunConfig
 
 GAMMA = 0.99
 L = 2.1
@@ -115,3 +116,14 @@ def test_sequential_rule_keeps_false_certificates_below_delta(q: float) -> None:
     paper = false_certificate_rate(rule["paper"], q, repetitions, seed=7)
     assert sequential + margin < delta, f"sequential rule: {sequential:.3%} false certificates"
     assert paper - margin > delta, f"paper's rule: {paper:.3%} false certificates"
+
+
+@pytest.mark.parametrize("q", [0.85, 0.9])
+def test_mixture_rule_keeps_false_certificates_below_delta(q: float) -> None:
+    """Every policy passes a check with probability q <= p = 0.9, so every certificate is false; the
+    simulation feeds the rule's own certifier pass/fail outcomes (no plant), 1,000 episodes a run."""
+    repetitions, delta = 2000, 0.1
+    margin = 3 * math.sqrt(delta * (1 - delta) / repetitions)  # 3 standard errors of a frequency at delta
+    spec = CertificationSpec("i", EPSILON, 0.9, delta, LipschitzConstant(L, "user"), rule="mixture")
+    rate = mixture.false_certificate_rate(spec, q, repetitions, seed=7)
+    assert rate + margin < delta, f"mixture rule at q = {q}: {rate:.3%} false certificates"

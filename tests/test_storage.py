@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from npp_ros.dataset import Trajectory
-from npp_ros.storage import EpisodeRow, RunFileError, RunMetadata, RunStore
+from npp_ros.policy.dataset import Trajectory
+from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.store import RunStore
 
 META = RunMetadata(
     task="lqr_2_1", seed=0, state_dim=4, action_dim=1, lipschitz=263.0, lipschitz_source="lqr-analytic",
@@ -159,8 +160,9 @@ def test_invalid_trajectory_is_refused_before_writing(tmp_path: Path) -> None:
 WRITER = textwrap.dedent(
     """
     import sys, numpy as np
-    from npp_ros.storage import RunStore, EpisodeRow
-    from npp_ros.dataset import Trajectory
+    from npp_ros.run.records import EpisodeRow
+    from npp_ros.run.store import RunStore
+    from npp_ros.policy.dataset import Trajectory
     store = RunStore.open(sys.argv[1])
     k = store.num_trajectories()
     print("ready", flush=True)

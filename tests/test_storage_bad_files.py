@@ -20,7 +20,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_storage import META, fill
 
-from npp_ros.storage import FORMAT_VERSION, RunFileError, RunMetadata, RunStore
+from npp_ros.run.records import RunFileError, RunMetadata
+from npp_ros.run.store import FORMAT_VERSION, RunStore
 
 FILES = settings(max_examples=25, deadline=None, derandomize=True, database=None)
 tried: Counter[str] = Counter()

@@ -22,8 +22,9 @@ import numpy as np
 import pytest
 from test_storage import META, fill, row, trajectory
 
-from npp_ros import storage
-from npp_ros.storage import RunFileError, RunMetadata, RunStore
+from npp_ros.run import store as storage
+from npp_ros.run.records import RunFileError, RunMetadata
+from npp_ros.run.store import RunStore
 
 LEARN = [sys.executable, "-m", "npp_ros.cli.learn"]
 

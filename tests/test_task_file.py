@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from npp_ros.task_file import HASH_MARK, TaskFileError, load_task_file
-from npp_ros.tasks import get_task
+from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.task_file import HASH_MARK, TaskFileError, load_task_file
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "two_link_arm"
 LEARN = [str(Path(sys.executable).parent / "npp-learn")]

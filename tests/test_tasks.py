@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from npp_ros import lqr
-from npp_ros.lipschitz import LipschitzConstant
-from npp_ros.run_setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
-from npp_ros.tasks import TASK_NAMES, ExpertOptions, UnknownTaskError, episode_rng, get_task
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
+from npp_ros.tasks import lqr
+from npp_ros.tasks.registry import TASK_NAMES, ExpertOptions, UnknownTaskError, episode_rng, get_task
 
 
 def test_registry_names_the_four_tasks() -> None:

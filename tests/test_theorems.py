@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.dataset import Dataset
-from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import Dataset
+from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.rollout import rollout
 
 
 def test_theorem_3_4_greedy_return_is_at_least_v_lb(expert_2_1: LQRExpert, expert_dataset_2_1: Dataset) -> None:

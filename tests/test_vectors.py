@@ -9,9 +9,9 @@ import re
 import numpy as np
 import pytest
 
-from npp_ros.bounds import NonparametricPolicy, pairwise_distances
-from npp_ros.dataset import Dataset, DatasetError, Trajectory
-from npp_ros.vectors import MAX_MAGNITUDE, VectorError, finite_vector
+from npp_ros.policy.bounds import NonparametricPolicy, pairwise_distances
+from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
+from npp_ros.policy.vectors import MAX_MAGNITUDE, VectorError, finite_vector
 
 
 def test_a_good_vector_comes_back_as_float64() -> None:

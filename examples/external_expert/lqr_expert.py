@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""An expert for the lqr tasks served from its own process: rclpy, npp_interfaces and npp_ros_graph.expert_api only.
+"""An expert for the lqr tasks served from its own process, on rclpy, npp_interfaces and the expert_api helper only.
 
 Its own solver: the plant (dm_control's lqr task for the sim's task and seed) linearised once at
 the origin with MuJoCo's centred differences, and scipy's discrete Riccati solver for the optimal
@@ -27,7 +27,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from scipy.linalg import solve_discrete_are
 
-from npp_ros_graph.expert_api import (
+from npp_ros_graph.transport.expert_api import (
     EXPERT_SERVICE,
     NOT_READY,
     PLANT_QOS,

@@ -42,7 +42,7 @@ def task_name(text: str) -> str:
 
     A plug-in that does not load, or a bad task file, is refused here with its one-line reason.
     """
-    from npp_ros.tasks import get_task
+    from npp_ros.tasks.registry import get_task
 
     try:
         return get_task(text).name
@@ -57,7 +57,7 @@ class ListTasks(argparse.Action):
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=kwargs.get("help"))  # type: ignore[arg-type]
 
     def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
-        from npp_ros.task_registry import describe_tasks
+        from npp_ros.tasks.sources import describe_tasks
 
         print(describe_tasks())
         parser.exit()

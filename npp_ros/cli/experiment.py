@@ -30,7 +30,7 @@ from pathlib import Path
 from distributed import Client, Future, LocalCluster, get_worker
 
 import npp_ros
-from npp_ros.certification import CERTIFY_MODES
+from npp_ros.certificate.certifier import CERTIFY_MODES
 from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints, task_name
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
@@ -47,7 +47,9 @@ from npp_ros.experiment import (
     write_results,
 )
 from npp_ros.experiment.arms import HELD_OUT
-from npp_ros.lqr import TASKS
+from npp_ros.tasks.lqr import TASKS
+from npp_ros.tasks.registry import by_task
+from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 
 
 def parser() -> argparse.ArgumentParser:
@@ -64,7 +66,8 @@ def parser() -> argparse.ArgumentParser:
         "--lipschitz",
         nargs="+",
         default=list(LIPSCHITZ_SETTINGS),
-        help="L settings side by side: 'paper' (50 / 200, not a bound here), 'analytic' (sup of the expert's "
+        help=f"L settings side by side: 'paper' ({by_task('paper_lipschitz', tuple(TASKS))}, not a bound here), "
+        "'analytic' (sup of the expert's "
         "value slope |Px|, a true bound) or a number",
     )
     ap.add_argument(
@@ -93,15 +96,24 @@ def parser() -> argparse.ArgumentParser:
         choices=("paper", *CERTIFY_MODES),
         default=None,
         help="what certifies, side by side: 'paper' (the surrogate gap V_ub - V_lb under the paper's one-shot "
-        "rule, to reproduce it) or a mode under the sequentially valid rule: rollout (V_ub + tail - the "
+        "rule, to reproduce it) or a mode under a sequentially valid rule (--rules): rollout (V_ub + tail - the "
         "policy's return), oracle (the expert's return - the policy's), surrogate; default: paper for the lqr "
         "tasks, the task's own sound mode (oracle) for tasks with a suboptimal optimizer expert",
+    )
+    ap.add_argument(
+        "--rules",
+        nargs="+",
+        choices=("sequential", "mixture"),
+        default=None,
+        help="the stopping rules the sound modes run under, side by side: sequential (a streak of passes per "
+        "policy) or mixture (a 20-pass screen, then a failure-tolerant test of the frozen policy); default: "
+        "each mode's own",
     )
     ap.add_argument(
         "--epsilon",
         type=float,
         default=None,
-        help="epsilon for every task (default: the paper's, 50 for lqr_2_1 and 300 for lqr_6_2)",
+        help=f"epsilon for every task (default: the paper's, {by_task('paper_epsilon', tuple(TASKS))})",
     )
     ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
     ap.add_argument("--p", type=float, default=0.9, help="condition (i): probability level p")
@@ -110,7 +122,10 @@ def parser() -> argparse.ArgumentParser:
         "--control-weight", type=float, default=DETUNED_CONTROL_WEIGHT, help="detuned expert: control cost x this"
     )
     ap.add_argument(
-        "--time-budget", type=float, default=None, help="seconds per expert request (optimizer experts; default 5)"
+        "--time-budget",
+        type=float,
+        default=None,
+        help=f"seconds per expert request (optimizer experts; default {DEFAULT_TIME_BUDGET_S:g})",
     )
     ap.add_argument(
         "--held-out", type=positive_int, default=HELD_OUT, help="fresh s0 on which each certificate is checked"
@@ -268,7 +283,7 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
     )
     for task in args.tasks:
         settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
-    return settings, default_arms(args.tasks, args.lipschitz, args.experts, args.certify)
+    return settings, default_arms(args.tasks, args.lipschitz, args.experts, args.certify, args.rules)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -374,7 +389,10 @@ def record_invocation(path: Path, argv: list[str] | None, wall: float, runs: int
 
 def report(records: list[RunRecord], settings: ExperimentSettings, out: Path) -> list[ResultRow]:
     """Figures per arm, then the table; the table's order is the arms' then the seeds'."""
-    from npp_ros.plots import gap_distributions, training_curves  # matplotlib: the parent only, not each worker
+    from npp_ros.experiment.plots import (  # matplotlib: the parent only, not each worker
+        gap_distributions,
+        training_curves,
+    )
 
     by_arm: dict[Arm, list[RunRecord]] = defaultdict(list)
     for record in sorted(records, key=lambda r: (r.arm.task, r.arm.expert, r.arm.lipschitz, r.seed)):

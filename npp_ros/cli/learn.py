@@ -7,26 +7,27 @@ grows in RUN_DIR/run.sqlite and resumes from there when started again with the s
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
 import warnings
-from dataclasses import asdict, fields
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
+from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
+from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
 from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int, task_name
-from npp_ros.evaluation import check_policy
-from npp_ros.lipschitz import LipschitzWarning
-from npp_ros.progress import Counter, StatusLine
-from npp_ros.run_setup import LIPSCHITZ_CHOICES, build_config, build_loop, lipschitz_checks, resolve_lipschitz
-from npp_ros.storage import EpisodeRow, RunFileError
-from npp_ros.task_registry import short_name
-from npp_ros.tasks import ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.lipschitz import LipschitzWarning
+from npp_ros.run.evaluation import check_policy
+from npp_ros.run.progress import Counter, StatusLine
+from npp_ros.run.records import RunFileError, write_episode_log
+from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, resolve_lipschitz
+from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
+from npp_ros.tasks.sources import short_name
+from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 
 
 def parser() -> argparse.ArgumentParser:
@@ -39,13 +40,16 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
     ap.add_argument("--seed", type=nonnegative_int, default=0, help="task seed (plant) and initial-state stream")
     ap.add_argument(
-        "--epsilon", type=float, default=None, help="target suboptimality; default: the paper's (50 / 300 / 130)"
+        "--epsilon",
+        type=float,
+        default=None,
+        help=f"target suboptimality; default: the paper's ({by_task('paper_epsilon')})",
     )
     ap.add_argument(
         "--lipschitz",
         default=None,
         help=f"L: one of {', '.join(LIPSCHITZ_CHOICES)} or a number. 'analytic' bounds the expert's value slope "
-        "(the guarantee holds; lqr only); 'paper' (50 / 200 / 4300) is NOT a bound on these tasks; "
+        f"(the guarantee holds; lqr only); 'paper' ({by_task('paper_lipschitz')}) is NOT a bound on these tasks; "
         "default: analytic where the task has it, else paper",
     )
     ap.add_argument(
@@ -54,15 +58,17 @@ def parser() -> argparse.ArgumentParser:
         default=None,
         help="what each episode checks: rollout (V_ub + tail - the policy's own return; sound when L bounds the "
         "value's slope), oracle (the expert's return - the policy's; needs no L, relative to the expert) or "
-        "surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4). Default: the task's (rollout on lqr, oracle "
-        "for the swing-up tasks, whose iLQR experts are suboptimal)",
+        "surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4). Default: the task's "
+        f"({by_task('default_certify')}; oracle where the expert is suboptimal)",
     )
     ap.add_argument(
         "--rule",
         choices=STOPPING_RULES,
-        default="sequential",
-        help="when to stop: sequential (valid however often it is checked) or paper (the one-shot test of "
-        "Theorem 4.1, to reproduce the paper)",
+        default=None,
+        help="when to stop: sequential (a streak of passes per policy, valid however often it is checked), "
+        "mixture (a 20-pass screen, then a failure-tolerant mixture test of the frozen policy, also valid) or "
+        "paper (the one-shot test of Theorem 4.1, to reproduce the paper); default: the checked quantity's "
+        f"({', '.join(f'{mode} {rule}' for mode, rule in DEFAULT_RULES.items())})",
     )
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
@@ -71,7 +77,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
     ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
     ap.add_argument(
-        "--time-budget", type=float, default=None, help="seconds per expert request (iLQR experts; default 5)"
+        "--time-budget",
+        type=float,
+        default=None,
+        help=f"seconds per expert request (iLQR experts; default {DEFAULT_TIME_BUDGET_S:g})",
     )
     ap.add_argument(
         "--values",
@@ -195,18 +204,6 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  run folder      {run_dir} ({elapsed:.1f} s)")
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return 0 if result.certificate else 1
-
-
-def write_episode_log(path: Path, rows: list[EpisodeRow]) -> None:
-    names = [f.name for f in fields(EpisodeRow)]
-    tmp = path.with_suffix(".csv.tmp")
-    with tmp.open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(names)
-        for row in rows:
-            cells = (getattr(row, name) for name in names)
-            writer.writerow([" ".join(f"{x:.17g}" for x in v) if isinstance(v, tuple) else v for v in cells])
-    tmp.replace(path)
 
 
 if __name__ == "__main__":

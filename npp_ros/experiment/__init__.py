@@ -1,9 +1,11 @@
 """The paper's Section 5 experiments (and Appendix B with a detuned expert), run in process.
 
+May import: npp_ros.policy, npp_ros.certificate, npp_ros.trajopt, npp_ros.tasks, npp_ros.run.
+
 One *arm* is a task, the expert that supplies data (optimal LQR or a detuned one), a choice
 of L (the paper's, or one that bounds the expert's value slope) and what certifies (the paper's
 surrogate gap and one-shot rule, or a sound mode under the sequential rule). Each (arm, seed)
-runs the same :class:`~npp_ros.loop.NPPLoop` as the supervisor node, stored in its own ``run.sqlite``, and is
+runs the same :class:`~npp_ros.run.loop.NPPLoop` as the supervisor node, stored in its own ``run.sqlite``, and is
 evaluated at checkpoints on a fixed set of N initial states s0 ~ rho: the policy's return, the
 data expert's and the optimal controller's returns from the same s0, and V_lb(s0). Everything is
 rebuilt from the files, so a resumed or repeated run gives the same numbers. Every certificate is
@@ -12,7 +14,7 @@ certificate speaks of, is within epsilon, and a one-sided binomial test of its c
 
 Modules, one concern each: ``arms`` (what is run), ``runs`` (running and resuming one arm and
 seed), ``evaluation`` (rollouts from fresh s0, the held-out check of a certificate) and
-``report`` (the results table). Figures are in :mod:`npp_ros.plots`.
+``report`` (the results table). Figures are in :mod:`npp_ros.experiment.plots`.
 """
 
 from npp_ros.experiment.arms import (

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from npp_ros.certification import CERTIFY_MODES, STOPPING_RULES
-from npp_ros.dataset import FloatArray
-from npp_ros.task_registry import short_name
-from npp_ros.tasks import Expert, ExpertOptions, OptimizerTask, get_task
+from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
+from npp_ros.policy.dataset import FloatArray
+from npp_ros.tasks.registry import Expert, ExpertOptions, OptimizerTask, get_task
+from npp_ros.tasks.sources import short_name
 
 EXPERTS = ("optimal", "detuned", "ilqr")  # every task's expert kinds (Task.experts)
 LIPSCHITZ_SETTINGS = ("paper", "analytic")
@@ -94,6 +94,7 @@ def default_arms(
     lipschitz: Sequence[str],
     experts: Sequence[str] | None,
     certify: Sequence[str] | None = ("paper",),
+    rules: Sequence[str] | None = None,
 ) -> list[Arm]:
     """Each task with the experts, L settings and modes it offers among those asked for.
 
@@ -101,7 +102,8 @@ def default_arms(
     out for it (no 'analytic' for the pendulum), and the detuned expert is not run with the paper's
     L: the paper gives none for it. ``certify`` lists "paper" (the surrogate gap under the paper's
     one-shot rule) and sound modes (rollout, oracle, surrogate) under the sequential rule; None is
-    "paper" for a task whose expert is optimal and the task's default mode otherwise.
+    "paper" for a task whose expert is optimal and the task's default mode otherwise. ``rules``
+    lists the rules the sound modes run under, side by side; None is each mode's default rule.
     """
     arms = []
     for task in tasks:
@@ -117,7 +119,7 @@ def default_arms(
                     if mode == "paper":
                         arms.append(Arm(task, expert, setting))
                     else:
-                        arms.append(Arm(task, expert, setting, mode, "sequential"))
+                        arms += [Arm(task, expert, setting, mode, rule) for rule in rules or (DEFAULT_RULES[mode],)]
     return arms
 
 

@@ -11,15 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import Certificate
-from npp_ros.dataset import Dataset
-from npp_ros.evaluation import (
-    VIOLATION_TOLERANCE,
-    HeldOutCheck,
-    check_policy,
-    policy_rollouts,
-)
+from npp_ros.certificate.certifier import Certificate
 from npp_ros.experiment.arms import (
     EVALUATION_CHUNK,
     HELD_OUT_STREAM,
@@ -27,7 +19,15 @@ from npp_ros.experiment.arms import (
     ExperimentSettings,
     evaluation_states,
 )
-from npp_ros.tasks import Expert, get_task
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import Dataset
+from npp_ros.run.evaluation import (
+    VIOLATION_TOLERANCE,
+    HeldOutCheck,
+    check_policy,
+    policy_rollouts,
+)
+from npp_ros.tasks.registry import Expert, get_task
 
 
 @dataclass(frozen=True)

@@ -9,8 +9,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.certification import CertificationStatus
+from npp_ros.certificate.certifier import CertificationStatus
 from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
 from npp_ros.experiment.evaluation import (
     EvaluationRow,
@@ -21,12 +20,13 @@ from npp_ros.experiment.evaluation import (
     read_evaluations,
     read_held_out,
 )
-from npp_ros.lipschitz import LipschitzConstant
-from npp_ros.loop import NPPLoop, Observer
-from npp_ros.progress import status_text
-from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
-from npp_ros.storage import EpisodeRow
-from npp_ros.tasks import Expert, get_task
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.loop import NPPLoop, Observer
+from npp_ros.run.progress import status_text
+from npp_ros.run.records import EpisodeRow
+from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
+from npp_ros.tasks.registry import Expert, get_task
 
 
 @dataclass(frozen=True)

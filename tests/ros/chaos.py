@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from npp_ros_graph.graph.description import NODES as GRAPH_NODES
+
 NODES = ("sim", "policy", "expert", "supervisor")
 KINDS = ("pause", "pause", "kill", "kill-run")  # pauses twice as often: they are what a busy host does
 PAUSE_S = (5.0, 90.0)
@@ -96,7 +98,7 @@ class ChaosRun:
     def _start(self) -> float:
         """Start npp-run; while the nodes of the last start still linger on the domain (a killed node's
         participant stays until its lease ends) it refuses, and is started again. The start's time."""
-        cmd = [sys.executable, "-m", "npp_ros_graph.run_graph", "--task", "lqr_2_1", "--seed", "0",
+        cmd = [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", "lqr_2_1", "--seed", "0",
                "--horizon", str(self.horizon), "--run-dir", str(self.run_dir), "--max-episodes", "1000"]  # fmt: skip
         while True:
             out = open(self.run_dir.parent / f"{self.run_dir.name}-npp-run.out", "ab")
@@ -124,7 +126,7 @@ class ChaosRun:
                 continue
             module = next((a.decode() for a in cmdline if b"npp_ros_graph." in a), "")
             for node in NODES:
-                if module.endswith((f"{node}_node", f".{node}")):
+                if module == GRAPH_NODES[node].module:  # npp-run starts each node from the graph description
                     found[node] = int(entry.name)
         return found
 

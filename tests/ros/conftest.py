@@ -11,8 +11,8 @@
   ros_client(..., namespace="/iso").
 - `ros_client("name")` is an rclpy node in the test process with one persistent executor;
   `wait_for(future_or_predicate, timeout)` drives it with spin_once until done (never
-  spin_until_future_complete in a loop, never rclpy.spin_once(node): both degrade, see
-  ../shared/notes/ros-from-pypi.md).
+  spin_until_future_complete in a loop, never rclpy.spin_once(node): with the rclpy this project
+  installs, both slow down call after call over a long test).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.task import Future
 
-from npp_ros_graph.common import SERVICE_QOS
+from npp_ros_graph.transport.topics import SERVICE_QOS
 
 REPO = Path(__file__).resolve().parents[2]
 STOP_TIMEOUT_S = 10.0
@@ -44,7 +44,7 @@ LOG_TAIL_LINES = 60
 
 
 def _console_scripts() -> dict[str, str]:
-    """npp-sim -> npp_ros_graph.sim_node:main, from pyproject (the one source of truth)."""
+    """npp-sim -> npp_ros_graph.nodes.sim:main, from pyproject (the one source of truth)."""
     with open(REPO / "pyproject.toml", "rb") as fh:
         return dict(tomllib.load(fh)["project"].get("scripts", {}))
 
@@ -120,7 +120,7 @@ def _ros_value(value: Any) -> str:
 
 
 def node_command(target: str, params: dict[str, Any] | None = None, namespace: str = "") -> list[str]:
-    """The argv that runs a console script (npp-sim) or a module (npp_ros_graph.sim_node) with parameters."""
+    """The argv that runs a console script (npp-sim) or a module (npp_ros_graph.nodes.sim) with parameters."""
     if target in CONSOLE_SCRIPTS:
         module, func = CONSOLE_SCRIPTS[target].split(":")
         code = f"import sys; sys.argv[0] = {target!r}; from {module} import {func}; sys.exit({func}())"

@@ -34,6 +34,7 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 from expert_checks import TIMEOUT, check_good, request, wait_until_modelling
+from graph import graph_parameters, start_graph, start_node
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from npp_interfaces.msg import Certificate, EpisodeResult, PlantDescription
@@ -42,10 +43,12 @@ from rclpy.client import Client
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 
-from npp_ros.lqr import LQRExpert, LQRPlant
-from npp_ros.run_setup import build_config, resolve_lipschitz
-from npp_ros.storage import RunStore
-from npp_ros_graph.common import (
+from npp_ros.run.setup import build_config, resolve_lipschitz
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.lqr import LQRExpert, LQRPlant
+from npp_ros_graph.graph.description import NODES
+from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.topics import (
     ACTION,
     CERTIFICATE,
     CONTROL_QOS,
@@ -57,7 +60,6 @@ from npp_ros_graph.common import (
     ROLLOUT_DONE,
     STATE,
 )
-from npp_ros_graph.seal import RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -116,15 +118,11 @@ def graph(launch_module: Launcher, ros_client_module: Callable[..., RosClient], 
     client = ros_client_module("bad_input_client", namespace=ns)
     g = Graph(launch_module, client, run_dir)
     certificates = client.collect(Certificate, CERTIFICATE, LATCHED_QOS)
-    params: dict[str, dict[str, Any]] = {
-        "sim": {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON},
-        "expert": {},
-        "policy": {},
-        # The paper's check and rule certify this short-horizon graph quickly; the inputs below are what is tested.
-        "supervisor": {"run_dir": str(run_dir), "max_episodes": 400, "certify": "surrogate", "rule": "paper"},
-    }
-    for name, values in params.items():
-        g.procs[name] = launch_module(f"npp_ros_graph.{name}_node", values, namespace=ns)
+    # The paper's check and rule certify this short-horizon graph quickly; the inputs below are what is tested.
+    params = graph_parameters(
+        "lqr_2_1", 0, HORIZON, run_dir, supervisor={"max_episodes": 400, "certify": "surrogate", "rule": "paper"}
+    )
+    g.procs.update(start_graph(launch_module, params, namespace=ns))
     client.wait_for(lambda: bool(certificates), 600.0, "the certificate of the /bad graph")
     time.sleep(0.5)  # the supervisor's worker closes the run file after certifying
     g.run_hash = sha256(g.run_file)
@@ -251,9 +249,7 @@ class SimAlone:
     """A sim with nobody answering its states but the test."""
 
     def __init__(self, launch: Launcher, client: RosClient) -> None:
-        self.proc = launch(
-            "npp_ros_graph.sim_node", {"task": "lqr_2_1", "seed": 0, "horizon": 100_000}, namespace="/bad_sim"
-        )
+        self.proc = launch("npp-sim", {"task": "lqr_2_1", "seed": 0, "horizon": 100_000}, namespace="/bad_sim")
         self.client = client
         self.states = client.collect(JointState, STATE, CONTROL_QOS)
         plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
@@ -368,7 +364,7 @@ def test_bad_parameters_refuse_to_start_with_the_reason(
         "expert": expert,
         "supervisor": ({**supervisor[0], "run_dir": str(graph.run_dir)}, supervisor[1]),
     }
-    procs = {name: launch_module(f"npp_ros_graph.{name}_node", params, namespace="/refused") for name, (params, _) in
+    procs = {name: start_node(launch_module, name, params, namespace="/refused") for name, (params, _) in
              cases.items()}  # fmt: skip
     for name, proc in procs.items():
         assert proc.wait(timeout=120) == 2, launch_module.log(proc)
@@ -390,7 +386,7 @@ def test_bad_parameters_refuse_to_start_with_the_reason(
 def test_unknown_empty_and_stray_arguments_are_refused_in_one_line(
     node: str, extra: list[str], parameter: str, reason: str
 ) -> None:
-    cmd = [sys.executable, "-m", f"npp_ros_graph.{node}_node", *extra, "--ros-args", "-r", "__ns:=/refused"]
+    cmd = [sys.executable, "-m", NODES[node].module, *extra, "--ros-args", "-r", "__ns:=/refused"]
     done = subprocess.run([*cmd, "-p", parameter], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2, done.stderr
     assert reason in done.stderr and "Traceback" not in done.stderr, done.stderr
@@ -400,7 +396,7 @@ def test_unknown_empty_and_stray_arguments_are_refused_in_one_line(
 def test_whole_numbers_are_accepted_for_float_and_number_parameters(launch_module: Launcher, tmp_path: Path) -> None:
     """`-p lipschitz:=300 -p epsilon:=30` (integers on the command line) start a supervisor; it waits for a sim."""
     params = {"lipschitz": 300, "epsilon": 30, "run_dir": str(tmp_path / "run")}
-    proc = launch_module("npp_ros_graph.supervisor_node", params, namespace="/accepts")
+    proc = launch_module("npp-supervisor", params, namespace="/accepts")
     deadline = time.monotonic() + 120
     while "waiting for the sim's plant description" not in launch_module.log(proc):
         launch_module.assert_alive(proc)
@@ -420,9 +416,7 @@ def test_supervisor_refuses_a_run_file_for_other_dimensions(graph: Graph, tmp_pa
     RunStore.create(path, replace(config, state_dim=12, action_dim=2).metadata()).close()
     before = sha256(path)
     launch_module = graph.launch
-    proc = launch_module(
-        "npp_ros_graph.supervisor_node", {"run_dir": str(path.parent), "epsilon": 50.0}, namespace="/bad"
-    )
+    proc = launch_module("npp-supervisor", {"run_dir": str(path.parent), "epsilon": 50.0}, namespace="/bad")
     assert proc.wait(timeout=120) == 1
     log = launch_module.log(proc)
     assert "belongs to another run and was left untouched" in log and "state_dim: file has 12" in log, log

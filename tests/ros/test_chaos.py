@@ -29,9 +29,9 @@ from chaos import ChaosRun, Fault, Outcome, plan
 from npp_interfaces.msg import GapReport
 from reference import assert_same_run, uninterrupted_run
 
-from npp_ros.loop import NPPLoop, RunResult
-from npp_ros.vectors import state_digest
-from npp_ros_graph.common import GAP, REPORT_QOS
+from npp_ros.policy.vectors import state_digest
+from npp_ros.run.loop import NPPLoop, RunResult
+from npp_ros_graph.transport.topics import GAP, REPORT_QOS
 
 if TYPE_CHECKING:
     from tests.ros.conftest import RosClient

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from domain_coordinator import domain_id
 from npp_interfaces.msg import PlantDescription
 
-from npp_ros_graph.common import LATCHED_QOS, PLANT
+from npp_ros_graph.transport.topics import LATCHED_QOS, PLANT
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -25,7 +25,7 @@ def environ_of(pid: int) -> dict[str, str]:
 
 
 def test_nodes_run_on_the_session_domain_with_localhost_discovery(launch: Launcher, ros_domain: int) -> None:
-    proc = launch("npp_ros_graph.sim_node", {"horizon": 10}, namespace="/confined")
+    proc = launch("npp-sim", {"horizon": 10}, namespace="/confined")
     env = environ_of(proc.pid)
     assert env["ROS_DOMAIN_ID"] == str(ros_domain)
     assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
@@ -37,7 +37,7 @@ def test_a_graph_on_another_domain_is_invisible(launch: Launcher, ros_client: Ca
     client = ros_client("confinement_watcher", namespace="/confined")
     plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
     with domain_id() as other:
-        foreign = launch("npp_ros_graph.sim_node", {"seed": 7}, namespace="/confined", domain=int(other))
+        foreign = launch("npp-sim", {"seed": 7}, namespace="/confined", domain=int(other))
         client.wait_for(lambda: "ready" in launch.log(foreign), 60.0, "the foreign sim to publish its plant")
         deadline = time.monotonic() + QUIET_S
         client.wait_for(lambda: time.monotonic() > deadline, QUIET_S + 5)
@@ -45,6 +45,6 @@ def test_a_graph_on_another_domain_is_invisible(launch: Launcher, ros_client: Ca
         launch.assert_alive(foreign)
         launch.stop(foreign)
     # Control: the same node on this session's domain is seen.
-    launch("npp_ros_graph.sim_node", {"seed": 7}, namespace="/confined")
+    launch("npp-sim", {"seed": 7}, namespace="/confined")
     client.wait_for(lambda: bool(plants), 60.0, "the plant description from this domain")
     assert plants[-1].seed == 7

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,13 +11,14 @@ from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.srv import ExpertTrajectory
 from sensor_msgs.msg import JointState
 
-from npp_ros.certification import Certificate, CertificationSpec
-from npp_ros.dataset import DatasetError, Trajectory
-from npp_ros.lipschitz import LipschitzConstant
-from npp_ros.lqr import LQRExpert
-from npp_ros.run_setup import build_config
-from npp_ros.storage import EpisodeRow
-from npp_ros_graph.convert import (
+from npp_ros.certificate.certifier import Certificate, CertificationSpec
+from npp_ros.policy.dataset import DatasetError, Trajectory
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.records import EpisodeRow
+from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
+from npp_ros.tasks.lqr import LQRExpert
+from npp_ros_graph.tools.dashboard import Hub, episode_entry, load_run
+from npp_ros_graph.transport.convert import (
     CERTIFICATE_RENAMED,
     MessageError,
     action_from_joint_state,
@@ -188,3 +190,17 @@ def test_every_certificate_field_reaches_the_message() -> None:
         sent = getattr(msg, target)
         assert (list(sent) if isinstance(expected, list) else sent) == expected, name
     assert (msg.quiet_episodes, msg.lipschitz_margin, msg.quantity) == (22, 0.01, "V^E(s0) - R^pi(s0)")
+
+
+def test_the_dashboard_reads_a_run_file_as_the_gap_reports_it_published(tmp_path: Path) -> None:
+    """One episode entry for the page, whether it comes from /npp/gap or from run.sqlite: the same fields and values."""
+    expert = LQRExpert("lqr_2_1", 0, horizon=50)
+    lipschitz = resolve_lipschitz("lqr_2_1", "analytic", expert)
+    config = build_config("lqr_2_1", 0, lipschitz, 50.0, horizon=50, certify="surrogate", rule="paper")
+    loop = build_loop(config, expert, store_path=tmp_path / "run.sqlite")
+    rows = loop.run(max_episodes=6).rows
+    loop.store.close()
+    hub = Hub("run", "file")
+    load_run(tmp_path, hub)
+    assert len(rows) == 6
+    assert hub.state["episodes"] == [episode_entry(gap_report(row, config, stamp(0))) for row in rows]

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
+from graph import graph_parameters, start_graph
 from npp_interfaces.msg import Certificate, GapReport, PlantDescription
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from npp_interfaces.srv import ExpertTrajectory, GetTrajectories
@@ -38,10 +39,13 @@ from reference import ROLLOUT_FREE, assert_stored_run_is_uninterrupted
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.lqr import LQRPlant, rollout
-from npp_ros.storage import RunStore
-from npp_ros_graph.common import (
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.lqr import LQRPlant
+from npp_ros.tasks.rollout import rollout
+from npp_ros_graph.transport.convert import float64_array
+from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.topics import (
     ACTION,
     CERTIFICATE,
     CONTROL_QOS,
@@ -55,8 +59,6 @@ from npp_ros_graph.common import (
     REPORT_QOS,
     STATE,
 )
-from npp_ros_graph.convert import float64_array
-from npp_ros_graph.seal import KEY_ENV, RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -159,22 +161,17 @@ def test_nothing_from_outside_the_run_enters_it(
     plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
     fingerprint = LQRPlant("lqr_2_1", 0).model_sha256()
     intruder = Intruder(client, fingerprint)
-    params: dict[str, dict[str, Any]] = {
-        "sim": {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON},
-        "expert": {},
-        "policy": {},
-        "supervisor": {"run_dir": str(run_dir), "max_episodes": MAX_EPISODES, **ROLLOUT_FREE},
-    }
-    procs = {name: launch(f"npp_ros_graph.{name}_node", values, extra_env=key) for name, values in params.items()}
+    params = graph_parameters("lqr_2_1", 0, HORIZON, run_dir, supervisor={"max_episodes": MAX_EPISODES, **ROLLOUT_FREE})
+    procs = start_graph(launch, params, extra_env=key)
     client.wait_for(lambda: len(gaps) >= SECOND_SIM_AFTER, TIMEOUT, f"{SECOND_SIM_AFTER} episodes")
-    second_sim = launch("npp_ros_graph.sim_node", {"task": "lqr_2_1", "seed": 1, "horizon": HORIZON})
+    second_sim = launch("npp-sim", {"task": "lqr_2_1", "seed": 1, "horizon": HORIZON})
     intruder.start()
     # A restarted policy catches up through /npp/dataset/get, where the impostor answers too, if the new
     # process has discovered the impostor by the time it asks: discovery order decides, so restart it
     # until the impostor has answered once (the assertion below still requires that it did).
     for _ in range(RESTARTS):
         launch.stop(procs["policy"])
-        procs["policy"] = launch("npp_ros_graph.policy_node", {}, extra_env=key)
+        procs["policy"] = launch("npp-policy", {}, extra_env=key)
         with contextlib.suppress(TimeoutError):
             client.wait_for(lambda: intruder.sent["dataset answers"] > 0, 20.0, "the impostor's dataset answer")
             break
@@ -213,13 +210,8 @@ def test_an_impostor_expert_stops_the_run_with_the_reason(
     client = ros_client("impostor")
     gaps = client.collect(GapReport, GAP, REPORT_QOS)
     intruder = Intruder(client, LQRPlant("lqr_2_1", 0).model_sha256())
-    params: dict[str, dict[str, Any]] = {
-        "sim": {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON},
-        "expert": {},
-        "policy": {},
-        "supervisor": {"run_dir": str(run_dir), "max_episodes": MAX_EPISODES, "expert_timeout": 2.0, **ROLLOUT_FREE},
-    }
-    procs = {name: launch(f"npp_ros_graph.{name}_node", values, extra_env=key) for name, values in params.items()}
+    supervisor = {"max_episodes": MAX_EPISODES, "expert_timeout": 2.0, **ROLLOUT_FREE}
+    procs = start_graph(launch, graph_parameters("lqr_2_1", 0, HORIZON, run_dir, supervisor=supervisor), extra_env=key)
     client.wait_for(lambda: len(gaps) >= 3, TIMEOUT, "3 episodes")
     client.node.create_service(ExpertTrajectory, EXPERT_SERVICE, intruder.serve_expert)
     supervisor = procs["supervisor"]

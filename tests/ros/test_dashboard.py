@@ -19,8 +19,9 @@ from typing import Any
 
 import pytest
 from browser import Browser, chromium
+from graph import graph_parameters, start_graph
 
-from npp_ros.storage import RunStore
+from npp_ros.run.store import RunStore
 
 pytestmark = pytest.mark.skipif(
     chromium() is None and os.environ.get("CI") != "true",
@@ -36,7 +37,7 @@ class Dashboard:
         self.log_path = log
         self.log = log.open("wb")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "npp_ros_graph.dashboard", "--port", "0", *args],
+            [sys.executable, "-m", "npp_ros_graph.tools.dashboard", "--port", "0", *args],
             stdout=self.log,
             stderr=subprocess.STDOUT,
         )
@@ -108,13 +109,14 @@ def test_the_page_follows_a_run_to_its_certificate(launch: Any, dashboards: list
     run_dir, bag = tmp_path / "run", tmp_path / "bag"
     record_log = (tmp_path / "record.log").open("wb")
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "npp_ros_graph.record", "-o", str(bag)], stdout=record_log, stderr=subprocess.STDOUT
+        [sys.executable, "-m", "npp_ros_graph.tools.record", "-o", str(bag)],
+        stdout=record_log,
+        stderr=subprocess.STDOUT,
     )
     try:
-        launch("npp_ros_graph.sim_node", {"horizon": 50})
-        launch("npp_ros_graph.expert_node")
-        launch("npp_ros_graph.policy_node")
-        launch("npp_ros_graph.supervisor_node", {"run_dir": str(run_dir), "epsilon": 300.0, "max_episodes": 300})
+        start_graph(
+            launch, graph_parameters("lqr_2_1", 0, 50, run_dir, supervisor={"epsilon": 300.0, "max_episodes": 300})
+        )
         browser.wait_for("document.body.dataset.certified === 'true'", 900, "the certificate on the page")
         browser.wait_for(
             "[...document.querySelectorAll('#nodes li.alive')].length >= 5", 60, "the four nodes and the recorder"
@@ -163,7 +165,7 @@ def test_npp_run_refuses_a_dashboard_port_in_use_before_starting_any_node(tmp_pa
         taken.listen()
         port = taken.getsockname()[1]
         run = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(tmp_path / "run"),
+            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(tmp_path / "run"),
              "--dashboard", str(port)],
             capture_output=True, text=True, timeout=300,
         )  # fmt: skip
@@ -174,7 +176,7 @@ def test_npp_run_refuses_a_dashboard_port_in_use_before_starting_any_node(tmp_pa
 
 def test_a_folder_that_is_not_a_run_is_refused(tmp_path: Path) -> None:
     out = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.dashboard", "--port", "0", "--run", str(tmp_path)],
+        [sys.executable, "-m", "npp_ros_graph.tools.dashboard", "--port", "0", "--run", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=120,

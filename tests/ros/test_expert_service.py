@@ -14,9 +14,9 @@ from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
 from rclpy.client import Client
 
-from npp_ros.lqr import LQRExpert, LQRPlant
-from npp_ros_graph.common import EXPERT_SERVICE, LATCHED_QOS, PLANT
-from npp_ros_graph.seal import RunSeal, SealError
+from npp_ros.tasks.lqr import LQRExpert, LQRPlant
+from npp_ros_graph.transport.seal import RunSeal, SealError
+from npp_ros_graph.transport.topics import EXPERT_SERVICE, LATCHED_QOS, PLANT
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient

@@ -13,10 +13,10 @@ import pytest
 from misbehaving_expert import FAULTS
 from npp_interfaces.msg import Certificate
 
-from npp_ros.lqr import LQRExpert
-from npp_ros.storage import RunStore
-from npp_ros_graph.common import CERTIFICATE, LATCHED_QOS
-from npp_ros_graph.seal import KEY_ENV, RunSeal
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.lqr import LQRExpert
+from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.topics import CERTIFICATE, LATCHED_QOS
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient

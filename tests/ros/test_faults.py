@@ -30,20 +30,22 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
+from graph import graph_parameters, start_node
 from npp_interfaces.msg import Certificate, GapReport
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
-from npp_ros.dataset import Dataset
-from npp_ros.storage import RunStore, trajectory_digest
-from npp_ros_graph.common import CERTIFICATE, DATASET_TOPIC, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros.policy.dataset import Dataset
+from npp_ros.run.store import RunStore, trajectory_digest
+from npp_ros_graph.graph.description import ROLES
+from npp_ros_graph.transport.topics import CERTIFICATE, DATASET_TOPIC, GAP, LATCHED_QOS, REPORT_QOS
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
 
 SEED = int(os.environ.get("NPP_FAULT_SEED", "6021"))
 RUNS = 6
-NODES = ("sim", "expert", "policy", "supervisor")
+NODES = ROLES  # the graph's four nodes, in the order npp-run starts them
 HORIZON = 50
 EPSILON = 50.0
 MAX_EPISODES = 400
@@ -144,7 +146,7 @@ class Graph:
         self.history: dict[str, list[subprocess.Popen[bytes]]] = {name: [] for name in NODES}
 
     def start(self, name: str) -> None:
-        self.procs[name] = self.launch(f"npp_ros_graph.{name}_node", self.params[name])
+        self.procs[name] = start_node(self.launch, name, self.params[name])
         self.history[name].append(self.procs[name])
 
     def kill(self, name: str) -> None:
@@ -196,15 +198,10 @@ def test_sigkill_any_node_mid_run_loses_nothing(
     run_file = run_dir / "run.sqlite"
     graph = Graph(
         launch,
-        {
-            "sim": {"task": "lqr_2_1", "seed": task_seed, "horizon": HORIZON},
-            "expert": {},
-            "policy": {},
-            "supervisor": {
-                "run_dir": str(run_dir), "epsilon": EPSILON, "max_episodes": MAX_EPISODES, **ROLLOUT_FREE,
-                "expert_timeout": 3.0, "expert_retries": 20, "rollout_timeout": 8.0,
-            },
-        },
+        graph_parameters("lqr_2_1", task_seed, HORIZON, run_dir, supervisor={
+            "epsilon": EPSILON, "max_episodes": MAX_EPISODES, **ROLLOUT_FREE,
+            "expert_timeout": 3.0, "expert_retries": 20, "rollout_timeout": 8.0,
+        }),
     )  # fmt: skip
     watcher = ros_client(f"fault_watcher_{run}")
     gaps: list[GapReport] = watcher.collect(GapReport, GAP, REPORT_QOS)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from reference import decisions, uninterrupted_run
 
-from npp_ros.storage import RunStore
+from npp_ros.run.store import RunStore
 
 
 def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: Path, ros_domain: int) -> None:
@@ -18,9 +18,11 @@ def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: P
     # episodes of lines) and blocks the monitor in the middle of its output.
     watched_file = tmp_path / "monitor.out"
     with watched_file.open("w") as out:
-        monitor = subprocess.Popen([sys.executable, "-m", "npp_ros_graph.monitor", "--exit-on-certificate"], stdout=out)
+        monitor = subprocess.Popen(
+            [sys.executable, "-m", "npp_ros_graph.tools.monitor", "--exit-on-certificate"], stdout=out
+        )
     run = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--max-episodes", "400"],
+        [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--max-episodes", "400"],
         capture_output=True,
         text=True,
         timeout=1200,

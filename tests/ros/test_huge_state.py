@@ -18,8 +18,10 @@ from npp_interfaces.srv import GetTrajectories
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32
 
-from npp_ros.dataset import Trajectory
-from npp_ros_graph.common import (
+from npp_ros.policy.dataset import Trajectory
+from npp_ros_graph.transport.convert import trajectory_to_msg
+from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.topics import (
     ACTION,
     CONTROL_QOS,
     DATASET_SERVICE,
@@ -29,8 +31,6 @@ from npp_ros_graph.common import (
     SERVICE_QOS,
     STATE,
 )
-from npp_ros_graph.convert import trajectory_to_msg
-from npp_ros_graph.seal import RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -74,7 +74,7 @@ def test_policy_node_refuses_a_huge_finite_state(launch: Launcher, ros_client: C
     held = client.collect(UInt32, POLICY_STATUS, LATCHED_QOS)
     actions = client.collect(JointState, ACTION, CONTROL_QOS)
     states = node.create_publisher(JointState, STATE, CONTROL_QOS)
-    policy = launch("npp_ros_graph.policy_node", namespace="/huge")
+    policy = launch("npp-policy", namespace="/huge")
     client.wait_for(lambda: any(m.data == 1 for m in held), TIMEOUT, "the policy to hold the trajectory")
     client.wait_for(lambda: states.get_subscription_count() >= 1, TIMEOUT, "the policy to subscribe to states")
 

@@ -24,10 +24,12 @@ from npp_interfaces.srv import ExpertTrajectory, GetTrajectories
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32, UInt64
 
-from npp_ros.bounds import NonparametricPolicy
-from npp_ros.dataset import Dataset
-from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
-from npp_ros_graph.common import (
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import Dataset
+from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros_graph.transport.convert import trajectory_to_msg
+from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.topics import (
     ACTION,
     BUSY,
     CONTROL_QOS,
@@ -40,8 +42,6 @@ from npp_ros_graph.common import (
     REPORT_QOS,
     STATE,
 )
-from npp_ros_graph.convert import trajectory_to_msg
-from npp_ros_graph.seal import RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -55,8 +55,8 @@ FLOOD = 3000
 def test_expert_serves_8_clients_200_requests_and_loses_none(
     launch: Launcher, ros_client: Callable[..., RosClient], expert_2_1: LQRExpert, max_queue: int, max_horizon: int
 ) -> None:
-    launch("npp_ros_graph.sim_node", {"task": "lqr_2_1", "seed": 0})
-    expert = launch("npp_ros_graph.expert_node", {"max_queue": max_queue})
+    launch("npp-sim", {"task": "lqr_2_1", "seed": 0})
+    expert = launch("npp-expert", {"max_queue": max_queue})
     clients = [ros_client(f"load_client_{i}") for i in range(CLIENTS)]
     services = [c.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT) for c in clients]
     for client, service in zip(clients, services, strict=True):
@@ -148,7 +148,7 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
     actions = tester.collect(JointState, ACTION, CONTROL_QOS)
     dropped = tester.collect(UInt64, POLICY_DROPPED, REPORT_QOS)
     state_pub = node.create_publisher(JointState, STATE, CONTROL_QOS)
-    policy = launch("npp_ros_graph.policy_node", namespace=ns)
+    policy = launch("npp-policy", namespace=ns)
     tester.wait_for(lambda: bool(held) and held[-1].data == 20, TIMEOUT, "the policy to hold the dataset")
     tester.wait_for(lambda: state_pub.get_subscription_count() > 0, TIMEOUT, "the policy's state subscription")
 

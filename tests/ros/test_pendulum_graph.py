@@ -20,10 +20,10 @@ from expert_checks import TIMEOUT, request, unpack, wait_until_modelling
 from npp_interfaces.srv import ExpertTrajectory
 from reference import decisions
 
-from npp_ros.run_setup import build_config, build_loop, resolve_lipschitz
-from npp_ros.storage import RunStore
-from npp_ros.tasks import ExpertOptions, get_task
-from npp_ros_graph.common import EXPERT_SERVICE
+from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.registry import ExpertOptions, get_task
+from npp_ros_graph.transport.topics import EXPERT_SERVICE
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -39,7 +39,7 @@ ITERATIONS = 10
 def test_pendulum_graph_gives_the_in_process_dataset_and_decisions(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
     command = [
-        sys.executable, "-m", "npp_ros_graph.run_graph", "--task", TASK, "--horizon", str(HORIZON),
+        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--horizon", str(HORIZON),
         "--epsilon", str(EPSILON), "--max-episodes", str(EPISODES), "--run-dir", str(run_dir),
         "--time-budget", str(BUDGET), "--max-iterations", str(ITERATIONS),
     ]  # fmt: skip

@@ -18,17 +18,19 @@ from pathlib import Path
 import pytest
 from domain_coordinator import domain_id
 
-from npp_ros_graph.run_graph import SECOND_GRAPH_WINDOW_S
+from npp_ros_graph.graph.description import NODES as GRAPH_NODES
+from npp_ros_graph.graph.description import ROLES
+from npp_ros_graph.tools.launcher import SECOND_GRAPH_WINDOW_S
 
 START_TIMEOUT_S = 180.0  # four Python processes importing rclpy and MuJoCo on a shared 2-core machine
 GONE_TIMEOUT_S = 30.0  # the children get SIGTERM at once; a loaded machine may take a while to run them
-NODES = ("sim", "expert", "policy", "supervisor")
+NODES = ROLES  # the graph's four nodes, in the order npp-run starts them
 
 
 def npp_run(run_dir: Path, domain: int, *extra: str, log: Path) -> subprocess.Popen[str]:
     """npp-run on its own domain; episodes never certify (tiny epsilon), so it runs until stopped."""
     command = [
-        sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--domain-id", str(domain),
+        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id", str(domain),
         "--horizon", "50", "--epsilon", "0.001", "--max-episodes", "100000", *extra,
     ]  # fmt: skip
     return subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, text=True)
@@ -79,7 +81,7 @@ def node_children(parent: int) -> dict[str, int]:
         if int(stat.rsplit(")", 1)[1].split()[1]) != parent:
             continue
         for name in NODES:
-            if f"npp_ros_graph.{name}_node" in argv:
+            if GRAPH_NODES[name].module in argv:
                 found[name] = int(entry.name)
     return found
 
@@ -149,7 +151,9 @@ def tool_children(parent: int) -> dict[str, int]:
         except OSError:
             continue
         if int(stat.rsplit(")", 1)[1].split()[1]) == parent:
-            found.update({name: int(entry.name) for name in ("record", "dashboard") if f"npp_ros_graph.{name}" in argv})
+            found.update(
+                {name: int(entry.name) for name in ("record", "dashboard") if f"npp_ros_graph.tools.{name}" in argv}
+            )
     return found
 
 
@@ -158,12 +162,12 @@ def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp
     run_dir = tmp_path / "run"
     with domain_id() as domain:
         first = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--domain-id",
+            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
              str(domain), "--horizon", "0"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
         second = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--domain-id",
+            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
              str(domain), "--epsilon", "-1"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
@@ -202,7 +206,7 @@ def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_d
         with domain_id() as other:
             started = time.monotonic()
             same_folder = subprocess.run(
-                [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--domain-id",
+                [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
                  str(other), "--horizon", "50"],
                 capture_output=True, text=True, timeout=600,
             )  # fmt: skip
@@ -221,7 +225,7 @@ def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_d
         wait_until(lambda: time.monotonic() - first_started > SECOND_GRAPH_WINDOW_S, 120, "the first run's window")
         started = time.monotonic()
         same_domain = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(tmp_path / "other"), "--domain-id",
+            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(tmp_path / "other"), "--domain-id",
              str(domain), "--horizon", "50"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
@@ -248,7 +252,7 @@ def test_monitor_says_what_it_waits_for_and_where(tmp_path: Path, ros_domain: in
     with domain_id() as empty:
         env = dict(os.environ, ROS_DOMAIN_ID=str(empty))
         monitor = subprocess.Popen(
-            [sys.executable, "-m", "npp_ros_graph.monitor"], stdout=subprocess.PIPE, stderr=err.open("w"), env=env
+            [sys.executable, "-m", "npp_ros_graph.tools.monitor"], stdout=subprocess.PIPE, stderr=err.open("w"), env=env
         )
         with stopped_at_exit(monitor):  # type: ignore[arg-type]
             wait_until(lambda: "npp-monitor: nothing received" in err.read_text(), 120, "the monitor's notice")
@@ -261,7 +265,7 @@ def test_monitor_says_what_it_waits_for_and_where(tmp_path: Path, ros_domain: in
 
 def test_monitor_refuses_unknown_topics_naming_the_known_ones() -> None:
     run = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.monitor", "--topics", "gap,gaps"], capture_output=True, text=True,
+        [sys.executable, "-m", "npp_ros_graph.tools.monitor", "--topics", "gap,gaps"], capture_output=True, text=True,
         timeout=120,
     )  # fmt: skip
     assert run.returncode == 2

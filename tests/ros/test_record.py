@@ -22,9 +22,10 @@ from npp_interfaces.msg import Certificate, GapReport
 from rclpy.serialization import serialize_message
 from ruamel.yaml import YAML
 
-from npp_ros.storage import EpisodeRow, RunStore
-from npp_ros_graph.bag import BagError, BagWriter, is_complete, open_reader, qos_entry, read_messages, repair
-from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros.run.records import EpisodeRow
+from npp_ros.run.store import RunStore
+from npp_ros_graph.tools.bag import BagError, BagWriter, is_complete, open_reader, qos_entry, read_messages, repair
+from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
 
 # A short run that certifies: horizon 50, epsilon 300 (lqr_2_1, analytic L): about 80 episodes.
 RUN_ARGS = ["--horizon", "50", "--epsilon", "300", "--max-episodes", "300"]
@@ -75,7 +76,7 @@ def mcap_count(bag: Path) -> tuple[int, set[str]]:
 WRITER = """
 import os, sys, time
 from pathlib import Path
-from npp_ros_graph.bag import BagWriter, qos_entry, typestore
+from npp_ros_graph.tools.bag import BagWriter, qos_entry, typestore
 store = typestore()
 Gap = store.types["npp_interfaces/msg/GapReport"]
 Header, Time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
@@ -128,7 +129,7 @@ def test_a_killed_writer_leaves_every_flushed_message_readable(tmp_path: Path) -
     with pytest.raises(BagError, match="npp-record --repair"):
         open_reader(torn)
     out = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.record", "--repair", str(torn)], capture_output=True, text=True
+        [sys.executable, "-m", "npp_ros_graph.tools.record", "--repair", str(torn)], capture_output=True, text=True
     )
     assert out.returncode == 0, out.stderr
     kept = [m.msg.episode for m in read_messages(torn)]
@@ -159,7 +160,7 @@ def test_a_closed_bag_has_its_summary_and_refuses_to_be_overwritten(tmp_path: Pa
 def recorded_run(ros_domain: int, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """npp-run --record --dashboard: the four nodes, the recorder and the dashboard, to a certificate."""
     run_dir = tmp_path_factory.mktemp("recorded") / "run"
-    command = [sys.executable, "-m", "npp_ros_graph.run_graph", "--run-dir", str(run_dir), "--record"]
+    command = [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--record"]
     run = subprocess.run([*command, "--dashboard", "0", *RUN_ARGS], capture_output=True, text=True, timeout=1200)
     logs = "\n".join(f"== {p.name}\n{p.read_text()[-3000:]}" for p in sorted((run_dir / "logs").glob("*.log")))
     assert run.returncode == 0, f"{run.stderr[-3000:]}\n{logs}"
@@ -202,7 +203,7 @@ def test_the_bag_holds_every_gap_report_as_the_run_file_stores_it(recorded_run: 
 
 def test_monitor_prints_the_bag_as_it_printed_the_live_run(recorded_run: Path) -> None:
     out = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.monitor", "--bag", str(recorded_run / "bag")],
+        [sys.executable, "-m", "npp_ros_graph.tools.monitor", "--bag", str(recorded_run / "bag")],
         capture_output=True,
         text=True,
         timeout=300,
@@ -219,7 +220,9 @@ def test_monitor_prints_the_bag_as_it_printed_the_live_run(recorded_run: Path) -
     assert closing[-1].startswith("assumes:")
 
     refused = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.monitor", "--bag", str(recorded_run)], capture_output=True, text=True
+        [sys.executable, "-m", "npp_ros_graph.tools.monitor", "--bag", str(recorded_run)],
+        capture_output=True,
+        text=True,
     )
     assert refused.returncode == 2 and "is not a bag folder" in refused.stderr
 
@@ -227,14 +230,17 @@ def test_monitor_prints_the_bag_as_it_printed_the_live_run(recorded_run: Path) -
 def test_replay_shows_the_recorded_run_to_a_live_monitor(recorded_run: Path) -> None:
     bag = recorded_run / "bag"
     recorded = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.monitor", "--bag", str(bag)], capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "npp_ros_graph.tools.monitor", "--bag", str(bag)],
+        capture_output=True,
+        text=True,
+        timeout=300,
     ).stdout.splitlines()
     monitor = subprocess.Popen(
-        [sys.executable, "-m", "npp_ros_graph.monitor"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        [sys.executable, "-m", "npp_ros_graph.tools.monitor"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
     try:
         replay = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.replay", str(bag), "--rate", "20",
+            [sys.executable, "-m", "npp_ros_graph.tools.replay", str(bag), "--rate", "20",
              "--wait-for", "npp/gap", "--wait-for", "npp/episode", "--wait-for", "npp/certificate"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
@@ -269,7 +275,7 @@ def test_a_sigkilled_recorder_leaves_every_flushed_message(ros_client: Any, tmp_
     bag = tmp_path / "bag"
     log = (tmp_path / "record.log").open("wb")
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "npp_ros_graph.record", "-o", str(bag), "--flush-every", "0.2",
+        [sys.executable, "-m", "npp_ros_graph.tools.record", "-o", str(bag), "--flush-every", "0.2",
          "--ros-args", "-r", "__ns:=/killed"],
         stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ),
     )  # fmt: skip

@@ -18,13 +18,15 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import pytest
+from graph import graph_parameters, start_graph
 from reference import assert_same_run, uninterrupted_run
 
-from npp_ros.storage import RunFileError, RunStore
-from npp_ros_graph.seal import KEY_ENV, RunSeal
+from npp_ros.run.records import RunFileError
+from npp_ros.run.store import RunStore
+from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -56,7 +58,7 @@ def test_a_replayed_run_enters_nothing_of_a_second_run_with_the_same_key(
 ) -> None:
     key = RunSeal.new_key()
     first = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.run_graph", "--task", "lqr_2_1", "--horizon", str(HORIZON),
+        [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", "lqr_2_1", "--horizon", str(HORIZON),
          "--run-dir", str(tmp_path / "first"), "--epsilon", "100", "--record"],
         capture_output=True, text=True, timeout=TIMEOUT, env={**os.environ, KEY_ENV: key},
     )  # fmt: skip
@@ -66,18 +68,10 @@ def test_a_replayed_run_enters_nothing_of_a_second_run_with_the_same_key(
     # The second run, started by hand with the same exported key; once it is under way, the first one's bag is
     # replayed at once (results for episodes it has yet to run wait for them, were they taken).
     client = ros_client("replay_watcher")
-    params: dict[str, dict[str, Any]] = {
-        "sim": {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON},
-        "expert": {},
-        "policy": {},
-        "supervisor": {"run_dir": str(tmp_path / "second")},
-    }
-    procs = {
-        name: launch(f"npp_ros_graph.{name}_node", values, extra_env={KEY_ENV: key}) for name, values in params.items()
-    }
+    procs = start_graph(launch, graph_parameters("lqr_2_1", 0, HORIZON, tmp_path / "second"), extra_env={KEY_ENV: key})
     client.wait_for(lambda: episodes(tmp_path / "second" / "run.sqlite") >= 3, TIMEOUT, "the second run's episodes")
     replay = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.replay", str(bag), "--rate", "0", "--delay", "3",
+        [sys.executable, "-m", "npp_ros_graph.tools.replay", str(bag), "--rate", "0", "--delay", "3",
          "--linger", "0"],
         capture_output=True, text=True, timeout=TIMEOUT,
     )  # fmt: skip

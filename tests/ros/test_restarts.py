@@ -10,15 +10,15 @@ import numpy as np
 from npp_interfaces.msg import Certificate, GapReport
 from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
-from npp_ros.storage import RunStore
-from npp_ros_graph.common import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros.run.store import RunStore
+from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
 
-SUPERVISOR = "npp_ros_graph.supervisor_node"
+SUPERVISOR = "npp-supervisor"
 
 
 def test_unreachable_expert_is_reported_and_the_supervisor_exits(launch, tmp_path: Path) -> None:
-    launch("npp_ros_graph.sim_node", {"horizon": 50})
-    launch("npp_ros_graph.policy_node")
+    launch("npp-sim", {"horizon": 50})
+    launch("npp-policy")
     supervisor = launch(SUPERVISOR, {"run_dir": str(tmp_path / "run"), "expert_timeout": 2.0, "expert_retries": 2})
     supervisor.wait(timeout=120)
     log = launch.log(supervisor)
@@ -32,9 +32,9 @@ def test_unreachable_expert_is_reported_and_the_supervisor_exits(launch, tmp_pat
 def test_killing_policy_then_supervisor_loses_no_expert_data(launch, ros_client, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     supervisor_params = {"run_dir": str(run_dir), "max_episodes": 400, "rollout_timeout": 30.0, **ROLLOUT_FREE}
-    launch("npp_ros_graph.sim_node")
-    launch("npp_ros_graph.expert_node")
-    policy = launch("npp_ros_graph.policy_node")
+    launch("npp-sim")
+    launch("npp-expert")
+    policy = launch("npp-policy")
     supervisor = launch(SUPERVISOR, supervisor_params)
     watcher = ros_client("restart_watcher")
     gaps: list[GapReport] = watcher.collect(GapReport, GAP, REPORT_QOS)
@@ -47,7 +47,7 @@ def test_killing_policy_then_supervisor_loses_no_expert_data(launch, ros_client,
     policy.send_signal(signal.SIGKILL)
     policy.wait()
     time.sleep(2.0)  # the sim stalls mid-episode with no policy
-    launch("npp_ros_graph.policy_node")  # restarted: catches up from the supervisor, picks the episode up
+    launch("npp-policy")  # restarted: catches up from the supervisor, picks the episode up
 
     watcher.wait_for(lambda: oracle_calls() >= 20, 300, "20 oracle calls after the policy restart")
     supervisor.send_signal(signal.SIGKILL)

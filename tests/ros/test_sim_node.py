@@ -18,9 +18,19 @@ from rclpy.client import Client
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 
-from npp_ros.lqr import LQRExpert, LQRPlant, episode_rng, rollout, sample_initial_state
-from npp_ros_graph.common import ACTION, CONTROL_QOS, LATCHED_QOS, PLANT, REPORT_QOS, RESET_SERVICE, ROLLOUT_DONE, STATE
-from npp_ros_graph.seal import RunSeal
+from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.rollout import rollout
+from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.topics import (
+    ACTION,
+    CONTROL_QOS,
+    LATCHED_QOS,
+    PLANT,
+    REPORT_QOS,
+    RESET_SERVICE,
+    ROLLOUT_DONE,
+    STATE,
+)
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient

@@ -13,10 +13,10 @@ from expert_checks import TIMEOUT, request, wait_until_modelling
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
 
-from npp_ros.storage import RunStore
-from npp_ros.task_file import HASH_MARK
-from npp_ros.tasks import get_task
-from npp_ros_graph.common import EXPERT_SERVICE, LATCHED_QOS, PLANT
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.task_file import HASH_MARK
+from npp_ros_graph.transport.topics import EXPERT_SERVICE, LATCHED_QOS, PLANT
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient

@@ -10,7 +10,7 @@ from expert_checks import TIMEOUT
 from npp_interfaces.msg import PlantDescription
 from plugin_env import with_plugin_path
 
-from npp_ros_graph.common import LATCHED_QOS, PLANT
+from npp_ros_graph.transport.topics import LATCHED_QOS, PLANT
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient

@@ -27,9 +27,9 @@ from typing import IO, Any
 import pytest
 from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
-from npp_ros.storage import RunStore
-from npp_ros_graph.run_graph import child_setup
-from npp_ros_graph.seal import KEY_ENV, RunSeal
+from npp_ros.run.store import RunStore
+from npp_ros_graph.tools.launcher import child_setup
+from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
 
 pytestmark = pytest.mark.slow
 

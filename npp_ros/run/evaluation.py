@@ -1,0 +1,114 @@
+"""The policy against fresh initial states: one evaluator for npp-learn and npp-experiment.
+
+``policy_rollouts`` steps N rollouts of the greedy policy in lockstep on plant clones (batched
+policy queries, bit-identical to one-at-a-time rollouts) and records the largest value slope the
+policy visited. ``check_policy`` turns them into the test of a certificate's claim: the share of
+s0 whose gap to the value the claim speaks of is within epsilon, and a one-sided binomial test of
+P(gap <= epsilon) >= p at level delta.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.stats import binom
+
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import FloatArray
+from npp_ros.tasks.registry import Expert, Plant, Task
+from npp_ros.tasks.rollout import rollout_batch
+
+CHUNK = 100  # rollouts stepped in lockstep
+VIOLATION_TOLERANCE = 1e-9  # relative: a return below V_lb(s0) by more than rounding
+
+
+def policy_rollouts(
+    plant: Plant,
+    policy: NonparametricPolicy,
+    states: FloatArray,
+    horizon: int,
+    slope: Callable[[ArrayLike], FloatArray] | None,
+    *,
+    chunk: int = CHUNK,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """The policy's H-step return from each s0, and the largest |grad V^expert| along each rollout
+    (NaN where the expert's value slope is not known in closed form)."""
+    returns = np.empty(len(states))
+    slopes = np.empty(len(states))
+    for lo in range(0, len(states), chunk):
+        hi = min(lo + chunk, len(states))
+        for k, run in enumerate(rollout_batch(plant, policy.act, states[lo:hi], horizon)):
+            returns[lo + k] = run.total_return
+            slopes[lo + k] = math.nan if slope is None else float(np.max(slope(run.states)))
+        if progress is not None:
+            progress(hi, len(states))
+    return returns, slopes
+
+
+def below_lower_bound(returns: FloatArray, lower: FloatArray) -> FloatArray:
+    """Returns below V_lb(s0): impossible where Theorem 3.4 holds (and so a sign that it does not)."""
+    return returns < lower - VIOLATION_TOLERANCE * np.maximum(1.0, np.abs(lower))
+
+
+@dataclass(frozen=True)
+class HeldOutCheck:
+    """A policy against fresh s0 ~ rho: does the claim P(gap <= epsilon) >= p survive?"""
+
+    states: int
+    reference: str  # the value each gap is measured against (the certificate's)
+    within: int
+    fraction: float
+    p_value: float  # P[X <= within] for X ~ Binomial(states, p): small means the claim is contradicted
+    rejected: bool  # p_value < delta
+    below_v_lb: int  # returns below V_lb(s0) of the policy
+    gap_q50: float
+    gap_max: float
+    wall_time: float
+    visited_slope: float = float("nan")  # the largest |grad V^expert| the policy visited
+
+
+def check_policy(
+    policy: NonparametricPolicy,
+    task: Task,
+    plant: Plant,
+    expert: Expert,
+    states: FloatArray,
+    horizon: int,
+    *,
+    epsilon: float,
+    p: float,
+    delta: float,
+    against_expert: bool,
+    progress: Callable[[int, int], None] | None = None,
+    expert_progress: Callable[[int, int], None] | None = None,
+) -> HeldOutCheck:
+    """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
+
+    ``against_expert``: the expert's own H-step return from the same s0 (oracle mode, or a
+    suboptimal expert); otherwise the task's optimal H-step return (lqr: H - 0.5 s0'P_H s0). A task
+    that knows no optimum is always checked against its expert.
+    """
+    started = time.perf_counter()
+    returns, slopes = policy_rollouts(plant, policy, states, horizon, task.value_slope(expert), progress=progress)
+    optimal = None if against_expert else task.optimal_returns(expert, plant, states, horizon)
+    if optimal is None:
+        reference = task.expert_returns(expert, plant, states, horizon, expert_progress)
+        what = "the expert's H-step return"
+    else:
+        reference, what = optimal, "the optimal H-step return V*_H"
+    gaps = reference - returns
+    count = len(states)
+    within = int(np.sum(gaps <= epsilon))
+    p_value = float(binom.cdf(within, count, p))
+    below = int(np.sum(below_lower_bound(returns, np.asarray(policy.v_lb(states)))))
+    return HeldOutCheck(
+        states=count, reference=what, within=within, fraction=within / count, p_value=p_value,
+        rejected=p_value < delta, below_v_lb=below, gap_q50=float(np.median(gaps)), gap_max=float(np.max(gaps)),
+        wall_time=time.perf_counter() - started, visited_slope=float(np.max(slopes)) if len(slopes) else math.nan,
+    )  # fmt: skip

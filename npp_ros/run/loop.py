@@ -1,0 +1,362 @@
+"""Algorithm 1 (NPP) as one reusable loop.
+
+The loop owns the algorithm's decisions: sample s0, check the policy at s0 with the quantity the
+run certifies on (npp_ros.certificate), ask the oracle when the check fails, append and persist,
+certify. What it talks to plugs in: where s0 comes from, the oracle, an episode driver (the
+policy's rollout, in process or through the ROS graph) and observers. The supervisor node and
+in-process experiments run this same class, so the same seed gives the same dataset and gap
+sequence in both.
+
+Order within an episode, per mode:
+- ``surrogate`` (the paper): gap V_ub - V_lb at s0; oracle if it exceeds epsilon; then the
+  (updated) policy drives the episode, its return recorded for information.
+- ``rollout``: the current policy drives the episode first; the check V_ub + tail - R^pi decides,
+  and a failed check sends s0 to the oracle.
+- ``oracle``: the current policy drives the episode and the oracle answers for s0 in every
+  episode; the check is V^E(s0) - R^pi(s0). A test must see one frozen policy, so trajectories
+  from passed checks are held back (stored at once, never lost) and join the policy's data when
+  the streak ends: with a failed check, or after the certificate is issued.
+
+Under the ``mixture`` rule (mixture.py) a verification also holds back its failed checks'
+trajectories, in every mode, until it certifies or gives up: the certifier's status says when the
+policy is frozen, and the loop only follows it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields, replace
+from typing import Protocol
+
+import numpy as np
+
+from npp_ros.certificate.authoring import author_certificate
+from npp_ros.certificate.certifier import Certificate, CertificationSpec, CertificationStatus, Certifier
+from npp_ros.certificate.mixture import MixtureCertifier, certifier_for
+from npp_ros.certificate.values import ValueBasis
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
+from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, state_tuple
+from npp_ros.run.store import RunStore
+
+
+class Oracle(Protocol):
+    """The TrajectoryOptimizer: an expert trajectory from a given state."""
+
+    def trajectory(self, initial_state: FloatArray) -> Trajectory: ...
+
+
+class EpisodeInterrupted(RuntimeError):
+    """The run is stopping while an episode is under way: nothing of the episode is recorded, and a
+    resumed run plays it again from the same s0 (a pause or a restart never decides a check)."""
+
+
+class EpisodeDriver(Protocol):
+    """Lets the current policy drive one episode from s0; returns its return, or None when the policy
+    cannot drive at all (no data). A driver that loses a result asks for it again or runs the episode
+    again; it raises EpisodeInterrupted only when the run is stopping."""
+
+    def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None: ...
+
+
+class Observer:
+    """Hooks for progress, logs and topics; override what you need."""
+
+    def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
+        """Called after each episode is stored."""
+
+    def on_certificate(self, certificate: Certificate) -> None:
+        """Called once, when the run certifies."""
+
+    def on_trajectory(self, index: int, trajectory: Trajectory) -> None:
+        """Called when an expert trajectory joins the policy's data (the policy must learn it)."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything that defines a run: the task and its plant, and what the run certifies (``spec``).
+
+    Two runs with equal configs give equal numbers. ``npp_ros.run.setup.build_config`` builds one for a task.
+    """
+
+    task: str
+    seed: int
+    state_dim: int
+    action_dim: int
+    spec: CertificationSpec
+    horizon: int = 1000
+    gamma: float = 1.0
+    plant_fingerprint: str = ""  # the compiled model's SHA-256 (Plant.model_sha256): which plant the data are of
+
+    def metadata(self) -> RunMetadata:
+        """What the run file records of this config: its own fields, the spec's record, where L came from."""
+        own = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "spec"}
+        return RunMetadata(**own, **self.spec.record(), lipschitz_detail=self.spec.lipschitz.detail)
+
+
+@dataclass
+class RunResult:
+    episodes: int
+    oracle_calls: int
+    dataset_size: int
+    certificate: Certificate | None
+    rows: list[EpisodeRow] = field(default_factory=list)
+
+    @property
+    def certified(self) -> bool:
+        return self.certificate is not None
+
+
+class NPPLoop:
+    """Algorithm 1 over pluggable parts; resumes from a run store if it holds episodes.
+
+    ``basis`` says which value the certificate is about and bounds its tail (values.py); the
+    rollout mode needs its tail, and every mode needs a driver except ``surrogate``.
+    """
+
+    def __init__(
+        self,
+        config: RunConfig,
+        oracle: Oracle,
+        initial_state: Callable[[int], FloatArray],
+        *,
+        store: RunStore | None = None,
+        driver: EpisodeDriver | None = None,
+        observers: Sequence[Observer] = (),
+        expert_value: Callable[[FloatArray], float] | None = None,
+        basis: ValueBasis | None = None,
+    ) -> None:
+        self.config = config
+        self.spec = config.spec
+        certify = self.spec.certify
+        if certify != "surrogate" and driver is None:
+            raise ValueError(f"certify={certify} checks the policy's own return: it needs the policy's rollouts")
+        if certify == "rollout" and (basis is None or basis.tail is None):
+            detail = basis.tail_detail if basis is not None else "the expert states no value basis"
+            raise ValueError(f"certify=rollout needs an upper bound on the H-step value at s0 ({detail}); use oracle")
+        self.oracle = oracle
+        self.initial_state = initial_state
+        self.store = store
+        self.driver = driver
+        self.observers = list(observers)
+        self.expert_value = expert_value
+        self.basis = basis
+        self.certifier = certifier_for(self.spec)
+        self.rows: list[EpisodeRow] = []
+        self.certificate: Certificate | None = None
+        self.dataset = Dataset(config.state_dim, config.action_dim)  # every stored trajectory, in order
+        self.policy_data = self.dataset  # the prefix the policy acts on (shorter only while checks hold data back)
+        if store is not None:
+            self._resume(store)
+        self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def next_episode(self) -> int:
+        return len(self.rows)
+
+    @property
+    def oracle_calls(self) -> int:
+        return self.dataset.num_trajectories
+
+    @property
+    def held_back(self) -> int:
+        """Stored trajectories not yet part of the policy (oracle mode during a streak; a verification)."""
+        return self.dataset.num_trajectories - self.policy_data.num_trajectories
+
+    def _passed(self, row: EpisodeRow) -> bool:
+        return row.checked_gap is not None and row.checked_gap <= self.spec.epsilon
+
+    def held_back_after(self, episodes: int) -> int:
+        """Trajectories stored among the first ``episodes`` episodes but not yet part of the policy
+        then (held while its test ran); replays the rule's decisions."""
+        rows = self.rows[:episodes]
+        return sum(row.oracle_called for row in rows) - self._replay(rows)[1]
+
+    def _replay(self, rows: Sequence[EpisodeRow]) -> tuple[Certifier | MixtureCertifier, int]:
+        """A fresh certifier fed ``rows``, and how many stored trajectories the policy held after them."""
+        certifier = certifier_for(self.spec)
+        stored = joined = 0
+        for row in rows:
+            stored += int(row.oracle_called)
+            if not certifier.observe(row.checked_gap, not self._passed(row)).frozen:
+                joined = stored
+        return certifier, joined
+
+    def _resume(self, store: RunStore) -> None:
+        problems = store.metadata.mismatches(self.config.metadata())
+        if problems:
+            raise RunFileError(f"{store.path} belongs to another run:\n  " + "\n  ".join(problems))
+        self.dataset = store.load_dataset()
+        self.policy_data = self.dataset
+        self.rows = store.episodes()
+        for expected, row in enumerate(self.rows):
+            if row.episode != expected:
+                raise RunFileError(f"{store.path} is damaged: episode {expected} is missing from its log")
+        self.certifier, joined = self._replay(self.rows)
+        called = sum(row.oracle_called for row in self.rows)
+        if called != self.dataset.num_trajectories:
+            raise RunFileError(
+                f"{store.path} is inconsistent: {called} episodes called the oracle, "
+                f"{self.dataset.num_trajectories} trajectories are stored"
+            )
+        stored = store.certificate()
+        if stored is not None:
+            self.certificate = Certificate.from_record(stored, self.spec)
+        else:
+            self._set_policy_prefix(joined)
+
+    def _set_policy_prefix(self, count: int) -> None:
+        self.policy_data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
+
+    # ------------------------------------------------------------------ one episode
+    def _drive(self, episode: int, s0: FloatArray) -> float | None:
+        if self.driver is None or len(self.policy_data) == 0:
+            return None
+        ret = self.driver.run_episode(episode, s0, self.policy)
+        return None if ret is None else float(ret)
+
+    def _ask_oracle(self, s0: FloatArray) -> Trajectory:
+        answer = self.oracle.trajectory(s0)
+        trajectory = self.dataset.validate(answer.states, answer.actions, answer.values)
+        if self.spec.certify == "oracle":
+            ret = answer.expert_return
+            if ret is None or not math.isfinite(ret):
+                raise ValueError("certify=oracle needs the expert's own return at s0, and the expert gave none")
+            trajectory = replace(trajectory, expert_return=float(ret))
+        return trajectory
+
+    def _check(self, s0: FloatArray, v_ub: float, policy_return: float | None, answer: Trajectory | None) -> float:
+        """The checked quantity at s0; +inf when it cannot be computed (no policy yet, no return)."""
+        if len(self.policy_data) == 0 or (self.spec.certify != "surrogate" and policy_return is None):
+            return math.inf
+        if self.spec.certify == "rollout":
+            assert self.basis is not None and self.basis.tail is not None and policy_return is not None
+            return v_ub + self.basis.tail(s0) - policy_return
+        assert answer is not None and answer.expert_return is not None and policy_return is not None
+        return answer.expert_return - policy_return
+
+    def run_episode(self) -> EpisodeRow:
+        """One iteration of Algorithm 1 (lines 6-17), in the order the certification mode needs."""
+        started = time.perf_counter()
+        episode = self.next_episode
+        s0 = np.asarray(self.initial_state(episode), dtype=np.float64)
+        v_lb, v_ub = float(self.policy.lower(s0).value[0]), float(self.policy.upper(s0).value[0])
+        gap = v_ub - v_lb if len(self.policy_data) else math.inf
+        mode, epsilon = self.spec.certify, self.spec.epsilon
+        trajectory: Trajectory | None = None
+        policy_return: float | None = None
+        if mode == "surrogate":
+            checked = gap
+            if checked > epsilon:
+                trajectory = self._ask_oracle(s0)
+        else:
+            policy_return = self._drive(episode, s0)
+            if mode == "oracle":
+                trajectory = self._ask_oracle(s0)
+            checked = self._check(s0, v_ub, policy_return, trajectory)
+            if checked > epsilon and trajectory is None:
+                trajectory = self._ask_oracle(s0)
+        failed = not checked <= epsilon
+        index = self.dataset.num_trajectories if trajectory is not None else None
+        status = self.certifier.preview(checked, failed)
+        joins = 0 if status.frozen or trajectory is None else len(trajectory)  # this episode's data, joining now
+        expert_value = self.expert_value(s0) if self.expert_value is not None else None
+        if expert_value is None and trajectory is not None:
+            expert_value = float(trajectory.values[0])
+        row = EpisodeRow(
+            episode=episode,
+            initial_state=state_tuple(s0),
+            v_lb=v_lb,
+            v_ub=v_ub,
+            gap=gap,
+            oracle_called=trajectory is not None,
+            trajectory=index,
+            dataset_size=len(self.policy_data) if status.frozen else len(self.dataset) + joins,
+            oracle_calls=self.oracle_calls + int(trajectory is not None),
+            quiet_episodes=status.quiet_episodes,
+            window=status.window,
+            required=status.required,
+            certified=status.certified,
+            expert_value=expert_value,
+            policy_return=policy_return,
+            wall_time=time.perf_counter() - started,
+            checked_gap=checked,
+            test=status.test,
+            test_delta=status.test_delta,
+        )
+        # Persist before anything else can fail: expert data is the expensive part.
+        if self.store is not None:
+            self.store.record_episode(row, trajectory)
+        if trajectory is not None:
+            self.dataset.append(trajectory)
+            if status.frozen:  # the policy under test stays as it is until its test ends
+                self._hold_back()
+            elif self.policy_data is self.dataset:
+                self._joined(index)
+            else:
+                self._release_held()
+        elif not status.frozen and self.held_back:  # a verification ended on a check without a trajectory
+            self._release_held()
+        self.certifier.observe(checked, failed)
+        self.rows.append(row)
+        if mode == "surrogate" and self.driver is not None:
+            ret = self._drive(episode, s0)
+            if ret is not None:
+                row = replace(row, policy_return=ret)
+                self.rows[-1] = row
+                if self.store is not None:
+                    self.store.set_policy_return(episode, ret)
+        for observer in self.observers:
+            observer.on_episode(row, status)
+        if status.certified and self.certificate is None:
+            self.certificate = self._make_certificate(status)
+            if self.store is not None:
+                self.store.set_certificate(self.certificate.record())
+            for observer in self.observers:
+                observer.on_certificate(self.certificate)
+            if self.held_back:
+                self._release_held()
+        return row
+
+    def _hold_back(self) -> None:
+        """The first held trajectory splits the policy's data from the stored data."""
+        if self.policy_data is self.dataset:
+            self._set_policy_prefix(self.dataset.num_trajectories - 1)
+            self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
+
+    def _joined(self, index: int | None) -> None:
+        if index is None:
+            return
+        for observer in self.observers:
+            observer.on_trajectory(index, self.dataset.trajectory(index))
+
+    def _release_held(self) -> None:
+        """The streak ended: held trajectories join the policy, in stored order."""
+        first = self.policy_data.num_trajectories
+        self.policy_data = self.dataset
+        self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
+        for index in range(first, self.dataset.num_trajectories):
+            self._joined(index)
+
+    def _make_certificate(self, status: CertificationStatus) -> Certificate:
+        return author_certificate(
+            self.spec,
+            self.basis,
+            status,
+            task=self.config.task,
+            horizon=self.config.horizon,
+            episodes=len(self.rows),
+            oracle_calls=self.oracle_calls,
+            dataset_size=len(self.policy_data),
+            policy_trajectories=self.policy_data.num_trajectories,
+        )
+
+    # ------------------------------------------------------------------ whole run
+    def run(self, max_episodes: int) -> RunResult:
+        """Run until certified or until ``max_episodes`` episodes exist in total."""
+        while self.certificate is None and self.next_episode < max_episodes:
+            self.run_episode()
+        return RunResult(len(self.rows), self.oracle_calls, len(self.policy_data), self.certificate, self.rows)

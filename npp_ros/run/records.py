@@ -1,0 +1,114 @@
+"""What one run records: its metadata, one row per episode, and the episode log every front end writes.
+
+These are plain values: the run file (store.py), the loop, the nodes and the command lines all pass
+them, and ``episodes.csv`` has one writer here, so npp-learn and npp-run write the same columns.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from npp_ros.policy.dataset import FloatArray
+
+
+class RunFileError(RuntimeError):
+    """The run file is missing, damaged, of another version, or made for another run."""
+
+
+class MissingMetadata(RunFileError, AttributeError):
+    """A metadata key the run file lacks: a RunFileError naming it, and still an AttributeError for hasattr."""
+
+
+class RunMetadata(SimpleNamespace):
+    """What a run file was made for: the meta table's values by name, as ``RunConfig.metadata()`` gives them.
+
+    A resumed run must ask for the same values; only where L came from (its detail) may differ.
+    """
+
+    PROVENANCE = ("lipschitz_detail",)
+    RECORDED_SINCE = ("plant_fingerprint",)  # absent from older files: the first resume records them
+
+    def __getattr__(self, name: str) -> object:
+        """Only called for a key the meta table lacks (a hand-edited or damaged file): say which."""
+        if name.startswith("__"):
+            raise AttributeError(name)
+        raise MissingMetadata(f"the run file's metadata has no {name!r} (hand-edited or damaged?)")
+
+    def mismatches(self, asked: RunMetadata) -> list[str]:
+        return [
+            f"{name}: file has {getattr(self, name, None)!r}, this run asks for {value!r}"
+            for name, value in vars(asked).items()
+            if name not in self.PROVENANCE
+            and getattr(self, name, None) != value
+            and not (name in self.RECORDED_SINCE and not hasattr(self, name))
+        ]
+
+    def unrecorded(self, asked: RunMetadata) -> dict[str, object]:
+        """What ``asked`` records that this (older) file does not yet."""
+        names = [name for name in self.RECORDED_SINCE if hasattr(asked, name) and not hasattr(self, name)]
+        return {name: getattr(asked, name) for name in names}
+
+
+@dataclass(frozen=True)
+class EpisodeRow:
+    """One episode of Algorithm 1 as stored (and as logged to CSV)."""
+
+    episode: int
+    initial_state: tuple[float, ...]
+    v_lb: float
+    v_ub: float
+    gap: float
+    oracle_called: bool
+    trajectory: int | None
+    dataset_size: int
+    oracle_calls: int
+    quiet_episodes: int
+    window: int
+    required: int
+    certified: bool
+    expert_value: float | None = None
+    policy_return: float | None = None
+    wall_time: float = 0.0
+    checked_gap: float = math.inf  # the quantity the certification checked (see npp_ros.certificate)
+    test: int = 0  # the test this episode belongs to (0: no policy yet; the mixture rule: no verification runs)
+    test_delta: float = 0.0  # the confidence that test may spend
+
+
+EPISODE_COLUMNS = tuple(EpisodeRow.__dataclass_fields__)
+
+
+def _episode_cells(row: EpisodeRow) -> list[object]:
+    """One CSV line of a row; a state is written as its numbers, space-separated, to full precision."""
+    cells = (getattr(row, name) for name in EPISODE_COLUMNS)
+    return [" ".join(f"{x:.17g}" for x in v) if isinstance(v, tuple) else v for v in cells]
+
+
+def write_episode_log(path: Path, rows: Iterable[EpisodeRow]) -> None:
+    """The whole episode log at once, replaced atomically (npp-learn, at the end of a run)."""
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(EPISODE_COLUMNS)
+        writer.writerows(_episode_cells(row) for row in rows)
+    tmp.replace(path)
+
+
+def append_episode_log(path: Path, row: EpisodeRow) -> None:
+    """One more line of the episode log, with the header when the file is new (the supervisor, per episode)."""
+    new = not path.exists()
+    with path.open("a", newline="") as fh:
+        writer = csv.writer(fh)
+        if new:
+            writer.writerow(EPISODE_COLUMNS)
+        writer.writerow(_episode_cells(row))
+
+
+def state_tuple(state: FloatArray) -> tuple[float, ...]:
+    return tuple(float(x) for x in np.asarray(state).ravel())

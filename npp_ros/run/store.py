@@ -1,0 +1,614 @@
+"""Crash-safe persistence of a run: expert trajectories, the episode log and the metadata.
+
+The file is SQLite (format "npp_ros.run", version FORMAT_VERSION), readable by the sqlite3 shell, pandas,
+R or any language; no pickle. Tables (see README, "Run file format"):
+
+- ``meta(key, value)``: format, format_version, created, run_id (the run's identity: random, drawn when the file
+  is made, recorded at the next writable open of a file from before it existed; the ROS graph seals every
+  message of the run with it), the run's metadata (``RunConfig.metadata()``:
+  task, seed, dims, horizon, gamma, the plant's model fingerprint, what it certifies, L with its source), and the
+  certificate (JSON) once issued. A resumed run must ask for the same values; a file from before the
+  fingerprint was recorded records its resuming run's;
+- ``trajectories(id, episode, steps, sha256)``: one row per expert trajectory, ids from 0;
+- ``points(trajectory, step, s_0.., a_0.., q)``: the (s, a, Q) triplets, one row per step;
+- ``episodes(episode, ...)``: Algorithm 1's decision per episode, and the policy's return.
+
+Each trajectory is committed in one transaction together with the episode that asked for it.
+Crash safety, while a writer runs: journal_mode=WAL with synchronous=FULL. A commit appends the
+transaction's pages to ``run.sqlite-wal`` and ends with a commit frame; FULL fsyncs the WAL at
+every commit, so an acknowledged trajectory survives a killed process and a power cut. Frames
+carry checksums and a salt: on the next open SQLite replays only complete, committed
+transactions and ignores a torn tail, so the interrupted trajectory is absent, never half
+written. Checkpoints copy pages into run.sqlite only from a synced WAL and sync the file before
+the WAL is reused. WAL is what lets readers (sqlite3 shell, pandas, npp-bench) hold a read
+transaction for as long as they like without ever making the writer wait: a reader sees the
+snapshot it started with, the writer appends behind it. On a clean close the file goes back to
+a rollback journal, so a finished run is one self-contained file (copy it, read it from
+read-only media) exactly as older npp_ros wrote them; those open and resume unchanged.
+
+One writer per run file: the writer holds an exclusive ``flock`` on ``run.lock`` beside it
+(pid and command line inside), which the OS drops when the writer exits or dies. A second
+writer is refused up front, naming the first; readers take no lock. The file is created
+atomically (schema built in a temporary file, then renamed), so a full disk or a kill during
+creation never leaves an empty run.sqlite that blocks the folder. A failed write says what ran
+out (disk full, folder not writable) and where; the rollback never hides the cause.
+
+Loading reads everything inside one read transaction (one snapshot), so a commit by a live
+writer between two reads is never mistaken for damage. Loading verifies the format version,
+the dimensions, every trajectory's row count and its SHA-256, so a damaged or foreign file is
+refused with a clear error instead of loading partially.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import glob
+import hashlib
+import json
+import math
+import os
+import secrets
+import shlex
+import shutil
+import sqlite3
+import sys
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager, suppress
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
+from npp_ros.run.records import EPISODE_COLUMNS, EpisodeRow, RunFileError, RunMetadata
+
+FORMAT_NAME = "npp_ros.run"
+FORMAT_VERSION = 2  # 2: certification mode, stopping rule, checked gap and test per episode
+# Meta keys that are not the run's metadata (RunConfig.metadata()): the file's own, and what the run adds.
+_FILE_KEYS = ("format", "format_version", "created", "certificate", "run_id")
+
+# How long a write waits for another connection's write transaction (a user's sqlite3 shell
+# writing to the file, say) before it gives up. Readers never make a writer wait (WAL).
+BUSY_TIMEOUT_S = 30.0
+
+# SQLite primary result codes that name the cause of a failed write.
+_SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_READONLY, _SQLITE_IOERR, _SQLITE_FULL = 5, 6, 8, 10, 13
+
+
+def trajectory_digest(trajectory: Trajectory) -> str:
+    h = hashlib.sha256()
+    for arr in (trajectory.states, trajectory.actions, trajectory.values):
+        h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+    return h.hexdigest()
+
+
+class RunStore:
+    """One run file. Open with :meth:`create`, :meth:`open` or :meth:`open_or_create`.
+
+    :meth:`create` and :meth:`open_or_create` make this process the file's one writer;
+    :meth:`open` reads without a lock, and becomes the writer at its first write.
+    """
+
+    def __init__(
+        self, path: Path, conn: sqlite3.Connection, metadata: RunMetadata, lock: WriterLock | None = None
+    ) -> None:
+        self.path = path
+        self._conn = conn
+        self.metadata = metadata
+        self._lock = lock
+        self._wal = False
+
+    # ---------------------------------------------------------------- opening
+    @staticmethod
+    def _connect(path: Path) -> sqlite3.Connection:
+        conn = sqlite3.connect(str(path), isolation_level=None, timeout=BUSY_TIMEOUT_S)
+        conn.execute("PRAGMA synchronous=FULL")
+        return conn
+
+    @classmethod
+    def create(cls, path: str | Path, metadata: RunMetadata) -> RunStore:
+        path = Path(path)
+        _make_folder(path.parent)
+        lock = WriterLock.acquire(path)
+        try:
+            if not _holds_nothing(path):
+                raise RunFileError(f"{path} already exists; open it to resume, or choose a new path")
+            return cls._create_locked(path, metadata, lock)
+        except BaseException:
+            lock.release()
+            raise
+
+    @classmethod
+    def _create_locked(cls, path: Path, metadata: RunMetadata, lock: WriterLock) -> RunStore:
+        """Build the schema in a temporary file and rename it into place: the run file either
+        does not exist or is complete, whatever happens meanwhile (disk full, a kill)."""
+        _remove_leftovers(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.new")
+        conn: sqlite3.Connection | None = None
+        try:
+            conn = cls._connect(tmp)
+            conn.execute("PRAGMA journal_mode=DELETE")
+            cls._write_schema(conn, metadata, path)
+            conn.close()
+            conn = None
+            os.replace(tmp, path)
+            _sync_folder(path.parent)
+        except BaseException as exc:
+            if conn is not None:
+                conn.close()
+            for leftover in (tmp, tmp.with_name(tmp.name + "-journal")):
+                leftover.unlink(missing_ok=True)
+            if isinstance(exc, (OSError, sqlite3.Error)):
+                raise _write_error(exc, path) from exc
+            raise
+        store = cls(path, cls._connect(path), metadata, lock)
+        try:
+            store._use_wal()
+        except BaseException:
+            store._conn.close()
+            raise
+        return store
+
+    @staticmethod
+    def _write_schema(conn: sqlite3.Connection, metadata: RunMetadata, path: Path) -> None:
+        s_cols = ", ".join(f"s_{k} REAL NOT NULL" for k in range(metadata.state_dim))
+        a_cols = ", ".join(f"a_{k} REAL NOT NULL" for k in range(metadata.action_dim))
+        with _transaction(conn, path):
+            conn.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+            conn.execute(
+                "CREATE TABLE trajectories (id INTEGER PRIMARY KEY, episode INTEGER, "
+                "steps INTEGER NOT NULL, sha256 TEXT NOT NULL, created REAL NOT NULL)"
+            )
+            conn.execute(
+                f"CREATE TABLE points (trajectory INTEGER NOT NULL REFERENCES trajectories(id), "
+                f"step INTEGER NOT NULL, {s_cols}, {a_cols}, q REAL NOT NULL, "
+                "PRIMARY KEY (trajectory, step))"
+            )
+            conn.execute(
+                "CREATE TABLE episodes (episode INTEGER PRIMARY KEY, initial_state TEXT NOT NULL, "
+                "v_lb REAL, v_ub REAL, gap REAL, oracle_called INTEGER NOT NULL, trajectory INTEGER, "
+                "dataset_size INTEGER NOT NULL, oracle_calls INTEGER NOT NULL, "
+                "quiet_episodes INTEGER NOT NULL, window INTEGER NOT NULL, required INTEGER NOT NULL, "
+                "certified INTEGER NOT NULL, expert_value REAL, policy_return REAL, wall_time REAL, "
+                "checked_gap REAL, test INTEGER NOT NULL, test_delta REAL NOT NULL)"
+            )
+            rows = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "created": str(time.time()),
+                    "run_id": new_run_id()}  # fmt: skip
+            rows.update({k: json.dumps(v) for k, v in vars(metadata).items()})
+            conn.executemany("INSERT INTO meta VALUES (?, ?)", rows.items())
+
+    @classmethod
+    def open(cls, path: str | Path) -> RunStore:
+        """Open for reading; no lock, so it never stops a running writer."""
+        path = Path(path)
+        if not path.is_file():
+            raise RunFileError(f"run file {path} does not exist")
+        if _holds_nothing(path):
+            raise RunFileError(f"{path} is not a readable npp_ros run file: it is empty, no run was stored in it")
+        try:
+            conn = cls._connect(path)
+            check = conn.execute("PRAGMA quick_check").fetchone()[0]
+            if check != "ok":
+                raise RunFileError(f"{path} is damaged (SQLite quick_check: {check})")
+            meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+        except sqlite3.DatabaseError as exc:
+            raise RunFileError(f"{path} is not a readable npp_ros run file: {exc}") from exc
+        if meta.get("format") != FORMAT_NAME:
+            raise RunFileError(f"{path} is not an npp_ros run file (format {meta.get('format')!r})")
+        if meta.get("format_version") != str(FORMAT_VERSION):
+            raise RunFileError(
+                f"{path} has format version {meta.get('format_version')}, this npp_ros reads version "
+                f"{FORMAT_VERSION}; convert it or use the npp_ros that wrote it"
+            )
+        try:
+            metadata = RunMetadata(**{k: json.loads(v) for k, v in meta.items() if k not in _FILE_KEYS})
+        except (ValueError, TypeError) as exc:
+            raise RunFileError(f"{path} has unreadable metadata: {exc}") from exc
+        missing = {"state_dim", "action_dim"} - vars(metadata).keys()  # the tables' shape
+        if missing:
+            raise RunFileError(f"{path} has incomplete metadata: no {' or '.join(sorted(missing))}")
+        return cls(path, conn, metadata)
+
+    @classmethod
+    def open_or_create(cls, path: str | Path, metadata: RunMetadata) -> RunStore:
+        """Resume an existing file made for the same run, or start a new one; as its one writer."""
+        path = Path(path)
+        _make_folder(path.parent)
+        lock = WriterLock.acquire(path)
+        try:
+            if _holds_nothing(path):  # absent, or empty (an older npp_ros died creating it)
+                return cls._create_locked(path, metadata, lock)
+            store = cls.open(path)
+        except BaseException:
+            lock.release()
+            raise
+        try:
+            problems = store.metadata.mismatches(metadata)
+            if problems:
+                raise RunFileError(f"{path} belongs to another run and was left untouched:\n  " + "\n  ".join(problems))
+            store._lock = lock
+            store._use_wal()
+            store._record_meta(store.metadata.unrecorded(metadata))
+            if store._meta_value("run_id") is None:  # a file from before runs had an identity gets one now
+                with _transaction(store._conn, store.path):
+                    store._conn.execute("INSERT INTO meta VALUES ('run_id', ?)", (new_run_id(),))
+            return store
+        except BaseException:
+            store.close()
+            lock.release()
+            raise
+
+    def _writable(self) -> None:
+        """Become the file's one writer before the first write of a store opened for reading."""
+        if self._lock is None:
+            self._lock = WriterLock.acquire(self.path)
+            try:
+                self._use_wal()
+            except BaseException:
+                self._lock.release()
+                self._lock = None
+                raise
+
+    def _use_wal(self) -> None:
+        """WAL while writing: readers then never make a commit wait (see the module docstring)."""
+        try:
+            mode = self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+        except sqlite3.Error as exc:
+            if _primary_code(exc) in (_SQLITE_BUSY, _SQLITE_LOCKED):
+                raise RunFileError(
+                    f"{self.path} is held by a reader inside a transaction opened before this run started "
+                    "(a sqlite3 shell after BEGIN?); end that transaction (COMMIT) and start again"
+                ) from exc
+            raise _write_error(exc, self.path) from exc
+        # A file system without shared memory keeps the rollback journal: still crash-safe,
+        # but there a long read transaction can make a commit wait.
+        self._wal = mode == "wal"
+
+    def close(self) -> None:
+        """Back to a rollback journal (one self-contained file) unless a reader still has it open."""
+        if self._wal:
+            self._wal = False
+            with suppress(sqlite3.Error):  # then it stays in WAL mode, just as safe
+                self._conn.execute("PRAGMA busy_timeout = 0")
+                self._conn.execute("PRAGMA journal_mode=DELETE")
+        self._conn.close()
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
+    def __enter__(self) -> RunStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---------------------------------------------------------------- writing
+    def record_episode(self, row: EpisodeRow, trajectory: Trajectory | None = None) -> None:
+        """Store an episode, and the trajectory it asked for, atomically."""
+        if (trajectory is None) != (row.trajectory is None):
+            raise ValueError("an episode row names a trajectory if and only if one is given")
+        self._writable()
+        with _transaction(self._conn, self.path):
+            if trajectory is not None:
+                self._insert_trajectory(row.trajectory, row.episode, trajectory)
+            values = [_encode(getattr(row, name)) for name in EPISODE_COLUMNS]
+            marks = ", ".join("?" * len(values))
+            self._conn.execute(f"INSERT INTO episodes ({', '.join(EPISODE_COLUMNS)}) VALUES ({marks})", values)
+
+    def _insert_trajectory(self, index: int | None, episode: int | None, trajectory: Trajectory) -> None:
+        meta = self.metadata
+        Trajectory.validated(
+            trajectory.states, trajectory.actions, trajectory.values,
+            state_dim=meta.state_dim, action_dim=meta.action_dim, label=f"trajectory {index}",
+        )  # fmt: skip
+        expected = self._conn.execute("SELECT COUNT(*) FROM trajectories").fetchone()[0]
+        if index != expected:
+            raise RunFileError(f"trajectory index {index} out of order: the file holds {expected}")
+        self._conn.execute(
+            "INSERT INTO trajectories VALUES (?, ?, ?, ?, ?)",
+            (index, episode, len(trajectory), trajectory_digest(trajectory), time.time()),
+        )
+        steps = np.arange(len(trajectory), dtype=np.float64)[:, None]
+        block = np.hstack([steps, trajectory.states, trajectory.actions, trajectory.values[:, None]])
+        marks = ", ".join("?" * (block.shape[1] + 1))
+        self._conn.executemany(
+            f"INSERT INTO points VALUES ({marks})",
+            ((index, int(r[0]), *r[1:].tolist()) for r in block),
+        )
+
+    def set_policy_return(self, episode: int, policy_return: float) -> None:
+        self._writable()
+        with _transaction(self._conn, self.path):
+            self._conn.execute("UPDATE episodes SET policy_return = ? WHERE episode = ?", (policy_return, episode))
+
+    def set_certificate(self, certificate: Mapping[str, Any]) -> None:
+        self._writable()
+        with _transaction(self._conn, self.path):
+            self._conn.execute("INSERT OR REPLACE INTO meta VALUES ('certificate', ?)", (json.dumps(certificate),))
+
+    def _record_meta(self, values: Mapping[str, Any]) -> None:
+        """Add metadata a file made by an older npp_ros lacks (never changes a recorded value)."""
+        if not values:
+            return
+        with _transaction(self._conn, self.path):
+            self._conn.executemany("INSERT INTO meta VALUES (?, ?)", [(k, json.dumps(v)) for k, v in values.items()])
+        for name, value in values.items():
+            setattr(self.metadata, name, value)
+
+    # ---------------------------------------------------------------- reading
+    @contextmanager
+    def snapshot(self) -> Iterator[None]:
+        """Reads inside see one committed state of the file while a writer goes on (reads only)."""
+        if self._conn.in_transaction:  # nested: the outer snapshot holds
+            yield
+            return
+        self._conn.execute("BEGIN")
+        try:
+            yield
+        finally:
+            if self._conn.in_transaction:
+                self._conn.execute("COMMIT")
+
+    def _meta_value(self, key: str) -> str | None:
+        row = self._conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else str(row[0])
+
+    @property
+    def run_id(self) -> str:
+        """The run's identity ("" for a file from before runs had one, until a writer opens it)."""
+        return self._meta_value("run_id") or ""
+
+    def certificate(self) -> dict[str, Any] | None:
+        value = self._meta_value("certificate")
+        return None if value is None else json.loads(value)
+
+    def episodes(self) -> list[EpisodeRow]:
+        cur = self._conn.execute(f"SELECT {', '.join(EPISODE_COLUMNS)} FROM episodes ORDER BY episode")
+        rows = []
+        for raw in cur:
+            item = dict(zip(EPISODE_COLUMNS, raw, strict=True))
+            item["initial_state"] = tuple(json.loads(item["initial_state"]))
+            for flag in ("oracle_called", "certified"):
+                item[flag] = bool(item[flag])
+            rows.append(EpisodeRow(**item))
+        return rows
+
+    def num_trajectories(self) -> int:
+        return int(self._conn.execute("SELECT COUNT(*) FROM trajectories").fetchone()[0])
+
+    def load_dataset(self) -> Dataset:
+        """All trajectories, verified row count and SHA-256 each; any damage raises."""
+        meta = self.metadata
+        n, m = meta.state_dim, meta.action_dim
+        try:
+            with self.snapshot():  # a commit between the two reads would look like damage
+                table = self._conn.execute("SELECT id, steps, sha256 FROM trajectories ORDER BY id").fetchall()
+                cols = [f"s_{k}" for k in range(n)] + [f"a_{k}" for k in range(m)] + ["q"]
+                points = self._conn.execute(
+                    f"SELECT trajectory, step, {', '.join(cols)} FROM points ORDER BY trajectory, step"
+                ).fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise RunFileError(f"{self.path}: cannot read the dataset: {exc}") from exc
+        total = sum(steps for _, steps, _ in table)
+        dataset = Dataset(n, m, capacity=max(total, 1))
+        if len(points) != total:
+            raise RunFileError(f"{self.path} is damaged: {len(points)} points stored, trajectories declare {total}")
+        arr = np.asarray(points, dtype=np.float64).reshape(len(points), 2 + n + m + 1)
+        lo = 0
+        for expected_id, (traj_id, steps, digest) in enumerate(table):
+            block = arr[lo : lo + steps]
+            lo += steps
+            if traj_id != expected_id:
+                raise RunFileError(f"{self.path} is damaged: trajectory {expected_id} is missing")
+            if not (np.all(block[:, 0] == traj_id) and np.array_equal(block[:, 1], np.arange(steps))):
+                raise RunFileError(f"{self.path} is damaged: trajectory {traj_id} has missing or extra steps")
+            traj = Trajectory(block[:, 2 : 2 + n].copy(), block[:, 2 + n : 2 + n + m].copy(), block[:, -1].copy())
+            if trajectory_digest(traj) != digest:
+                raise RunFileError(f"{self.path} is damaged: trajectory {traj_id} fails its SHA-256 check")
+            try:
+                dataset.append(traj)
+            except DatasetError as exc:
+                raise RunFileError(f"{self.path} holds an invalid trajectory: {exc}") from exc
+        return dataset
+
+
+def _encode(value: Any) -> Any:
+    if isinstance(value, tuple):
+        return json.dumps([float(v) for v in value])
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, bool):
+        return int(value)
+    return value
+
+
+@contextmanager
+def _transaction(conn: sqlite3.Connection, path: Path) -> Iterator[None]:
+    """One write transaction. On failure it rolls back unless SQLite already has (it does on a
+    full disk), and raises the original cause, named, never the rollback's own complaint."""
+    try:
+        conn.execute("BEGIN IMMEDIATE")
+        yield
+        conn.execute("COMMIT")
+    except BaseException as exc:
+        if conn.in_transaction:
+            with suppress(sqlite3.Error):  # if this fails too, SQLite undoes it at the next open
+                conn.execute("ROLLBACK")
+        if isinstance(exc, sqlite3.Error):
+            raise _write_error(exc, path) from exc
+        raise
+
+
+def _primary_code(exc: BaseException) -> int | None:
+    code = getattr(exc, "sqlite_errorcode", None)
+    return None if code is None else code & 0xFF
+
+
+def _write_error(exc: BaseException, path: Path) -> RunFileError:
+    """What a failed write ran into and where, in words a user can act on."""
+    folder = path.parent
+    code = _primary_code(exc)
+    err = exc.errno if isinstance(exc, OSError) else None
+    if code == _SQLITE_FULL or err in (errno.ENOSPC, errno.EDQUOT) or (code == _SQLITE_IOERR and _nearly_full(folder)):
+        return RunFileError(
+            f"disk full: cannot write {path} ({_free_space(folder)} free in {folder}); what was stored before "
+            "is intact: free some space and start the run again to resume"
+        )
+    if code == _SQLITE_READONLY or err in (errno.EROFS, errno.EACCES, errno.EPERM):
+        reason = os.strerror(err) if err is not None else str(exc)
+        return RunFileError(
+            f"{folder} is not writable ({reason}): a run writes its folder; make it writable or choose another"
+        )
+    if code in (_SQLITE_BUSY, _SQLITE_LOCKED):
+        return RunFileError(
+            f"cannot write {path}: another connection kept a write transaction open for {BUSY_TIMEOUT_S:g} s "
+            "(a sqlite3 shell or script writing to it?); a run file has one writer"
+        )
+    return RunFileError(f"cannot write {path}: {exc}")
+
+
+def _nearly_full(folder: Path) -> bool:
+    """SQLite reports some out-of-space failures as I/O errors; a near-empty file system says which."""
+    try:
+        return shutil.disk_usage(folder).free < (1 << 20)
+    except OSError:
+        return False
+
+
+def _free_space(folder: Path) -> str:
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return "unknown space"
+    for unit in ("bytes", "KiB", "MiB", "GiB"):
+        if free < 1024 or unit == "GiB":
+            return f"{free:.0f} {unit}" if unit == "bytes" else f"{free:.1f} {unit}"
+        free /= 1024
+    return f"{free:.1f} GiB"
+
+
+def _make_folder(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise _write_error(exc, folder) from exc
+        raise RunFileError(f"cannot create the run folder {folder} ({exc.strerror}); choose another") from exc
+
+
+def _sync_folder(folder: Path) -> None:
+    """Make a rename durable: fsync the folder's entry list (where the OS allows it)."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        with suppress(OSError):
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _holds_nothing(path: Path) -> bool:
+    """Absent, or empty with no write-ahead log: no run was ever stored there."""
+    try:
+        if path.stat().st_size > 0:
+            return False
+    except FileNotFoundError:
+        return True
+    wal = path.with_name(path.name + "-wal")
+    return not wal.exists() or wal.stat().st_size == 0
+
+
+def _remove_leftovers(path: Path) -> None:
+    """Temporary files of creators that died, and an empty run file (only the writer calls this)."""
+    for leftover in path.parent.glob(f".{glob.escape(path.name)}.*.new*"):
+        leftover.unlink(missing_ok=True)
+    if path.exists() and _holds_nothing(path):
+        path.unlink()
+
+
+class WriterLock:
+    """An exclusive flock on RUN.lock beside the run file: one writer per run file. The OS
+    releases it when its holder exits or dies, so a crash never leaves the folder locked; a
+    clean release removes the file, so a folder at rest holds only the run's own files."""
+
+    def __init__(self, fd: int, path: Path) -> None:
+        self._fd = fd
+        self._path = path
+        self._owner = os.getpid()
+
+    @classmethod
+    def acquire(cls, run_path: Path) -> WriterLock:
+        lock_path = run_path.with_suffix(".lock")
+        while True:
+            try:
+                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            except OSError as exc:
+                raise _write_error(exc, lock_path) from exc
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                holder = _lock_holder(fd)
+                os.close(fd)
+                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
+                    raise RunFileError(
+                        f"{run_path.parent} is in use by {holder}; a run folder has one writer"
+                    ) from None
+                raise RunFileError(f"cannot lock {lock_path} ({os.strerror(exc.errno or 0)})") from exc
+            try:
+                current = os.stat(lock_path)
+                mine = os.fstat(fd)
+                if (current.st_dev, current.st_ino) == (mine.st_dev, mine.st_ino):
+                    break
+            except FileNotFoundError:
+                pass
+            os.close(fd)  # the previous writer removed this file as we locked it: lock the current one
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n{_command_line()}\n".encode(), 0)
+        except OSError as exc:
+            cls(fd, lock_path).release()
+            raise _write_error(exc, lock_path) from exc
+        return cls(fd, lock_path)
+
+    def release(self) -> None:
+        if self._fd >= 0 and os.getpid() == self._owner:  # never from a forked child: the parent writes on
+            with suppress(OSError):  # removed while still held: a newcomer never locks a stale file
+                self._path.unlink()
+            os.close(self._fd)
+            self._fd = -1
+
+    def __del__(self) -> None:  # a store dropped without close() must not keep the folder
+        self.release()
+
+
+def _lock_holder(fd: int) -> str:
+    """'pid N (command line)' of the writer, from the lock file it wrote (or /proc)."""
+    try:
+        pid_text, _, command = os.pread(fd, 4096, 0).decode(errors="replace").partition("\n")
+    except OSError:
+        return "another process"
+    if not pid_text.strip().isdigit():
+        return "another process"
+    pid = int(pid_text)
+    command = command.strip()
+    if not command:
+        with suppress(OSError):
+            command = shlex.join(Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")[:-1])
+    return f"pid {pid} ({command})" if command else f"pid {pid}"
+
+
+def _command_line() -> str:
+    """How this process was started, as a user would type it (npp-learn --run-dir runs/a)."""
+    argv = sys.argv
+    if argv and argv[0] not in ("", "-c") and not argv[0].endswith(".py"):
+        words = [Path(argv[0]).name, *argv[1:]]  # a console script
+    else:
+        words = [Path(sys.orig_argv[0]).name, *sys.orig_argv[1:]]
+    line = " ".join(shlex.join(words).split())  # one line, whatever a -c script holds
+    return line if len(line) <= 200 else line[:197] + "..."
+
+
+def new_run_id() -> str:
+    """A fresh run identity: 128 random bits, so that no two runs share one."""
+    return secrets.token_hex(16)

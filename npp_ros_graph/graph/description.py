@@ -1,0 +1,80 @@
+"""The four-node graph, described once: which nodes a run starts, by which command, with which parameters.
+
+npp-run starts a run from this description, and the tests start their graphs from it too, so a node
+that is added, renamed or given a new run setting changes here and in no launcher of its own.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class GraphNode:
+    """One node of the graph: its role in a run, its console script, and the module that runs it."""
+
+    role: str
+    command: str
+    module: str
+
+
+NODES: dict[str, GraphNode] = {
+    node.role: node
+    for node in (
+        GraphNode("sim", "npp-sim", "npp_ros_graph.nodes.sim"),
+        GraphNode("expert", "npp-expert", "npp_ros_graph.nodes.expert"),
+        GraphNode("policy", "npp-policy", "npp_ros_graph.nodes.policy"),
+        GraphNode("supervisor", "npp-supervisor", "npp_ros_graph.nodes.supervisor.node"),
+    )
+}
+"""Role -> node, in the order a run starts them."""
+
+ROLES: tuple[str, ...] = tuple(NODES)
+
+
+def graph_parameters(
+    task: str,
+    seed: int,
+    horizon: int,
+    run_dir: Path | str,
+    *,
+    expert: Mapping[str, Any] | None = None,
+    policy: Mapping[str, Any] | None = None,
+    supervisor: Mapping[str, Any] | None = None,
+) -> dict[str, dict[str, Any]]:
+    """Each role's ROS parameters for one run: the sim's plant, the supervisor's run folder, and any others.
+
+    The task, seed and horizon go to the sim alone (the other nodes learn them from its plant
+    description), and the run folder to the supervisor, which alone writes it.
+    """
+    return {
+        "sim": {"task": task, "seed": seed, "horizon": horizon},
+        "expert": dict(expert or {}),
+        "policy": dict(policy or {}),
+        "supervisor": {"run_dir": str(run_dir), **(supervisor or {})},
+    }
+
+
+def ros_literal(value: Any) -> str:
+    """A value as a `-p name:=VALUE` literal that keeps its type (a string that reads as a number stays one)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(ros_literal(v) for v in value) + "]"
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def node_argv(role: str, parameters: Mapping[str, Any], namespace: str = "") -> list[str]:
+    """The command line that starts one node of the graph in this interpreter, with its parameters."""
+    argv = [sys.executable, "-m", NODES[role].module, "--ros-args"]
+    if namespace:
+        argv += ["-r", f"__ns:={namespace}"]
+    for name, value in parameters.items():
+        argv += ["-p", f"{name}:={ros_literal(value)}"]
+    return argv

@@ -1,0 +1,116 @@
+"""The oracle of Algorithm 1 over the graph: the expert service, a deadline per call, retries, a clear failure."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from npp_interfaces.msg import PlantDescription
+from npp_interfaces.srv import ExpertTrajectory
+from rclpy.client import Client
+from rclpy.impl.rcutils_logger import RcutilsLogger
+
+from npp_ros.policy.dataset import FloatArray, Trajectory
+from npp_ros.run.answer_check import AnswerCheck
+from npp_ros_graph.runtime.deadlines import call_with_deadline
+from npp_ros_graph.transport.convert import float64_array, trajectory_from_response
+from npp_ros_graph.transport.seal import RunSeal, SealError
+from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, NOT_READY
+
+RETRY_PAUSE_S = 0.25  # first pause between expert attempts; doubles each time, capped at expert_timeout
+
+
+class ExpertUnavailable(RuntimeError):
+    pass
+
+
+class RosExpert:
+    """The oracle over /npp/expert/trajectory: a deadline per call, retries, clear failure.
+
+    It gets what it uses: the service client, the run's plant, seal and identity, the node's stop event
+    and logger, a count of the service's servers (what a refusal names), and the check of an answer: one
+    that fails it (wrong dimensions, non-finite values, values that contradict its own trajectory on the
+    supervisor's plant) counts as a failed attempt, with the reason, and nothing of it is stored.
+    """
+
+    def __init__(
+        self,
+        client: Client,
+        plant: PlantDescription,
+        seal: RunSeal,
+        run_id: str,
+        *,
+        stop: threading.Event,
+        logger: RcutilsLogger,
+        servers: Callable[[], int],
+        timeout: float,
+        retries: int,
+        check: AnswerCheck,
+    ) -> None:
+        self.client, self.plant, self.seal, self.run_id = client, plant, seal, run_id
+        self.stop, self.logger, self.servers = stop, logger, servers
+        self.timeout, self.retries, self.check = timeout, retries, check
+
+    def trajectory(self, initial_state: FloatArray) -> Trajectory:
+        last = "no answer"
+        for attempt in range(1, self.retries + 1):
+            response, last = self._attempt(initial_state)
+            if response is not None:
+                try:
+                    answer = trajectory_from_response(response)
+                    self.check(answer, initial_state)
+                    return answer
+                except ValueError as exc:  # DatasetError, AnswerError: the answer is wrong, not the link
+                    last = f"refused the expert's answer: {exc}"
+            self.logger.warning(f"expert call {attempt}/{self.retries} failed: {last}")
+            if attempt < self.retries:
+                self.stop.wait(min(self.timeout, RETRY_PAUSE_S * 2 ** (attempt - 1)))
+        raise ExpertUnavailable(f"the expert did not deliver after {self.retries} attempts: {last}")
+
+    def _attempt(self, initial_state: FloatArray) -> tuple[ExpertTrajectory.Response | None, str]:
+        """One attempt: a trajectory within expert_timeout, or why not.
+
+        "busy:" and "not ready:" refusals (an expert with a full queue, or just restarted and still
+        waiting for the plant) are asked again within the attempt, after growing pauses, and so are
+        answers that are not this run's expert's (another server on the domain won the race).
+        """
+        deadline = time.monotonic() + self.timeout
+        pause = RETRY_PAUSE_S
+        request = ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0, run=self.run_id)
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not self.client.wait_for_service(timeout_sec=remaining):
+                return None, f"service /{EXPERT_SERVICE} not available after {self.timeout:g} s"
+            response = call_with_deadline(self.client, request, remaining, self.logger)
+            if response is None:
+                return None, f"no answer within {self.timeout:g} s"
+            refusal, retry = self._refusal(response, request)
+            if refusal is None:
+                return response, ""
+            if not retry or deadline - time.monotonic() <= pause:
+                return None, refusal
+            self.logger.info(refusal + "; asking again", throttle_duration_sec=5.0)
+            if self.stop.wait(pause):
+                return None, refusal
+            pause = min(2 * pause, 2.0)
+
+    def _refusal(
+        self, response: ExpertTrajectory.Response, request: ExpertTrajectory.Request
+    ) -> tuple[str | None, bool]:
+        """(None, _) for a trajectory from this run's expert for this run's plant; else why not, and
+        whether asking again may help."""
+        if not response.success and response.message.startswith((BUSY, NOT_READY)):
+            return f"expert refused: {response.message}", True
+        if response.success and response.plant != self.plant.model_sha256:
+            return (
+                f"refused an answer for another plant (fingerprint {response.plant[:12] or 'none'}, this run's is "
+                f"{self.plant.model_sha256[:12]}): a second sim or expert on the domain?"
+            ), True
+        try:
+            self.seal.check(response, "the expert's answer", answering=request)
+        except SealError as exc:
+            return f"refused: {exc} ({self.servers()} servers of /{EXPERT_SERVICE} on the domain)", True
+        if not response.success:
+            return f"expert refused: {response.message}", False
+        return None, False

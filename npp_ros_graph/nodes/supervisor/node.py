@@ -1,0 +1,355 @@
+"""npp-supervisor: Algorithm 1 over the ROS graph, with the same core loop as npp-learn.
+
+Per episode: sample s0 (the core's seeded stream, so the in-process run gives the same
+numbers), compute the gap, call the expert service when it exceeds epsilon (deadline and
+retries), persist and hand the trajectory to the policy, reset the sim to s0, let the policy
+drive, and publish the gap report and the episode result. Certifies and publishes the
+certificate latched. Restarted on the same run folder, it resumes where the file ends.
+
+Algorithm 1 runs in the node's worker thread, which makes synchronous calls with deadlines; the
+executor's callbacks only hand data over: the plant through a Mailbox, what the policy holds and
+the sim's rollout results through the RolloutHandshake, which the worker waits on.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import rclpy
+from npp_interfaces.msg import Certificate as CertificateMsg
+from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
+from npp_interfaces.msg import Trajectory as TrajectoryMsg
+from npp_interfaces.srv import ExpertTrajectory, GetTrajectories, ResetEpisode
+from rclpy.node import Node
+from std_msgs.msg import UInt32
+
+from npp_ros.certificate.certifier import (
+    CERTIFY_MODES,
+    CONDITIONS,
+    DEFAULT_RULES,
+    STOPPING_RULES,
+    CertificationSpec,
+    CheckedQuantity,
+    Condition,
+    StoppingRule,
+)
+from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
+from npp_ros.policy.dataset import Trajectory
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.answer_check import AnswerCheck
+from npp_ros.run.loop import EpisodeInterrupted, NPPLoop
+from npp_ros.run.setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.registry import by_task, get_task
+from npp_ros_graph.nodes.supervisor.expert import RosExpert
+from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
+from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollouts
+from npp_ros_graph.runtime.mailbox import Mailbox
+from npp_ros_graph.runtime.node import publishers_of, run_node
+from npp_ros_graph.transport.convert import (
+    trajectory_to_msg,
+)
+from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
+from npp_ros_graph.transport.seal import RunSeal, SealError
+from npp_ros_graph.transport.topics import (
+    CERTIFICATE,
+    DATASET_SERVICE,
+    DATASET_TOPIC,
+    EPISODE,
+    EXPERT_SERVICE,
+    GAP,
+    LATCHED_QOS,
+    PLANT,
+    POLICY_STATUS,
+    REPORT_QOS,
+    RESET_SERVICE,
+    ROLLOUT_DONE,
+    SERVICE_QOS,
+)
+
+TASK_DEFAULT = "task"  # a choice the task decides, once the sim names it
+MODE_DEFAULT = "mode"  # the stopping rule the checked quantity defaults to (DEFAULT_RULES)
+
+PARAMETERS = (
+    Param("epsilon", 0.0, f"target gap; 0 = the paper's value for the task ({by_task('paper_epsilon')})",
+          0.0),
+    Param("lipschitz", TASK_DEFAULT, "L: analytic (bounds V*'s slope on the expert's states; lqr), paper ("
+          f"{by_task('paper_lipschitz')}; not a bound) or a number > 0; task = analytic where the task has it, "
+          "else paper",
+          choices=(TASK_DEFAULT, *LIPSCHITZ_CHOICES, "a number > 0")),
+    Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
+    Param("certify", TASK_DEFAULT, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
+          "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
+          choices=(TASK_DEFAULT, *CERTIFY_MODES)),
+    Param("rule", MODE_DEFAULT, "stopping rule: sequential (a streak per policy) or mixture (a screen, then a "
+          "failure-tolerant test), both valid however often they look, or the paper's; mode = the checked "
+          "quantity's default", choices=(MODE_DEFAULT, *STOPPING_RULES)),
+    Param("p", 0.9, "condition (i): share of initial states within epsilon, in (0, 1)", 0.0, 1.0),
+    Param("delta", 0.1, "the claim holds with probability >= 1 - delta, in (0, 1)", 0.0, 1.0),
+    Param("max_episodes", 1000, "stop uncertified after this many episodes", 1),
+    Param("run_dir", "runs/graph", "run folder: run.sqlite, gaps.csv, episodes.csv"),
+    Param("expert_timeout", 30.0, "seconds one expert attempt may take (a busy or not-ready expert is asked again)",
+          1e-3),
+    Param("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops", 1),
+    Param("rollouts", True, "let the policy drive each episode through the sim (the sound checks need it)"),
+    Param("rollout_timeout", 120.0, "seconds an episode may run without a result before it is run again from its s0 "
+          "(a result lost in a pause is asked for again within seconds; no episode is skipped)", 1e-3),
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SupervisorSettings:
+    """The supervisor's parameters, checked at start by the constructors the run uses.
+
+    CertificationSpec checks condition, certify, rule, p, delta and epsilon (stand-ins for what the
+    task the sim will name decides: epsilon 0, certify and L "task", diam(S0)); parse_lipschitz
+    reads L once.
+    """
+
+    epsilon: float
+    lipschitz: str | LipschitzConstant
+    condition: Condition
+    certify: CheckedQuantity | str
+    rule: StoppingRule | str
+    p: float
+    delta: float
+    max_episodes: int
+    run_dir: str
+    expert_timeout: float
+    expert_retries: int
+    rollouts: bool
+    rollout_timeout: float
+
+    def __post_init__(self) -> None:
+        if not self.run_dir.strip():
+            raise ValueError("run_dir must name a folder")
+        lipschitz = self.lipschitz
+        if isinstance(lipschitz, str) and lipschitz != TASK_DEFAULT:
+            lipschitz = parse_lipschitz(lipschitz)
+        object.__setattr__(self, "lipschitz", lipschitz)
+        certify = "rollout" if self.certify == TASK_DEFAULT else self.certify
+        CertificationSpec(
+            self.condition, self.epsilon or 1.0, self.p, self.delta,
+            lipschitz if isinstance(lipschitz, LipschitzConstant) else LipschitzConstant(1.0, "user"),
+            1.0, certify=certify, rule=DEFAULT_RULES[certify] if self.rule == MODE_DEFAULT else self.rule,  # type: ignore[arg-type]
+        )  # fmt: skip
+
+
+USAGE = f"""npp-supervisor: Algorithm 1 over the ROS graph (ROS 2 node "npp_supervisor").
+
+subscribes  /{PLANT} (latched), /{ROLLOUT_DONE}, /{POLICY_STATUS}
+publishes   /{GAP} (GapReport), /{EPISODE} (EpisodeResult), /{CERTIFICATE} (latched), /{DATASET_TOPIC}
+calls       /{EXPERT_SERVICE}, /{RESET_SERVICE}
+serves      /{DATASET_SERVICE}
+{parameter_help(PARAMETERS)}
+"""
+
+
+STOP_WAIT_S = 10.0  # on Ctrl-C, how long the node waits for Algorithm 1 to finish its current write
+
+
+class SupervisorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("npp_supervisor")
+        self.settings = declare_settings(self, PARAMETERS, SupervisorSettings)
+        self.loop: NPPLoop | None = None
+        self.plant: PlantDescription | None = None
+        self.run_seal = RunSeal.from_environment()
+        self.plant_seal: RunSeal | None = None  # the run key's seal for the plant, once described
+        self.run_id = ""  # the run's identity, from its run file
+        self.seal: RunSeal | None = None  # the seal of this run (key, plant and identity), once its file is open
+        self.stop = threading.Event()
+        self._plants: Mailbox[PlantDescription] = Mailbox(keep=1)
+        self.handshake = RolloutHandshake()
+        self.gap_pub = self.create_publisher(GapReport, GAP, REPORT_QOS)
+        self.episode_pub = self.create_publisher(EpisodeResult, EPISODE, REPORT_QOS)
+        self.certificate_pub = self.create_publisher(CertificateMsg, CERTIFICATE, LATCHED_QOS)
+        self.trajectory_pub = self.create_publisher(TrajectoryMsg, DATASET_TOPIC, REPORT_QOS)
+        self.expert = self.create_client(ExpertTrajectory, EXPERT_SERVICE)
+        self.reset = self.create_client(ResetEpisode, RESET_SERVICE)
+        self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
+        self.create_subscription(EpisodeResult, ROLLOUT_DONE, self.on_rollout, REPORT_QOS)
+        self.create_subscription(UInt32, POLICY_STATUS, self.handshake.on_policy_status, LATCHED_QOS)
+        self.create_service(GetTrajectories, DATASET_SERVICE, self.serve_dataset, qos_profile=SERVICE_QOS)
+        self.exit_code = 0
+        self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
+        self.worker.start()
+        self.get_logger().info("waiting for the sim's plant description")
+
+    # ---------------------------------------------------------------- graph inputs
+    def refuse_foreign(self, topic: str, exc: SealError) -> None:
+        self.get_logger().error(
+            f"refused: {exc} (publishers of /{topic}: {publishers_of(self, topic)}); nothing of it enters this run",
+            throttle_duration_sec=5.0,
+        )
+
+    def on_plant(self, msg: PlantDescription) -> None:
+        try:
+            self.run_seal.check(msg, "a plant description")
+        except SealError as exc:
+            self.refuse_foreign(PLANT, exc)
+            return
+        if self.plant is not None:
+            if msg.model_sha256 != self.plant.model_sha256:
+                self.get_logger().error(
+                    f"the sim now describes another plant ({msg.task} seed {msg.seed}; publishers of /{PLANT}: "
+                    f"{publishers_of(self, PLANT)}); this run keeps its own, and refuses data for any other"
+                )
+            return
+        self.plant_seal = self.run_seal.for_plant(msg.model_sha256)
+        self.plant = msg
+        self._plants.put(msg)
+
+    def on_rollout(self, msg: EpisodeResult) -> None:
+        """The sim's rollout results, this run's only; the context names the data the policy drove with."""
+        if self.seal is None:
+            return
+        try:
+            driven_with = self.seal.check_header(msg, f"the rollout result of episode {msg.episode}")
+        except SealError as exc:
+            self.refuse_foreign(ROLLOUT_DONE, exc)
+            return
+        self.handshake.on_rollout(msg, driven_with)
+
+    def trajectory_msg(self, index: int, trajectory: Trajectory) -> TrajectoryMsg:
+        assert self.seal is not None
+        return self.seal.seal(trajectory_to_msg(index, trajectory, self.run_id))
+
+    def serve_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
+        loop = self.loop
+        if loop is None:
+            response.success = False
+            response.message = (
+                "the run has not started yet (no plant description from the sim)"
+                if self.plant is None
+                else "the run is starting (opening its run file)"
+            )
+            return response
+        data = loop.policy_data  # what the policy under test holds: never the trajectories a running test holds back
+        total = data.num_trajectories
+        count = min(request.max_count or 50, 200, max(total - request.start, 0))
+        response.success = True
+        response.run = self.run_id
+        response.total = total
+        response.lipschitz = loop.spec.lipschitz.value
+        response.lipschitz_source = loop.spec.lipschitz.source
+        response.trajectories = [
+            self.trajectory_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
+        ]
+        assert self.seal is not None
+        return self.seal.seal(response, answering=request)
+
+    # ---------------------------------------------------------------- Algorithm 1
+    def run_algorithm(self) -> None:
+        """Worker thread: waits for the sim's plant, then runs the episodes."""
+        if self._plants.take() is None:
+            return  # the node closed before the sim described its plant
+        try:
+            self._run_algorithm()
+        except EpisodeInterrupted as exc:
+            self.get_logger().info(f"stopped: {exc}")
+        except Exception as exc:  # the run must never die silently: say why and exit non-zero
+            if self.stop.is_set():  # the node is closing: what failed was cut off by it
+                self.get_logger().info(f"stopped while {exc}")
+                return
+            self.get_logger().fatal(f"Algorithm 1 stopped: {exc}")
+            self.exit_code = 1
+            rclpy.try_shutdown()
+
+    def _run_algorithm(self) -> None:
+        assert self.plant is not None
+        s, plant = self.settings, self.plant
+        task, spec = plant.task, get_task(plant.task)
+        # The task's expert, built here too: L's analytic bound, V(s0) where closed form, the value basis.
+        expert = spec.make_expert(plant.seed, plant.horizon)
+        if expert.plant.model_sha256() != plant.model_sha256:
+            raise RuntimeError("the sim's plant differs from the task's model: refusing to certify")
+        epsilon = spec.epsilon(s.epsilon or None)
+        if isinstance(s.lipschitz, LipschitzConstant):
+            lipschitz = s.lipschitz
+        else:
+            choice = spec.default_lipschitz_choice() if s.lipschitz == TASK_DEFAULT else s.lipschitz
+            lipschitz = resolve_lipschitz(task, choice, expert)
+        certify = None if s.certify == TASK_DEFAULT else s.certify
+        rule = None if s.rule == MODE_DEFAULT else s.rule
+        config = build_config(
+            task, plant.seed, lipschitz, epsilon,
+            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=rule,  # type: ignore[arg-type]
+        )  # fmt: skip
+        run_dir = Path(s.run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        store = RunStore.open_or_create(run_dir / "run.sqlite", config.metadata())  # RunFileError: refuse
+        try:  # closed also on Ctrl-C, so that the file is one self-contained file again
+            assert self.plant_seal is not None
+            self.run_id = store.run_id
+            self.seal = self.plant_seal.for_run(self.run_id)
+            log = self.get_logger()
+            reporter = GraphReporter(
+                gaps=self.gap_pub, episodes=self.episode_pub, certificates=self.certificate_pub,
+                send_trajectory=self.send_trajectory, run_seal=self.run_seal, clock=self.get_clock(), logger=log,
+                config=config, run_dir=run_dir,
+            )  # fmt: skip
+            # Every answer is replayed on the supervisor's own plant before anything of it is stored.
+            tail = expert.value_basis().tail
+            check = AnswerCheck(spec.make_plant(plant.seed), plant.horizon, tail, spec.reward_range)
+            oracle = RosExpert(
+                self.expert, plant, self.seal, self.run_id, stop=self.stop, logger=log,
+                servers=lambda: self.count_services(EXPERT_SERVICE), timeout=s.expert_timeout, retries=s.expert_retries,
+                check=check,
+            )  # fmt: skip
+            rollouts = RosRollouts(
+                self.reset, self.seal, self.run_id, self.handshake, self.publish_trajectories,
+                stop=self.stop, logger=log, timeout=s.rollout_timeout,
+            )  # fmt: skip
+            self.loop = loop = NPPLoop(
+                config,
+                oracle,
+                initial_state_fn(task, plant.seed),
+                store=store,
+                driver=rollouts if s.rollouts else None,
+                observers=[reporter],
+                expert_value=spec.expert_value(expert),
+                basis=value_basis(expert, lipschitz.value),
+            )
+            self.get_logger().info(
+                f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
+                f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
+            )
+            self.publish_trajectories(0, loop.policy_data.num_trajectories)  # a restarted policy may listen here
+            if loop.certificate is not None:
+                reporter.on_certificate(loop.certificate)
+            while not self.stop.is_set() and loop.certificate is None and loop.next_episode < s.max_episodes:
+                loop.run_episode()
+            if loop.certificate is None and not self.stop.is_set():
+                self.get_logger().warning(f"not certified after {loop.next_episode} episodes")
+        finally:
+            store.close()
+
+    def send_trajectory(self, index: int, trajectory: Trajectory) -> None:
+        """One trajectory to the policy (and whoever listens), sealed for this run."""
+        self.trajectory_pub.publish(self.trajectory_msg(index, trajectory))
+
+    def publish_trajectories(self, start: int, stop: int) -> None:
+        assert self.loop is not None
+        for k in range(start, stop):
+            self.trajectory_pub.publish(self.trajectory_msg(k, self.loop.policy_data.trajectory(k)))
+
+    def destroy_node(self) -> None:
+        """Stop Algorithm 1 between two of its steps: an episode under way is left unrecorded (a resumed run
+        plays it again), and the run file is closed before the process ends."""
+        self.stop.set()
+        self._plants.close()
+        self.handshake.close()
+        self.worker.join(timeout=STOP_WAIT_S)
+        super().destroy_node()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(SupervisorNode, argv, USAGE)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,162 @@
+"""How every npp_ros node process runs: main() through run_node, the one teardown (release), throttled warnings.
+
+Nodes convert messages to core types (transport/convert.py), call the core, and publish; nothing here
+does math. Topic names and QoS are in transport/topics.py, the Mailbox in mailbox.py, deadlines in deadlines.py.
+
+Concurrency, the same in every node: one executor thread (run_node) runs the callbacks, and a
+callback never blocks. It validates, does work that is short and bounded (a sim step, a policy
+query), and hands anything long to the node's one worker thread through a Mailbox; results go out
+from the worker as publications, or as a Future that an ``async`` service callback awaits. The
+worker, in turn, makes synchronous calls with deadlines and waits on Conditions that callbacks
+signal, never polls. This is the model of bdaiinstitute/synchros2 (blocking code in its own
+thread, callbacks only hand data over), kept to one thread per node. Callback groups with a
+MultiThreadedExecutor were the alternative: rclpy's runs every callback through a Python thread
+pool, which adds GIL hand-offs to each control step (the loop the policy node must keep fast), and
+a service that may hold a hundred requests in waiting would need a hundred pool threads.
+
+Which executor: rclpy's SingleThreadedExecutor, except in the two nodes of the control loop (sim
+and policy), which ask run_node for rclpy's EventsExecutor (``events=True``). The
+SingleThreadedExecutor rebuilds its wait set from every entity of the node (subscriptions,
+publishers' QoS events, timers, clients, the parameter services) on each wake-up, in Python; the
+EventsExecutor (C++) is called by the middleware for the one entity that has work. For the policy
+node that wait set was most of what its loop cost beyond a bare ping-pong's (README,
+"Performance"; npp-bench --ros measures it), and much of the sim's CPU time per step. The
+EventsExecutor is experimental in Jazzy, so run_node keeps to what it does well: it spins it with
+spin_once and a timeout (its spin() busy-waits and misses shutdown in rclpy 7.1.6), and falls back
+to the SingleThreadedExecutor where rclpy has none. It serves no guard conditions (the two nodes
+create none), and it logs a callback's exception with its traceback before run_node reports it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+import rclpy
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
+
+from npp_ros_graph.transport.parameters import StartupError
+
+try:  # rclpy >= 7.1 (Jazzy); the fallback is the SingleThreadedExecutor
+    from rclpy.experimental import EventsExecutor
+except ImportError:  # pragma: no cover - every supported rclpy has it
+    EventsExecutor = None
+
+
+def _empty_parameter(args: Sequence[str]) -> str | None:
+    """The name in a `-p name:=` without a value, which rcl refuses with a traceback instead of a reason."""
+    for flag, rule in itertools.pairwise(args):
+        if flag in ("-p", "--param") and rule.endswith(":=") and rule[:-2]:
+            return rule[:-2]
+    return None
+
+
+def _init(args: list[str]) -> None:
+    """rclpy.init, with a one-line reason for arguments that are not ours or that rcl cannot read."""
+    empty = _empty_parameter(args[args.index("--ros-args") :] if "--ros-args" in args else [])
+    if empty is not None:
+        raise StartupError(f"parameter {empty} has no value; give one (-p {empty}:=VALUE) or leave it out")
+    try:
+        rclpy.init(args=args)
+    except RCLError as exc:
+        raise StartupError(f"cannot read the ROS arguments: {str(exc).splitlines()[0]}") from None
+    stray = remove_ros_args(args)[1:]
+    if stray:
+        rclpy.try_shutdown()
+        raise StartupError(
+            f"unexpected argument {stray[0]!r}: parameters go after --ros-args as -p name:=value (see --help)"
+        )
+
+
+SPIN_ONCE_S = 1.0  # the EventsExecutor's longest wait for an event before run_node checks for shutdown
+
+
+def run_node(
+    factory: Callable[[], Node],
+    argv: Sequence[str] | None = None,
+    usage: str | Callable[[], str] = "",
+    events: bool = False,
+) -> int:
+    """The Jazzy idiom: init, spin, and on Ctrl-C or external shutdown destroy and try_shutdown.
+
+    ``usage`` may be a function: --help then builds it (a listing that reads installed packages).
+    ``events``: spin on rclpy's EventsExecutor where rclpy has one (see the module's docstring).
+    """
+    args = list(sys.argv if argv is None else argv)
+    if any(a in ("-h", "--help") for a in args[1:]) and "--ros-args" not in args:
+        print(usage() if callable(usage) else usage)
+        return 0
+    node: Node | None = None
+    executor: Executor | None = None
+    try:
+        _init(args)
+        executor = EventsExecutor() if events and EventsExecutor is not None else SingleThreadedExecutor()
+        node = factory()
+        executor.add_node(node)
+        if isinstance(executor, SingleThreadedExecutor):
+            executor.spin()
+        else:
+            while rclpy.ok():
+                executor.spin_once(timeout_sec=SPIN_ONCE_S)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except StartupError as exc:
+        print(f"{args[0]}: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        try:
+            release(executor, node)
+        except KeyboardInterrupt:  # a second Ctrl-C while shutting down
+            pass
+    return int(getattr(node, "exit_code", 0))
+
+
+def release(executor: Executor | None, node: Node | None) -> None:
+    """Every entry point's teardown, in the one order that cannot hang.
+
+    The executor lets go of the node first: destroy_node waits until nothing holds the node's
+    entities, and a node still added to an executor could keep its process spinning there.
+    """
+    if executor is not None:
+        executor.shutdown(timeout_sec=SPIN_ONCE_S)
+    if node is not None:
+        node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def node_name(namespace: str, name: str) -> str:
+    if name == "_NODE_NAME_UNKNOWN_":  # its endpoint is discovered, its node not yet
+        return "a node not yet named"
+    return f"{namespace.rstrip('/')}/{name}"
+
+
+def publishers_of(node: Node, topic: str) -> str:
+    """Who publishes a topic, by node name: what a refusal of foreign data can tell the user."""
+    names = sorted(node_name(i.node_namespace, i.node_name) for i in node.get_publishers_info_by_topic(topic))
+    return ", ".join(names) or "no publisher known"
+
+
+class ThrottledWarnings:
+    """At most one warning per kind and second, with a count of what was suppressed: a flood of bad
+    input must show up in the log without drowning it."""
+
+    def __init__(self, node: Node, every_s: float = 1.0) -> None:
+        self.node, self.every_s = node, every_s
+        self._last: dict[str, tuple[float, int]] = {}
+        self.counts: dict[str, int] = {}
+
+    def __call__(self, kind: str, message: str) -> None:
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        now = time.monotonic()
+        last, suppressed = self._last.get(kind, (-float("inf"), 0))
+        if now - last < self.every_s:
+            self._last[kind] = (last, suppressed + 1)
+            return
+        extra = f" ({suppressed} more like it suppressed)" if suppressed else ""
+        self.node.get_logger().warning(message + extra)
+        self._last[kind] = (now, 0)

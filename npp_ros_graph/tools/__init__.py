@@ -1,0 +1,4 @@
+"""The tools around a run: npp-run (launcher), npp-monitor, npp-record (bag), npp-replay, npp-dashboard.
+
+May import: npp_ros_graph.transport, npp_ros_graph.runtime, npp_ros_graph.graph (and the npp_ros core); never a node.
+"""

@@ -1,0 +1,432 @@
+"""npp-run: starts sim, expert, policy and supervisor as four processes and follows the run.
+
+Shows live progress from the /npp/gap topic, prints the certificate, and stops all four
+cleanly when the run is certified, when it runs out of episodes, on Ctrl-C, SIGTERM or SIGHUP,
+or when a node dies (saying which, why, and where its log is); a node whose process is stopped
+(SIGSTOP, a debugger) is named within seconds. The nodes die with npp-run even when it is
+SIGKILLed. The run folder holds run.sqlite (dataset and episode log), gaps.csv, episodes.csv
+and logs/<node>.log (the previous start's log kept as logs/<node>.1.log). Started again on the
+same folder, the supervisor resumes the run.
+
+Refused before any node starts: a run folder another writer holds (named with its pid and
+command line), and another graph on the same ROS domain (its nodes named); one that appears
+within the first seconds after the start stops this run with the same reason.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from contextlib import suppress
+from datetime import datetime
+from pathlib import Path
+from typing import IO
+
+import rclpy
+from npp_interfaces.msg import Certificate, GapReport
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+from npp_ros.certificate.certifier import STOPPING_RULES
+from npp_ros.cli.args import TASK_HELP, ListTasks, task_name
+from npp_ros.run.records import RunFileError
+from npp_ros.run.store import WriterLock
+from npp_ros.tasks.registry import by_task, get_task
+from npp_ros.tasks.sources import short_name
+from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
+from npp_ros_graph.graph.description import graph_parameters, node_argv
+from npp_ros_graph.runtime.node import node_name, publishers_of, release
+from npp_ros_graph.tools.dashboard import start_dashboard
+from npp_ros_graph.tools.monitor import certificate_line, gap_line
+from npp_ros_graph.tools.record import start_recorder
+from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS
+
+DISCOVERY_S = 2.0  # listened for before starting: discovery on one machine takes well under a second
+SECOND_GRAPH_WINDOW_S = 30.0  # a second graph seen this soon after the start stops this run
+GRAPH_TOPICS = (PLANT, GAP)  # one publisher each per graph: its sim and its supervisor
+LOG_HEADER = "==== npp-run: this start of the node at"
+STALL_NOTICE_S = 2.0  # a node stopped this long is named
+TWO_GRAPHS = (
+    "Two graphs on one domain answer each other's service calls (their seals keep their data apart, at the cost "
+    "of retries): stop the other one, or give this run its own domain (--domain-id N)"
+)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="npp-run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--task", default="lqr_2_1", type=task_name, help=TASK_HELP)
+    ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
+    ap.add_argument("--seed", type=int, default=0, help="task seed")
+    ap.add_argument("--horizon", type=int, default=None, help="episode length; default: the task's (1000)")
+    ap.add_argument(
+        "--epsilon", type=float, default=0.0, help=f"target gap > 0; 0: the paper's ({by_task('paper_epsilon')})"
+    )
+    ap.add_argument(
+        "--lipschitz", default="task", help="'analytic' (lqr), 'paper' (not a bound) or a number; task: the task's"
+    )
+    ap.add_argument(
+        "--certify",
+        default="task",
+        help=f"rollout, oracle or surrogate; task: the task's ({by_task('default_certify')})",
+    )
+    ap.add_argument(
+        "--time-budget",
+        type=float,
+        default=0.0,
+        help=f"seconds per iLQR expert request; 0: the task's ({DEFAULT_TIME_BUDGET_S:g})",
+    )
+    ap.add_argument(
+        "--rule", default="mode", choices=("mode", *STOPPING_RULES),
+        help="when to stop: a streak per policy (sequential), a screen then a failure-tolerant test (mixture), or "
+        "the paper's one-shot rule; mode: the checked quantity's default (oracle: mixture, else sequential)",
+    )  # fmt: skip
+    ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
+    ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
+    ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")
+    ap.add_argument("--no-rollouts", action="store_true", help="skip the policy's episodes (gap checks only)")
+    ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the four nodes (default: inherited)")
+    ap.add_argument("--record", action="store_true", help="also record every /npp topic into RUN_DIR/bag (npp-record)")
+    ap.add_argument(
+        "--dashboard", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+        help="also serve the live dashboard on 127.0.0.1:PORT (npp-dashboard; default port 8765)",
+    )  # fmt: skip
+    return ap
+
+
+class Follower(Node):
+    def __init__(self) -> None:
+        super().__init__("npp_run")
+        self.seal = RunSeal.from_environment()  # main() has set the run's key
+        self.last: GapReport | None = None
+        self.certificate: Certificate | None = None
+        self.create_subscription(GapReport, GAP, self.on_gap, REPORT_QOS)
+        self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_QOS)
+        self.tty = sys.stderr.isatty()
+        self._printed = 0.0
+
+    def on_gap(self, msg: GapReport) -> None:
+        if not self.seal.shows(msg):
+            return  # another run's report
+        self.last = msg
+        now = time.monotonic()
+        text = gap_line(msg)
+        if self.tty:
+            say("\r" + text.ljust(110), end="")
+        elif now - self._printed > 2.0:
+            say(text)
+            self._printed = now
+
+    def on_certificate(self, msg: Certificate) -> None:
+        if self.seal.shows(msg):
+            self.certificate = msg
+
+    def other_graph(self, ours: int) -> str | None:
+        """Who else publishes a graph's one-per-graph topics (the sim's plant, the supervisor's gaps), or None.
+
+        ``ours`` is how many of those publishers this run owns on each topic: 0 before its nodes start,
+        1 after. Two graphs on one domain answer each other's service calls, so either is refused.
+        """
+        found = []
+        for topic in GRAPH_TOPICS:
+            if self.count_publishers(topic) > ours:
+                found.append(f"/{topic} is published by {publishers_of(self, topic)}")
+        if not found:
+            return None
+        names = [node_name(ns, n) for n, ns in self.get_node_names_and_namespaces() if n.startswith("npp_")]
+        seen = ", ".join(f"{n} x{names.count(n)}" if names.count(n) > 1 else n for n in sorted(set(names)))
+        return f"{'; '.join(found)} (npp nodes on the domain: {seen})"
+
+
+def say(text: str, end: str = "\n") -> None:
+    """A line on stderr that never stops the shutdown: after a hang-up the terminal is gone (EIO)."""
+    with suppress(OSError, ValueError):
+        sys.stderr.write(text + end)
+        sys.stderr.flush()
+
+
+def where() -> str:
+    """The domain and discovery range the graph runs on, as a user would check them."""
+    domain = os.environ.get("ROS_DOMAIN_ID") or "0 (ROS_DOMAIN_ID unset)"
+    return f"ROS_DOMAIN_ID {domain}, discovery {os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'SUBNET')}"
+
+
+# --------------------------------------------------------------------------- children die with npp-run
+class Stopped(Exception):
+    """SIGHUP (the terminal closed) or SIGTERM (kill, systemd, a job control): stop the nodes, then exit."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_stopped(signum: int, _frame: object) -> None:
+    raise Stopped(signum)
+
+
+def _ignore_further(signum: int, _frame: object) -> None:
+    """While the nodes are being stopped, a second SIGHUP or SIGTERM must not cut the shutdown short."""
+
+
+_PR_SET_PDEATHSIG = 1
+_prctl: Callable[..., int] | None = None
+
+
+def _load_prctl() -> None:
+    """Loaded in npp-run itself: a child between fork and exec must not load libraries."""
+    global _prctl
+    if _prctl is None and sys.platform.startswith("linux"):
+        _prctl = ctypes.CDLL(None, use_errno=True).prctl
+
+
+def child_setup(parent: int) -> Callable[[], None]:
+    """What each child runs before exec: it dies with npp-run, however npp-run ends.
+
+    SIGINT is restored (started from a background job, a child would inherit an ignored SIGINT and
+    never stop). PR_SET_PDEATHSIG has the kernel send SIGTERM to the child when npp-run dies, even by
+    SIGKILL, which no handler in npp-run can catch; rclpy turns SIGTERM into a clean shutdown. If npp-run
+    died before the call, the child is already orphaned and stops itself.
+    """
+    _load_prctl()
+
+    def setup() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        if _prctl is not None:
+            _prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+            if os.getppid() != parent:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    return setup
+
+
+def stop_all(procs: dict[str, subprocess.Popen]) -> None:
+    for proc in procs.values():
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + 15
+    for name, proc in procs.items():
+        try:
+            proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
+        except subprocess.TimeoutExpired:
+            say(f"npp-run: {name} did not stop on SIGINT; killing it")
+            proc.kill()
+            proc.wait()
+
+
+# --------------------------------------------------------------------------- logs and refusals
+def open_log(run_dir: Path, name: str) -> IO[str]:
+    """logs/NAME.log for this attempt; the previous attempt's log is kept as logs/NAME.1.log."""
+    path = run_dir / "logs" / f"{name}.log"
+    if path.exists() and path.stat().st_size > 0:
+        path.replace(path.with_name(f"{name}.1.log"))
+    return path.open("a")
+
+
+_ERROR_LINE = re.compile(
+    r"\[(ERROR|FATAL)\]"  # an rclpy log line
+    r"|^[A-Za-z_][\w.]*(Error|Exception)\b"  # a traceback's last line
+    r"|^(\S*/)?(npp-\w+|\w+\.py): "  # a refusal at start-up: "npp-sim: bad parameter: ..."
+)
+
+_OWN_NAME = re.compile(r"^(\S*/)?(npp-\w+|\w+\.py): ")  # npp-run names the node already
+
+
+def reason_line(log: Path) -> str:
+    """The line in a node's log that says why it stopped: its last error line, else its last line."""
+    try:
+        lines = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.strip()]
+    except OSError:
+        return ""
+    lines = [line for line in lines if not line.startswith(LOG_HEADER)]
+    errors = [line for line in lines if _ERROR_LINE.search(line)]
+    return _OWN_NAME.sub("", (errors or lines or [""])[-1])
+
+
+def folder_in_use(run_dir: Path) -> str | None:
+    """Why this run folder cannot take a writer now (another one holds it), or None.
+
+    The run file's own writer lock (npp_ros.run.store) is taken and released at once: the check names
+    the holder exactly as the supervisor would, but before any node starts.
+    """
+    try:
+        WriterLock.acquire(run_dir / "run.sqlite").release()
+    except RunFileError as exc:
+        return f"{exc}{_started_by(run_dir / 'run.lock')}"
+    return None
+
+
+def _started_by(lock: Path) -> str:
+    """' (its npp-run: pid N, npp-run ...)' for a lock holder that an npp-run started, else ''."""
+    with suppress(OSError, ValueError, IndexError):
+        pid = int(lock.read_text().split()[0])
+        parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        argv = Path(f"/proc/{parent}/cmdline").read_bytes().decode(errors="replace").split("\0")[:-1]
+        if any("npp_ros_graph.tools.launcher" in a or a.endswith("npp-run") for a in argv[:3]):
+            return f" (its npp-run: pid {parent}, {shlex.join(argv)[:200]})"
+    return ""
+
+
+# --------------------------------------------------------------------------- stalled nodes
+class StallWatch:
+    """Names a node whose process is stopped (SIGSTOP, Ctrl-Z, a debugger): the run waits for it in
+    silence otherwise, and from the outside a stopped node looks like a slow one."""
+
+    def __init__(self, procs: dict[str, subprocess.Popen]) -> None:
+        self.procs = procs
+        self.since: dict[str, float] = {}
+        self.told: set[str] = set()
+
+    def check(self, now: float) -> list[str]:
+        lines = []
+        for name, proc in self.procs.items():
+            if _stopped(proc.pid):
+                self.since.setdefault(name, now)
+                if name not in self.told and now - self.since[name] >= STALL_NOTICE_S:
+                    self.told.add(name)
+                    lines.append(
+                        f"npp-{name} (pid {proc.pid}) is stopped (SIGSTOP or a debugger); the run waits for it "
+                        f"(kill -CONT {proc.pid} resumes it)"
+                    )
+            elif name in self.since:
+                stopped_for = now - self.since.pop(name)
+                if name in self.told:
+                    self.told.discard(name)
+                    lines.append(f"npp-{name} (pid {proc.pid}) runs again after about {stopped_for:.0f} s stopped")
+        return lines
+
+
+def _stopped(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in ("T", "t")
+    except (OSError, IndexError):
+        return False
+
+
+# --------------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    run_dir = (args.run_dir or Path("runs") / f"graph-{short_name(args.task)}-seed{args.seed}").resolve()
+    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    in_use = folder_in_use(run_dir)
+    if in_use is not None:  # before any node: a second graph would only be refused by its supervisor
+        say(f"npp-run: {in_use}; not starting")
+        return 2
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env[KEY_ENV] = env.get(KEY_ENV) or RunSeal.new_key()  # the run's seal: its nodes refuse what lacks it
+    if args.domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(args.domain_id)
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", KEY_ENV) if k in env})
+    params = graph_parameters(
+        args.task, args.seed, args.horizon or get_task(args.task).default_horizon, run_dir,
+        expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},
+        supervisor={"epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
+                    "rule": args.rule,
+                    "max_episodes": args.max_episodes, "rollouts": not args.no_rollouts},
+    )  # fmt: skip
+    for signum in (signal.SIGHUP, signal.SIGTERM):
+        signal.signal(signum, _raise_stopped)
+    procs: dict[str, subprocess.Popen] = {}
+    extras: dict[str, subprocess.Popen] = {}  # started first and stopped last, so that they see the whole run
+    follower: Follower | None = None
+    executor: SingleThreadedExecutor | None = None
+    code = 0
+    try:
+        # SIGINT stays Python's (KeyboardInterrupt); SIGTERM and SIGHUP raise Stopped.
+        rclpy.init(args=["npp-run"], signal_handler_options=SignalHandlerOptions.NO)
+        follower = Follower()
+        executor = SingleThreadedExecutor()
+        executor.add_node(follower)
+        deadline = time.monotonic() + DISCOVERY_S
+        while time.monotonic() < deadline:  # time for discovery: is another graph on this domain?
+            executor.spin_once(timeout_sec=0.1)
+        other = follower.other_graph(ours=0)
+        if other is not None:
+            say(f"npp-run: another graph is running on {where()}: {other}; not starting. {TWO_GRAPHS}")
+            return 2
+        setup = child_setup(os.getpid())  # every child, the recorder and the dashboard too, dies with npp-run
+        if args.dashboard is not None:  # first: a port in use stops npp-run before any node started
+            extras["dashboard"] = procs["dashboard"] = start_dashboard(run_dir, env, args.dashboard, setup)
+        if args.record:
+            extras["record"] = procs["record"] = start_recorder(run_dir, env, setup)
+        for name, values in params.items():
+            cmd = node_argv(name, values)
+            with open_log(run_dir, name) as log:
+                procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=setup)
+                log.write(f"{LOG_HEADER} {datetime.now().isoformat(timespec='seconds')}: pid {procs[name].pid}\n")
+        say(f"npp-run: started sim, expert, policy, supervisor on {where()} (logs in {run_dir / 'logs'})")
+        code = follow(follower, executor, procs, run_dir, args.max_episodes)
+    except KeyboardInterrupt:
+        say("\nnpp-run: interrupted; stopping the nodes (the run resumes from its folder)")
+        code = 130
+    except ExternalShutdownException:
+        code = 130
+    except Stopped as exc:
+        say(f"\nnpp-run: {exc} received; stopping the nodes (the run resumes from its folder)")
+        code = 128 + exc.signum
+    finally:
+        for signum in (signal.SIGHUP, signal.SIGTERM):
+            signal.signal(signum, _ignore_further)
+        if follower is not None:
+            if follower.certificate is not None:
+                with suppress(OSError):
+                    print(("\n" if follower.tty else "") + certificate_line(follower.certificate))
+                    print(f"run folder: {run_dir}")
+        release(executor, follower)
+        stop_all({name: proc for name, proc in procs.items() if name not in extras})
+        stop_all(extras)
+    return code
+
+
+def follow(
+    follower: Follower, executor: SingleThreadedExecutor, procs: dict[str, subprocess.Popen], run_dir: Path,
+    max_episodes: int,
+) -> int:  # fmt: skip
+    """Spin until the certificate, the episode budget, a dead node or a second graph; the exit code."""
+    started = time.monotonic()
+    budget_reached_at: float | None = None
+    checked = 0.0
+    warned: str | None = None
+    stalls = StallWatch(procs)
+    while follower.certificate is None:
+        executor.spin_once(timeout_sec=0.1)
+        dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
+        if dead:
+            for name, rc in dead.items():
+                log = run_dir / "logs" / f"{name}.log"
+                why = reason_line(log)
+                say(f"\nnpp-run: npp-{name} exited with code {rc}" + (f": {why}" if why else "") + f" (log: {log})")
+            return 1
+        now = time.monotonic()
+        if now - checked >= 1.0:
+            checked = now
+            for line in stalls.check(now):
+                say(f"\nnpp-run: {line}")
+            other = follower.other_graph(ours=1)
+            if other is not None and now - started < SECOND_GRAPH_WINDOW_S:
+                say(f"\nnpp-run: another graph is running on {where()}: {other}; stopping. {TWO_GRAPHS}")
+                return 2
+            if other is not None and other != warned:  # a newcomer after our start: it should stop itself
+                say(f"\nnpp-run: WARNING another graph joined {where()}: {other}. {TWO_GRAPHS}")
+            warned = other
+        if follower.last is not None and follower.last.episode + 1 >= max_episodes:
+            budget_reached_at = budget_reached_at or now
+            if now - budget_reached_at > 5.0:
+                say(f"\nnpp-run: NOT CERTIFIED within {max_episodes} episodes")
+                return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

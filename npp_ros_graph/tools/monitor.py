@@ -1,0 +1,179 @@
+"""npp-monitor: prints the gap, episode and certificate topics live (there is no ros2 CLI here), or those of a
+bag recorded by npp-record (--bag), in the same lines.
+
+While nothing arrives (no graph yet, another ROS domain, a finished run) it says on stderr what it waits
+for and where it listens (ROS_DOMAIN_ID, discovery range), with the npp nodes and publishers it sees:
+first after a few seconds, then periodically."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+from npp_interfaces.msg import Certificate, EpisodeResult, GapReport
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+
+from npp_ros_graph.runtime.node import release
+from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
+
+TOPICS = {"gap": GAP, "episode": EPISODE}  # --topics names; the certificate is always shown
+FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
+NOTICE_EVERY_S = 30.0  # then once per this much further silence
+
+
+def gap_line(msg: GapReport) -> str:
+    """One episode: the gap its certification mode checked against epsilon, and the current test's streak."""
+    checked = "inf" if math.isinf(msg.checked_gap) else f"{msg.checked_gap:.2f}"
+    mark = "ORACLE" if msg.oracle_called else "quiet"
+    return (
+        f"[gap]     episode {msg.episode:5d}  {msg.certify or 'gap'} {checked:>8} / eps {msg.epsilon:g}  {mark:<6} "
+        f"|D| {msg.dataset_size:8d}  oracle calls {msg.oracle_calls:4d}  "
+        f"test {msg.test} streak {msg.quiet_episodes}/{msg.quiet_required}"
+    )
+
+
+def episode_line(msg: EpisodeResult) -> str:
+    ret = "-" if math.isnan(msg.policy_return) else f"{msg.policy_return:.2f}"
+    expert = f"{msg.expert_value:.2f}" if msg.expert_value_known else "-"
+    return (
+        f"[episode] episode {msg.episode:5d}  return {ret:>8}  V*(s0) {expert:>8}  "
+        f"V_lb(s0) {msg.v_lb:.2f}  steps {msg.steps}"
+    )
+
+
+def certificate_line(msg: Certificate) -> str:
+    """The certificate as a user must read it: what was checked, on which test, resting on what."""
+    proven = "proven" if msg.proven else "NOT proven (it rests on a step that does not hold here)"
+    indent = "\n              "
+    return (
+        f"[certificate] condition ({msg.condition}), epsilon {msg.epsilon:g}, p {msg.p:g}, delta {msg.delta:g}, "
+        f"L {msg.lipschitz:g} ({msg.lipschitz_source}, margin {msg.lipschitz_margin:g}), episodes {msg.episodes}, "
+        f"oracle calls {msg.oracle_calls}, |D| {msg.dataset_size}"
+        f"{indent}certify={msg.certify}: checked {msg.quantity}; test {msg.test}, delta spent {msg.delta_spent:.3g}; "
+        f"{proven}"
+        f"{indent}{msg.statement}" + "".join(f"{indent}assumes: {text}" for text in msg.assumptions)
+    )
+
+
+class MonitorNode(Node):
+    def __init__(self, topics: set[str], exit_on_certificate: bool) -> None:
+        super().__init__("npp_monitor")
+        self.exit_on_certificate = exit_on_certificate
+        self.certified = False
+        self.topics = [TOPICS[name] for name in TOPICS if name in topics] + [CERTIFICATE]
+        self.last_message = self.last_notice = time.monotonic()
+        self.notices = 0
+        self.seal = RunSeal.from_environment()  # given NPP_RUN_KEY, only that run's reports are shown
+        if "gap" in topics:
+            self.create_subscription(GapReport, GAP, lambda m: self.show(gap_line(m), m), REPORT_QOS)
+        if "episode" in topics:
+            self.create_subscription(EpisodeResult, EPISODE, lambda m: self.show(episode_line(m), m), REPORT_QOS)
+        self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_QOS)
+        self.create_timer(1.0, self.notice_if_silent)
+
+    def show(self, line: str, msg: GapReport | EpisodeResult | Certificate) -> bool:
+        if not self.seal.shows(msg):
+            return False
+        self.last_message = time.monotonic()
+        print(line, flush=True)
+        return True
+
+    def on_certificate(self, msg: Certificate) -> None:
+        self.certified = self.show(certificate_line(msg), msg) or self.certified
+
+    def notice_if_silent(self) -> None:
+        """A silent monitor looks like a hung one: after a while say what it waits for, and where."""
+        now = time.monotonic()
+        wait = FIRST_NOTICE_S if self.notices == 0 else NOTICE_EVERY_S
+        if now - max(self.last_message, self.last_notice) < wait:
+            return
+        self.notices += 1
+        self.last_notice = now
+        print(f"npp-monitor: {self.waiting_line(now - self.last_message)}", file=sys.stderr, flush=True)
+
+    def waiting_line(self, silent_s: float) -> str:
+        publishers = ", ".join(f"/{t} {self.count_publishers(t)}" for t in self.topics)
+        nodes = sorted(
+            f"{ns.rstrip('/')}/{n}" for n, ns in self.get_node_names_and_namespaces() if n.startswith("npp_")
+        )
+        others = [n for n in nodes if n != "/npp_monitor"]
+        seen = ", ".join(others) if others else "none (no graph on this domain, or not discoverable from here)"
+        return (
+            f"nothing received for {silent_s:.0f} s; waiting for {', '.join('/' + t for t in self.topics)} "
+            f"on {listening_on()}. Publishers: {publishers}. npp nodes seen: {seen}"
+        )
+
+
+def listening_on() -> str:
+    """The domain and discovery range this process listens on: the usual reasons a graph is not seen."""
+    domain = os.environ.get("ROS_DOMAIN_ID") or "0 (ROS_DOMAIN_ID unset)"
+    scope = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "SUBNET (unset; npp-run uses LOCALHOST)"
+    peers = os.environ.get("ROS_STATIC_PEERS")
+    return f"ROS_DOMAIN_ID {domain}, discovery {scope}" + (f", static peers {peers}" if peers else "")
+
+
+def topic_names(text: str) -> set[str]:
+    """--topics as a set of known names; an unknown one is refused with the known ones."""
+    names = {name.strip() for name in text.split(",") if name.strip()} - {"certificate"}
+    unknown = sorted(names - TOPICS.keys())
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown topic {', '.join(map(repr, unknown))}; known: {', '.join(TOPICS)} "
+            "(the certificate is always shown)"
+        )
+    return names
+
+
+def print_bag(bag: str, topics: set[str]) -> int:
+    """A recorded run, line for line as it was printed live (the bag's own message definitions decode it)."""
+    from npp_ros_graph.tools.bag import BagError, read_messages
+
+    lines = {GAP: gap_line, EPISODE: episode_line, CERTIFICATE: certificate_line}
+    shown = [name for name in lines if name == CERTIFICATE or name.rsplit("/", 1)[-1] in topics]
+    try:
+        for message in read_messages(Path(bag), shown):
+            name = next(n for n in shown if message.topic.endswith("/" + n))
+            print(lines[name](message.msg), flush=True)
+    except BagError as exc:
+        print(f"npp-monitor: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args_in = list(sys.argv[1:] if argv is None else argv)
+    ros_args = args_in[args_in.index("--ros-args") :] if "--ros-args" in args_in else []
+    own = args_in[: len(args_in) - len(ros_args)]
+    ap = argparse.ArgumentParser(prog="npp-monitor", description=__doc__)
+    ap.add_argument(
+        "--topics", default="gap,episode", type=topic_names,
+        help="comma-separated: gap, episode (certificate is always shown)",
+    )  # fmt: skip
+    ap.add_argument("--exit-on-certificate", action="store_true", help="exit once a certificate has been printed")
+    ap.add_argument("--bag", metavar="PATH", help="print a bag recorded by npp-record instead of the live topics")
+    args = ap.parse_args(own)
+    if args.bag:
+        return print_bag(args.bag, args.topics)
+    rclpy.init(args=["npp-monitor", *ros_args])
+    node = MonitorNode(args.topics, args.exit_on_certificate)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        while rclpy.ok() and not (args.exit_on_certificate and node.certified):
+            executor.spin_once(timeout_sec=0.2)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        release(executor, node)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

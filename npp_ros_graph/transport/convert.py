@@ -1,0 +1,243 @@
+"""Where a message becomes a core type and back: the only module that knows both.
+
+Pure functions, no node and no DDS: a message class is an ordinary Python object here, so every
+conversion is tested on its own (tests/ros/test_convert.py). Incoming data is checked on the way in;
+anything malformed raises a :class:`ValueError` subclass (MessageError, VectorError, DatasetError)
+whose message says what is wrong, which the nodes log or answer with.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from npp_interfaces.msg import Certificate as CertificateMsg
+from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
+from npp_interfaces.msg import Trajectory as TrajectoryMsg
+from npp_interfaces.srv import ExpertTrajectory
+from numpy.typing import ArrayLike
+from sensor_msgs.msg import JointState
+
+from npp_ros.certificate.certifier import Certificate
+from npp_ros.policy.dataset import DatasetError, FloatArray, Trajectory
+from npp_ros.policy.vectors import finite_vector
+from npp_ros.run.loop import RunConfig
+from npp_ros.run.records import EpisodeRow
+from npp_ros.tasks.registry import Plant
+
+NS_PER_S = 1_000_000_000
+
+
+class MessageError(ValueError):
+    """A message whose structure does not fit the plant (joint names or counts)."""
+
+
+def float64_array(values: ArrayLike) -> array[float]:
+    """A float64 array.array: the fast path of rosidl's sequence setters (a list is checked item by item)."""
+    out = array("d")
+    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+    return out
+
+
+# ----------------------------------------------------------------------------- time
+def stamp(nanoseconds: int) -> Time:
+    return Time(sec=nanoseconds // NS_PER_S, nanosec=nanoseconds % NS_PER_S)
+
+
+def stamp_ns(time: Time) -> int:
+    return time.sec * NS_PER_S + time.nanosec
+
+
+# ----------------------------------------------------------------------------- trajectories
+def _trajectory(states: Sequence[float], actions: Sequence[float], values: Sequence[float],
+                state_dim: int, action_dim: int) -> Trajectory:  # fmt: skip
+    """Row-major message arrays -> a validated core Trajectory (raises DatasetError)."""
+    steps = len(values)
+    s = np.asarray(states, dtype=np.float64)
+    a = np.asarray(actions, dtype=np.float64)
+    if state_dim <= 0 or action_dim <= 0 or s.size != steps * state_dim or a.size != steps * action_dim:
+        raise DatasetError(
+            f"trajectory arrays do not fit: {steps} values, {s.size} state entries (state_dim {state_dim}), "
+            f"{a.size} action entries (action_dim {action_dim})"
+        )
+    return Trajectory.validated(s.reshape(steps, state_dim), a.reshape(steps, action_dim), values)
+
+
+def trajectory_to_msg(index: int, trajectory: Trajectory, run: str = "") -> TrajectoryMsg:
+    """Trajectory `index` of the dataset of run `run` (its identity: see seal.py)."""
+    return TrajectoryMsg(
+        run=run,
+        index=index,
+        state_dim=trajectory.states.shape[1],
+        action_dim=trajectory.actions.shape[1],
+        states=float64_array(trajectory.states.ravel()),
+        actions=float64_array(trajectory.actions.ravel()),
+        values=float64_array(trajectory.values),
+    )
+
+
+def trajectory_from_msg(msg: TrajectoryMsg) -> tuple[int, Trajectory]:
+    """(index, trajectory); raises DatasetError when the arrays do not fit the dimensions or are not finite."""
+    return int(msg.index), _trajectory(msg.states, msg.actions, msg.values, msg.state_dim, msg.action_dim)
+
+
+def trajectory_to_response(trajectory: Trajectory, response: ExpertTrajectory.Response) -> ExpertTrajectory.Response:
+    """Fill an expert answer's arrays and return (success and message are the server's); NaN: return unknown."""
+    response.expert_return = math.nan if trajectory.expert_return is None else trajectory.expert_return
+    response.state_dim = trajectory.states.shape[1]
+    response.action_dim = trajectory.actions.shape[1]
+    response.states = float64_array(trajectory.states.ravel())
+    response.actions = float64_array(trajectory.actions.ravel())
+    response.values = float64_array(trajectory.values)
+    return response
+
+
+def trajectory_from_response(response: ExpertTrajectory.Response) -> Trajectory:
+    traj = _trajectory(response.states, response.actions, response.values, response.state_dim, response.action_dim)
+    known = math.isfinite(response.expert_return)
+    return replace(traj, expert_return=float(response.expert_return) if known else None)
+
+
+# ----------------------------------------------------------------------------- states and actions
+def _check_names(names: Sequence[str], expected: Sequence[str]) -> None:
+    """Names are optional (empty), but when given they must be exactly the expected joints, in order."""
+    if len(names) and list(names) != list(expected):
+        raise MessageError(f"wrong joint names: {list(names)}, expected {list(expected)} (or none)")
+
+
+def state_to_joint_state(state: ArrayLike, joint_names: Sequence[str], time: Time) -> JointState:
+    """position = qpos, velocity = qvel (one entry per joint), stamp = the state's time."""
+    bodies = len(joint_names)
+    x = finite_vector(state, 2 * bodies, "state", f"qpos then qvel of {bodies} joints")
+    msg = JointState(name=list(joint_names), position=float64_array(x[:bodies]), velocity=float64_array(x[bodies:]))
+    msg.header.stamp = time
+    return msg
+
+
+def state_from_joint_state(msg: JointState, joint_names: Sequence[str]) -> FloatArray:
+    """The state (qpos then qvel) a JointState carries, checked against the plant's joints."""
+    _check_names(msg.name, joint_names)
+    bodies = len(joint_names)
+    if len(msg.position) != bodies or len(msg.velocity) != bodies:
+        raise MessageError(
+            f"wrong joint count: {len(msg.position)} positions and {len(msg.velocity)} velocities, "
+            f"expected {bodies} each"
+        )
+    values = np.concatenate([np.asarray(msg.position, dtype=np.float64), np.asarray(msg.velocity, dtype=np.float64)])
+    return finite_vector(values, 2 * bodies, "state")
+
+
+def action_to_joint_state(action: ArrayLike, actuated_joint_names: Sequence[str], time: Time) -> JointState:
+    """effort = the action, name = the actuated joints, stamp = the stamp of the state it answers."""
+    return refill_action(JointState(name=list(actuated_joint_names)), action, time)
+
+
+def refill_action(msg: JointState, action: ArrayLike, time: Time) -> JointState:
+    """action_to_joint_state into a message built once: a publisher that answers every control step
+    saves the JointState construction, which costs several times these two assignments."""
+    msg.effort = float64_array(np.asarray(action, dtype=np.float64))
+    msg.header.stamp = time
+    return msg
+
+
+def action_from_joint_state(msg: JointState, actuated_joint_names: Sequence[str]) -> FloatArray:
+    """The action (effort) a JointState carries, checked against the plant's actuated joints."""
+    _check_names(msg.name, actuated_joint_names)
+    joints = list(actuated_joint_names)
+    return finite_vector(msg.effort, len(joints), "effort", f"one per actuated joint {joints}")
+
+
+# ----------------------------------------------------------------------------- plant
+def plant_description(plant: Plant, seed: int, horizon: int) -> PlantDescription:
+    return PlantDescription(
+        task=plant.task,
+        seed=seed,
+        horizon=horizon,
+        timestep=plant.dt,
+        state_dim=plant.state_dim,
+        action_dim=plant.action_dim,
+        joint_names=list(plant.joint_names),
+        actuated_joint_names=list(plant.actuated_joint_names),
+        model_sha256=plant.model_sha256(),
+    )
+
+
+def state_layout(plant: PlantDescription) -> str:
+    """What a state's entries are, for messages that tell a caller what to send."""
+    return f"qpos then qvel of {len(plant.joint_names)} joints of {plant.task}"
+
+
+# ----------------------------------------------------------------------------- episodes
+def gap_report(row: EpisodeRow, config: RunConfig, time: Time) -> GapReport:
+    """One episode's decision as /npp/gap reports it."""
+    msg = GapReport(
+        episode=row.episode,
+        initial_state=float64_array(row.initial_state),
+        v_lb=row.v_lb,
+        v_ub=row.v_ub,
+        gap=row.gap,
+        epsilon=config.spec.epsilon,
+        oracle_called=row.oracle_called,
+        dataset_size=row.dataset_size,
+        oracle_calls=row.oracle_calls,
+        quiet_episodes=row.quiet_episodes,
+        quiet_required=row.required,
+        condition=config.spec.condition,
+        certify=config.spec.certify,
+        checked_gap=row.checked_gap,
+        test=row.test,
+        test_delta=row.test_delta,
+    )
+    msg.header.stamp = time
+    return msg
+
+
+def episode_result(row: EpisodeRow, steps: int, time: Time) -> EpisodeResult:
+    """One episode's outcome as /npp/episode reports it: NaN return and 0 steps when the policy did not drive."""
+    driven = row.policy_return is not None
+    msg = EpisodeResult(
+        episode=row.episode,
+        policy_return=row.policy_return if driven else float("nan"),
+        steps=steps if driven else 0,
+        initial_state=float64_array(row.initial_state),
+        expert_value_known=row.expert_value is not None,
+        expert_value=row.expert_value if row.expert_value is not None else 0.0,
+        v_lb=row.v_lb,
+    )
+    msg.header.stamp = time
+    return msg
+
+
+def rollout_result(
+    episode: int, policy_return: float, steps: int, initial_state: ArrayLike, time: Time
+) -> EpisodeResult:
+    """The sim's report of an episode the policy drove (it knows neither V* nor the bounds)."""
+    msg = EpisodeResult(
+        episode=episode,
+        policy_return=policy_return,
+        steps=steps,
+        initial_state=float64_array(initial_state),
+        expert_value_known=False,
+    )
+    msg.header.stamp = time
+    return msg
+
+
+# ----------------------------------------------------------------------------- certificate
+CERTIFICATE_RENAMED = {"window": "quiet_episodes", "required": "episodes_required"}  # record name -> message field
+
+
+def certificate_to_msg(certificate: Certificate, time: Time) -> CertificateMsg:
+    """The certificate's record (``Certificate.record``) under the message's names, so the two never drift.
+
+    Not carried: ``task`` (the plant description names it) and ``rule`` (the statement says it).
+    """
+    named = {CERTIFICATE_RENAMED.get(name, name): value for name, value in certificate.record().items()}
+    carried = CertificateMsg.get_fields_and_field_types()
+    msg = CertificateMsg(**{name: value for name, value in named.items() if name in carried})
+    msg.header.stamp = time
+    return msg

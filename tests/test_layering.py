@@ -1,0 +1,167 @@
+"""The packages' layering, read statically from every module's imports (inside functions too).
+
+npp_ros is the ROS-free core, in parts that follow the paper and a run; npp_ros_graph adapts it to
+ROS 2. The table below says which part may import which; the test parses every module with ast,
+so an import that only runs on request (inside a function) counts as much as one at the top.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+CORE_PARTS = (
+    "npp_ros.policy",
+    "npp_ros.certificate",
+    "npp_ros.trajopt",
+    "npp_ros.tasks",
+    "npp_ros.run",
+    "npp_ros.experiment",
+    "npp_ros.bench",
+    "npp_ros.cli",
+)
+CORE = frozenset(CORE_PARTS)
+BELOW_RUN = frozenset({"npp_ros.policy", "npp_ros.certificate", "npp_ros.trajopt", "npp_ros.tasks"})
+NODE_PARTS = tuple(f"npp_ros_graph.nodes.{node}" for node in ("sim", "expert", "policy", "supervisor"))
+TRANSPORT, RUNTIME, GRAPH = "npp_ros_graph.transport", "npp_ros_graph.runtime", "npp_ros_graph.graph"
+
+MAY_IMPORT: dict[str, frozenset[str]] = {
+    # the core, bottom up
+    "npp_ros": frozenset(),
+    "npp_ros.policy": frozenset(),
+    "npp_ros.certificate": frozenset({"npp_ros.policy"}),
+    "npp_ros.trajopt": frozenset({"npp_ros.policy", "npp_ros.certificate"}),
+    "npp_ros.tasks": frozenset({"npp_ros.policy", "npp_ros.certificate", "npp_ros.trajopt"}),
+    "npp_ros.run": BELOW_RUN,
+    "npp_ros.experiment": BELOW_RUN | {"npp_ros.run"},
+    "npp_ros.bench": BELOW_RUN | {"npp_ros.run"},
+    "npp_ros.cli": CORE - {"npp_ros.cli"},
+    # the ROS side: any of the core, and its own parts bottom up
+    "npp_ros_graph": frozenset(),
+    TRANSPORT: CORE,
+    RUNTIME: CORE | {TRANSPORT},
+    GRAPH: CORE | {TRANSPORT},
+    **{node: CORE | {TRANSPORT, RUNTIME} for node in NODE_PARTS},  # a node never imports another node
+    "npp_ros_graph.nodes": frozenset(),
+    "npp_ros_graph.tools": CORE | {TRANSPORT, RUNTIME, GRAPH},
+    "npp_ros_graph.bench": CORE | {TRANSPORT, RUNTIME, GRAPH},
+    # the thin scripts in nodes/
+    "nodes": frozenset({*NODE_PARTS, "npp_ros_graph.tools"}),
+}
+ROS = ("rclpy", "rosidl", "npp_interfaces", "std_msgs", "sensor_msgs", "builtin_interfaces", "npp_ros_graph")
+
+
+def part_of(module: str) -> str:
+    """The longest part in the table that holds ``module`` (a module path, or nodes.npp_sim for a script)."""
+    parts = [p for p in MAY_IMPORT if module == p or module.startswith(p + ".")]
+    if not parts:
+        raise KeyError(f"{module} is in no part of the layering table (tests/test_layering.py): add it there")
+    return max(parts, key=len)
+
+
+def module_name(path: Path, root: Path) -> str:
+    rel = path.relative_to(root).with_suffix("")
+    names = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(names)
+
+
+def imports(path: Path, module: str) -> list[tuple[int, str]]:
+    """Every module that ``path`` imports, anywhere in it, with its line; relative imports resolved."""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            found.append((node.lineno, base))
+            found += [(node.lineno, f"{base}.{alias.name}") for alias in node.names]  # `from pkg import module`
+    return found
+
+
+def sources(root: Path) -> list[Path]:
+    return sorted(p for folder in ("npp_ros", "npp_ros_graph", "nodes") for p in (root / folder).rglob("*.py"))
+
+
+def violations(root: Path = REPO) -> list[str]:
+    found = []
+    for path in sources(root):
+        module = module_name(path, root)
+        part = part_of(module)
+        allowed = MAY_IMPORT[part] | {part}
+        where = path.relative_to(root)
+        told: set[int] = set()  # one line per import statement
+        for line, name in imports(path, module):
+            if line in told:
+                continue
+            if part.startswith("npp_ros.") or part == "npp_ros":
+                if name.split(".")[0] in ROS:
+                    found.append(f"{where}:{line} imports {name}: the core never imports ROS or npp_ros_graph")
+                    told.add(line)
+                    continue
+            if name.split(".")[0] not in ("npp_ros", "npp_ros_graph"):
+                continue
+            try:
+                target = part_of(name)
+            except KeyError:
+                continue  # `from npp_ros.x import name`: the name is no module; the module itself was checked
+            if target not in allowed and target not in ("npp_ros", "npp_ros_graph"):
+                found.append(f"{where}:{line} imports {name}: {part} may not import {target}")
+                told.add(line)
+    return found
+
+
+def test_every_module_is_in_a_part() -> None:
+    modules = [module_name(p, REPO) for p in sources(REPO)]
+    assert "npp_ros.run.loop" in modules and "npp_ros_graph.nodes.supervisor.node" in modules
+    for module in modules:
+        part_of(module)
+
+
+def test_the_layering_holds() -> None:
+    assert violations() == []
+
+
+def test_the_table_has_no_cycle() -> None:
+    """Parts import downwards only: the table itself is a partial order."""
+    done: set[str] = set()
+
+    def visit(part: str, path: tuple[str, ...]) -> None:
+        assert part not in path, " -> ".join([*path, part])
+        if part not in done:
+            for lower in MAY_IMPORT[part]:
+                visit(lower, (*path, part))
+            done.add(part)
+
+    for part in MAY_IMPORT:
+        visit(part, ())
+
+
+@pytest.mark.parametrize(
+    "folder", sorted({p.parent for p in sources(REPO) if p.parent.name not in ("nodes",)}, key=str)
+)
+def test_each_subpackage_says_what_it_may_import(folder: Path) -> None:
+    doc = ast.get_docstring(ast.parse((folder / "__init__.py").read_text())) or ""
+    assert doc.strip(), f"{folder.relative_to(REPO)}/__init__.py has no docstring"
+    if folder.name not in ("npp_ros", "npp_ros_graph"):
+        assert "May import" in doc or "may import" in doc, f"{folder.relative_to(REPO)}/__init__.py"
+
+
+def test_the_check_catches_what_it_looks_for(tmp_path: Path) -> None:
+    """A core module importing ROS lazily, and a part importing upwards, are both reported."""
+    for folder in ("npp_ros/policy", "npp_ros/run", "npp_ros_graph/nodes/sim", "nodes"):
+        (tmp_path / folder).mkdir(parents=True)
+    (tmp_path / "npp_ros/policy/bad.py").write_text(
+        "def later():\n    import rclpy\n    from npp_ros_graph.transport import topics\n    from ..run import loop\n"
+    )
+    (tmp_path / "npp_ros/run/loop.py").write_text("")
+    found = violations(tmp_path)
+    assert len(found) == 3, found  # rclpy, npp_ros_graph, npp_ros.run: one line each
+    assert any("imports rclpy" in f for f in found) and any("may not import npp_ros.run" in f for f in found)
