@@ -29,7 +29,7 @@ def test_npp_run_certifies_the_example_arm_from_its_task_file(tmp_path: Path, ro
     """The README's command at a short horizon: 50 steps, epsilon 8 (of at most 55 per episode)."""
     run_dir = tmp_path / "arm"
     command = [
-        sys.executable, "-m", "npp_ros_graph.run_graph", "--task", "examples/two_link_arm/task.toml",
+        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", "examples/two_link_arm/task.toml",
         "--horizon", "50", "--epsilon", "8", "--max-episodes", "400", "--time-budget", "60", "--run-dir", str(run_dir),
     ]  # fmt: skip
     run = subprocess.run(command, capture_output=True, text=True, timeout=900, cwd=REPO)
