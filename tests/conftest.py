@@ -27,6 +27,7 @@ SLOW_MODULES = {
     "test_cartpole.py",
     "test_bench.py",
     "test_theorems.py",  # greedy rollouts from 40 s0 per theorem
+    "test_deploy.py",  # three runs to a certificate, and the gate on each
 }
 
 

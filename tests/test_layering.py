@@ -26,7 +26,9 @@ CORE_PARTS = (
 )
 CORE = frozenset(CORE_PARTS)
 BELOW_RUN = frozenset({"npp_ros.policy", "npp_ros.certificate", "npp_ros.trajopt", "npp_ros.tasks"})
-NODE_PARTS = tuple(f"npp_ros_graph.nodes.{node}" for node in ("sim", "expert", "policy", "supervisor"))
+NODE_PARTS = tuple(
+    f"npp_ros_graph.nodes.{node}" for node in ("sim", "expert", "policy", "supervisor", "deploy", "robot")
+)
 TRANSPORT, RUNTIME, GRAPH = "npp_ros_graph.transport", "npp_ros_graph.runtime", "npp_ros_graph.graph"
 
 MAY_IMPORT: dict[str, frozenset[str]] = {

@@ -32,6 +32,7 @@ from npp_ros.policy.dataset import Trajectory
 from npp_ros.policy.vectors import finite_vector, state_digest
 from npp_ros.tasks.expert_pool import ExpertPool, PooledAnswer, default_workers
 from npp_ros.tasks.registry import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros_graph.runtime.diagnostics import ERROR, OK, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import state_layout, trajectory_to_response
@@ -123,6 +124,10 @@ class ExpertNode(Node):
             qos_profile=SERVICE_QOS,
             callback_group=ReentrantCallbackGroup(),
         )
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            "serving" if self.expert is not None else "waiting for a plant it can model",
+            {"waiting requests": self.waiting, "busy refusals": self.busy_refusals},
+            ERROR if self.refusal else OK, self.refusal or ""))  # fmt: skip
         self.get_logger().info(
             f"waiting for the plant description on {self._plant_sub.topic_name}; "
             f"serving {self.resolve_service_name(EXPERT_SERVICE)} (gamma {self.gamma}, max_horizon {self.max_horizon}, "

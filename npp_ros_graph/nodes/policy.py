@@ -32,6 +32,7 @@ from std_msgs.msg import UInt32, UInt64
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, DatasetError
+from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
 from npp_ros_graph.transport.convert import refill_action, state_from_joint_state, trajectory_from_msg
@@ -115,6 +116,11 @@ class PolicyNode(Node):
         self.create_timer(REPORT_EVERY_S, self.report_dropped)
         self._worker = threading.Thread(target=self._work, name="npp-policy-worker", daemon=True)
         self._worker.start()
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            "waiting for data" if self.policy is None else f"acting on {self.policy.dataset.num_trajectories} "
+            "trajectories",
+            {"answered": self.answered, "dropped states": self.dropped, "waiting": len(self._inbox)},
+            error=self._warn.last))  # fmt: skip
 
     # ---------------------------------------------------------------- dataset
     def _foreign(self, topic: str, exc: SealError) -> None:

@@ -24,6 +24,7 @@ from npp_ros.policy.vectors import finite_vector
 from npp_ros.tasks.registry import MAX_HORIZON, Plant, Task, check_horizon, get_task
 from npp_ros.tasks.rollout import episode_return
 from npp_ros.tasks.sources import describe_tasks
+from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
 from npp_ros_graph.transport.convert import (
     action_from_joint_state,
@@ -129,6 +130,9 @@ class SimNode(Node):
         self._build_timer = self.create_timer(0.0, self._build)  # MuJoCo loads after init, not inside it
         if self.resend_after > 0:
             self.create_timer(min(self.resend_after, 0.25), self._resend_if_unanswered)
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            f"episode {self.episode}, step {self.steps}" if self.state_stamp is not None else "waiting for a reset",
+            {"ignored actions": self.ignored_actions}, error=self._warn.last))  # fmt: skip
 
     def _build(self) -> None:
         self._build_timer.cancel()

@@ -149,9 +149,11 @@ class ThrottledWarnings:
         self.node, self.every_s = node, every_s
         self._last: dict[str, tuple[float, int]] = {}
         self.counts: dict[str, int] = {}
+        self.last = ""  # the newest warning, suppressed or not (a node's last error on /diagnostics)
 
     def __call__(self, kind: str, message: str) -> None:
         self.counts[kind] = self.counts.get(kind, 0) + 1
+        self.last = message
         now = time.monotonic()
         last, suppressed = self._last.get(kind, (-float("inf"), 0))
         if now - last < self.every_s:

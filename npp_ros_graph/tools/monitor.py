@@ -15,15 +15,17 @@ import time
 from pathlib import Path
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from npp_interfaces.msg import Certificate, EpisodeResult, GapReport
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
+from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_lines
 from npp_ros_graph.runtime.node import release
 from npp_ros_graph.transport.seal import RunSeal
 from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
 
-TOPICS = {"gap": GAP, "episode": EPISODE}  # --topics names; the certificate is always shown
+TOPICS = {"gap": GAP, "episode": EPISODE, "health": DIAGNOSTICS.lstrip("/")}  # --topics; the certificate always
 FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
 NOTICE_EVERY_S = 30.0  # then once per this much further silence
 
@@ -76,6 +78,9 @@ class MonitorNode(Node):
         if "episode" in topics:
             self.create_subscription(EpisodeResult, EPISODE, lambda m: self.show(episode_line(m), m), REPORT_QOS)
         self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_QOS)
+        self._health_shown: dict[str, str] = {}  # each node's /diagnostics line, printed when it changes
+        if "health" in topics:
+            self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_diagnostics, DIAGNOSTICS_QOS)
         self.create_timer(1.0, self.notice_if_silent)
 
     def show(self, line: str, msg: GapReport | EpisodeResult | Certificate) -> bool:
@@ -84,6 +89,11 @@ class MonitorNode(Node):
         self.last_message = time.monotonic()
         print(line, flush=True)
         return True
+
+    def on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for line in health_lines(msg, self._health_shown):
+            self.last_message = time.monotonic()
+            print(line, flush=True)
 
     def on_certificate(self, msg: Certificate) -> None:
         self.certified = self.show(certificate_line(msg), msg) or self.certified
@@ -154,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="npp-monitor", description=__doc__)
     ap.add_argument(
         "--topics", default="gap,episode", type=topic_names,
-        help="comma-separated: gap, episode (certificate is always shown)",
+        help="comma-separated: gap, episode, health (/diagnostics; certificate is always shown)",
     )  # fmt: skip
     ap.add_argument("--exit-on-certificate", action="store_true", help="exit once a certificate has been printed")
     ap.add_argument("--bag", metavar="PATH", help="print a bag recorded by npp-record instead of the live topics")

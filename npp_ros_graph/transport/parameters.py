@@ -44,6 +44,7 @@ class Param:
     low: float | None = None  # inclusive bounds, as ROS ranges are
     high: float | None = None
     choices: tuple[str, ...] = ()
+    read_only: bool = True  # False: a node that reads it again later (a lifecycle node, at configure)
 
     def allowed(self) -> str:
         """The allowed values in words ("an integer in [1, 100000]", "one of: i, ii")."""
@@ -57,7 +58,7 @@ class Param:
         return f"{kind} in [{low}, {high}]"
 
     def descriptor(self) -> ParameterDescriptor:
-        descriptor = ParameterDescriptor(name=self.name, description=self.description, read_only=True)
+        descriptor = ParameterDescriptor(name=self.name, description=self.description, read_only=self.read_only)
         if self.choices:
             descriptor.additional_constraints = self.allowed()
         if self.low is not None or self.high is not None:

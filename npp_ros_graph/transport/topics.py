@@ -21,6 +21,10 @@ DATASET_TOPIC = "npp/dataset/trajectory"
 DATASET_SERVICE = "npp/dataset/get"
 POLICY_STATUS = "npp/policy/trajectories"
 POLICY_DROPPED = "npp/policy/dropped_states"
+# ros2_control's conventions, spoken by npp-deploy and npp-robot: joint_state_broadcaster's states and a
+# forward_command_controller's commands (absolute: they are the robot's topics, not a run's).
+JOINT_STATES = "/joint_states"
+FORWARD_COMMANDS = "/forward_effort_controller/commands"
 
 # Service refusals that say "ask again": a caller retries these within its deadline; any other refusal
 # (a bad request, a foreign plant) is final for that request.

@@ -160,8 +160,12 @@ class ChaosRun:
                 self.outcome.applied.append(f"{fault}: not applied, the run had ended")
                 continue
             pids = self._children()
+            deadline = time.monotonic() + 30.0
+            while fault.node != "npp-run" and fault.node not in pids and time.monotonic() < deadline:
+                self.spin(0.05)  # start-up: npp-run has not started that node yet; hit it as soon as it runs
+                pids = self._children()
             if fault.node != "npp-run" and fault.node not in pids:
-                self.outcome.applied.append(f"{fault}: not applied, npp-{fault.node} was not running yet")
+                self.outcome.applied.append(f"{fault}: not applied, npp-{fault.node} did not start")
                 continue
             if fault.kind == "pause":
                 self._pause(fault, pids[fault.node])

@@ -84,13 +84,15 @@ def chaos(
     lines = [f"lqr_2_1 (H = {HORIZON}, rollout check); uninterrupted: {len(result.rows)} episodes, "
              f"{result.oracle_calls} expert calls"]  # fmt: skip
     pauses: list[float] = []
+    runs: list[list[Fault]] = []
 
     def spin(seconds: float) -> None:
         end = time.monotonic() + seconds
         client.wait_for(lambda: time.monotonic() >= end, seconds + 10.0)
 
     def run(faults: list[Fault]) -> Outcome:
-        k = len(lines) - 1
+        k = len(runs)
+        runs.append(faults)
         outcome = ChaosRun(tmp_path / f"run{k}", HORIZON, faults, spin, lambda: arrivals, say=print).run()
         assert_same_run(tmp_path / f"run{k}" / "run.sqlite", loop, result)
         repeats = check_expert_calls(outcome, loop)

@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
+import numpy as np
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
 from rclpy.client import Client
 from rclpy.impl.rcutils_logger import RcutilsLogger
+from rclpy.task import Future
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.run.answer_check import AnswerCheck
-from npp_ros_graph.runtime.deadlines import call_with_deadline
+from npp_ros_graph.runtime.deadlines import RESEND_S, call_with_deadline
 from npp_ros_graph.transport.convert import float64_array, trajectory_from_response
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, NOT_READY
@@ -32,6 +34,14 @@ class RosExpert:
     and logger, a count of the service's servers (what a refusal names), and the check of an answer: one
     that fails it (wrong dimensions, non-finite values, values that contradict its own trajectory on the
     supervisor's plant) counts as a failed attempt, with the reason, and nothing of it is stored.
+
+    Asking ahead (``ahead``: the s0 of the episodes after the one that asks, known in advance because
+    every episode draws its s0 from its own seeded stream): in the oracle mode every episode needs the
+    expert, so the answers for the next episodes are asked for at once and computed while this episode
+    runs (by an expert with several workers, at the same time). An early answer is only kept: it is
+    checked like any other and reaches the loop when the loop asks for that s0, so it cannot change a
+    test that is running. One lost in a pause or a restart is asked for again the usual way; answers
+    asked ahead of a run that then certifies are never used (at most as many as are asked ahead).
     """
 
     def __init__(
@@ -47,26 +57,79 @@ class RosExpert:
         timeout: float,
         retries: int,
         check: AnswerCheck,
+        ahead: Callable[[], Sequence[FloatArray]] = tuple,
     ) -> None:
         self.client, self.plant, self.seal, self.run_id = client, plant, seal, run_id
         self.stop, self.logger, self.servers = stop, logger, servers
         self.timeout, self.retries, self.check = timeout, retries, check
+        self.ahead = ahead
+        self._early: dict[bytes, tuple[ExpertTrajectory.Request, Future]] = {}  # s0's bytes -> request, answer
+
+    def _request(self, initial_state: FloatArray) -> ExpertTrajectory.Request:
+        return ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0, run=self.run_id)
+
+    def ask_ahead(self) -> None:
+        """Ask now for the s0 the next episodes will ask about (see the class docstring)."""
+        for state in self.ahead():
+            key = np.asarray(state, dtype=np.float64).tobytes()
+            if key not in self._early and self.client.service_is_ready():
+                request = self._request(state)
+                self._early[key] = (request, self.client.call_async(request))
+
+    def _early_answer(self, request: ExpertTrajectory.Request, future: Future) -> ExpertTrajectory.Response | None:
+        """The answer asked for ahead, once it is here and checks; None (ask the usual way) when it was refused
+        or lost: its server left the graph, this process was paused, or expert_timeout passed."""
+        done = threading.Event()
+        future.add_done_callback(lambda _f: done.set())
+        deadline = time.monotonic() + self.timeout
+        while not done.is_set():
+            before = time.monotonic()
+            if done.wait(min(RESEND_S, max(deadline - before, 0.0))):
+                break
+            if (
+                self.stop.is_set()
+                or time.monotonic() >= deadline
+                or not self.client.service_is_ready()
+                or (time.monotonic() - before > 3 * RESEND_S)
+            ):
+                self.client.remove_pending_request(future)
+                future.cancel()
+                return None
+        response = future.result()
+        if response is None:
+            return None
+        refusal, _ = self._refusal(response, request)
+        if refusal is not None:
+            self.logger.info(f"an answer asked for ahead was refused ({refusal}); asking again")
+            return None
+        return response
 
     def trajectory(self, initial_state: FloatArray) -> Trajectory:
+        early = self._early.pop(np.asarray(initial_state, dtype=np.float64).tobytes(), None)
+        self.ask_ahead()
+        if early is not None and (response := self._early_answer(*early)) is not None:
+            try:
+                return self._checked(response, initial_state)
+            except ValueError as exc:
+                self.logger.warning(f"refused the expert's answer asked for ahead: {exc}; asking again")
         last = "no answer"
         for attempt in range(1, self.retries + 1):
             response, last = self._attempt(initial_state)
             if response is not None:
                 try:
-                    answer = trajectory_from_response(response)
-                    self.check(answer, initial_state)
-                    return answer
+                    return self._checked(response, initial_state)
                 except ValueError as exc:  # DatasetError, AnswerError: the answer is wrong, not the link
                     last = f"refused the expert's answer: {exc}"
             self.logger.warning(f"expert call {attempt}/{self.retries} failed: {last}")
             if attempt < self.retries:
                 self.stop.wait(min(self.timeout, RETRY_PAUSE_S * 2 ** (attempt - 1)))
         raise ExpertUnavailable(f"the expert did not deliver after {self.retries} attempts: {last}")
+
+    def _checked(self, response: ExpertTrajectory.Response, initial_state: FloatArray) -> Trajectory:
+        """The answer as a trajectory once it passes the answer check; its ValueError names the failed check."""
+        answer = trajectory_from_response(response)
+        self.check(answer, initial_state)
+        return answer
 
     def _attempt(self, initial_state: FloatArray) -> tuple[ExpertTrajectory.Response | None, str]:
         """One attempt: a trajectory within expert_timeout, or why not.
@@ -77,7 +140,7 @@ class RosExpert:
         """
         deadline = time.monotonic() + self.timeout
         pause = RETRY_PAUSE_S
-        request = ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0, run=self.run_id)
+        request = self._request(initial_state)
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not self.client.wait_for_service(timeout_sec=remaining):

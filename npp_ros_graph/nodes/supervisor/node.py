@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,16 +38,17 @@ from npp_ros.certificate.certifier import (
     StoppingRule,
 )
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
-from npp_ros.policy.dataset import Trajectory
+from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.answer_check import AnswerCheck
-from npp_ros.run.loop import EpisodeInterrupted, NPPLoop
+from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
 from npp_ros.run.setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros_graph.nodes.supervisor.expert import RosExpert
 from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
 from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollouts
+from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import (
@@ -94,6 +96,9 @@ PARAMETERS = (
     Param("expert_timeout", 30.0, "seconds one expert attempt may take (a busy or not-ready expert is asked again)",
           1e-3),
     Param("expert_retries", 3, "expert attempts per episode, 0.25 s (doubling) apart, before the run stops", 1),
+    Param("expert_ahead", 2, "oracle mode: how many later episodes' expert answers are asked for while an episode "
+          "runs (their s0 are known in advance; an expert with several workers computes them at once); 0 = none",
+          0),
     Param("rollouts", True, "let the policy drive each episode through the sim (the sound checks need it)"),
     Param("rollout_timeout", 120.0, "seconds an episode may run without a result before it is run again from its s0 "
           "(a result lost in a pause is asked for again within seconds; no episode is skipped)", 1e-3),
@@ -120,6 +125,7 @@ class SupervisorSettings:
     run_dir: str
     expert_timeout: float
     expert_retries: int
+    expert_ahead: int
     rollouts: bool
     rollout_timeout: float
 
@@ -177,6 +183,10 @@ class SupervisorNode(Node):
         self.exit_code = 0
         self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
         self.worker.start()
+        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
+            "waiting for the sim's plant description" if self.loop is None else f"episode {self.loop.next_episode}"
+            + (", certified" if self.loop.certificate else ""),
+            {"oracle calls": 0 if self.loop is None else self.loop.oracle_calls}))  # fmt: skip
         self.get_logger().info("waiting for the sim's plant description")
 
     # ---------------------------------------------------------------- graph inputs
@@ -299,6 +309,7 @@ class SupervisorNode(Node):
                 self.expert, plant, self.seal, self.run_id, stop=self.stop, logger=log,
                 servers=lambda: self.count_services(EXPERT_SERVICE), timeout=s.expert_timeout, retries=s.expert_retries,
                 check=check,
+                ahead=self.upcoming_states(config, s.expert_ahead),
             )  # fmt: skip
             rollouts = RosRollouts(
                 self.reset, self.seal, self.run_id, self.handshake, self.publish_trajectories,
@@ -331,6 +342,18 @@ class SupervisorNode(Node):
     def send_trajectory(self, index: int, trajectory: Trajectory) -> None:
         """One trajectory to the policy (and whoever listens), sealed for this run."""
         self.trajectory_pub.publish(self.trajectory_msg(index, trajectory))
+
+    def upcoming_states(self, config: RunConfig, count: int) -> Callable[[], list[FloatArray]]:
+        """The s0 of the `count` episodes after the running one, where every episode asks the expert (oracle)."""
+        if config.spec.certify != "oracle" or count == 0:
+            return list
+        s0 = initial_state_fn(config.task, config.seed)
+
+        def upcoming() -> list[FloatArray]:
+            loop = self.loop
+            return [] if loop is None else [s0(k) for k in range(loop.next_episode + 1, loop.next_episode + 1 + count)]
+
+        return upcoming
 
     def publish_trajectories(self, start: int, stop: int) -> None:
         assert self.loop is not None

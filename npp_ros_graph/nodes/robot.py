@@ -1,0 +1,254 @@
+"""npp-robot: a MuJoCo plant that behaves as a ros2_control robot does, to test npp-deploy against.
+
+Real time (default): a thread steps the task's plant once per control period (its dt) on the wall
+clock and publishes /joint_states after every step, as joint_state_broadcaster does; the command
+applied is the latest std_msgs/Float64MultiArray from the controller's topic, held until the next
+arrives (a zero-order hold, no lockstep: a late command leaves the previous one in force, as
+forward_command_controller does). Before the first command it applies zero.
+
+Lockstep (``lockstep:=true``, for exact comparisons): once a controller publishes on the command
+topic, it publishes a state, then steps only when a command answers it, and publishes the next; a
+state left unanswered for ``resend_after`` seconds is published again with the same stamp (so a
+controller activated later picks it up).
+
+Joint states: every joint of the model, position = qpos, velocity = qvel, effort = the control
+applied to its actuator (0 for a joint without one); stamps are the wall clock (real time) or the
+simulated time (lockstep).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from npp_ros.policy.vectors import finite_vector
+from npp_ros.run.deploy import JointLayout, parse_names, parse_vector
+from npp_ros.tasks.registry import TASK_NAMES, Plant, get_task
+from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
+from npp_ros_graph.runtime.node import ThrottledWarnings, run_node
+from npp_ros_graph.transport.convert import float64_array, stamp
+from npp_ros_graph.transport.parameters import Param, StartupError, declare_settings, parameter_help
+from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES
+
+PARAMETERS = (
+    Param("task", "lqr_2_1", "the task whose plant this robot is", choices=TASK_NAMES),
+    Param("seed", 0, "task seed (the plant's model depends on it)", 0, 2**32 - 1),
+    Param("initial_state", "", "the state to start in, comma-separated qpos then qvel; empty = s0 ~ rho of "
+          "`episode`"),
+    Param("episode", 0, "which s0 ~ rho to start in when initial_state is empty (the run's stream for this seed)", 0),
+    Param("lockstep", False, "step only when a command answers the latest state (tests); else real time"),
+    Param("resend_after", 0.5, "lockstep: seconds before an unanswered state is published again", 1e-3),
+    Param("joint_states_topic", JOINT_STATES, "where the joint states go"),
+    Param("command_topic", FORWARD_COMMANDS, "the controller's command topic"),
+    Param("command_joints", "", "the controller's joints in command order, comma-separated; empty = the model's "
+          "actuated joints"),
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RobotSettings:
+    """npp-robot's parameters; the task's registry checks the name."""
+
+    task: str
+    seed: int
+    initial_state: str
+    episode: int
+    lockstep: bool
+    resend_after: float
+    joint_states_topic: str
+    command_topic: str
+    command_joints: str
+
+    def __post_init__(self) -> None:
+        task = get_task(self.task)
+        if self.initial_state.strip():
+            parse_vector(self.initial_state, task.state_dim, "initial_state")
+
+
+USAGE = f"""npp-robot: a task's MuJoCo plant as a ros2_control robot (node "npp_robot").
+
+publishes   joint_states_topic (sensor_msgs/JointState) every control period (real time), or after each
+            answered command (lockstep)
+subscribes  command_topic (std_msgs/Float64MultiArray, one entry per command joint; held until the next)
+            a command of the wrong length or with non-finite entries is ignored with a warning
+publishes   /diagnostics
+
+It logs its model fingerprint at start: npp-deploy's robot_model_fingerprint.
+
+{parameter_help(PARAMETERS)}
+"""
+
+
+class RobotNode(Node):
+    def __init__(self) -> None:
+        super().__init__("npp_robot")
+        self.settings = settings = declare_settings(self, PARAMETERS, RobotSettings)
+        self.plant: Plant | None = None
+        self.layout: JointLayout | None = None
+        self._lock = threading.Lock()  # the plant: stepped by the clock thread or the command callback
+        self._command: np.ndarray | None = None  # the latest command, in the task's actuator order
+        self._fresh = False  # a command arrived since the last step
+        self._applied = np.zeros(0)
+        self.steps = 0
+        self.held_steps = 0  # real time: steps taken with a command that was already applied before
+        self.ignored_commands = 0
+        self.overruns = 0
+        self._state_msg = JointState()
+        self._last_sent = 0.0
+        self._warn = ThrottledWarnings(self)
+        self._stopping = threading.Event()
+        self._clock_thread: threading.Thread | None = None
+        self.state_pub = self.create_publisher(JointState, settings.joint_states_topic, CONTROL_QOS)
+        self._command_sub = self.create_subscription(
+            Float64MultiArray, settings.command_topic, self.on_command, CONTROL_QOS
+        )
+        self.diagnostics = DiagnosticsReporter(self, self.health)
+        self._build_timer = self.create_timer(0.0, self._build)  # MuJoCo loads after init, not inside it
+
+    def _build(self) -> None:
+        self._build_timer.cancel()
+        self.destroy_timer(self._build_timer)
+        settings = self.settings
+        task = get_task(settings.task)
+        try:
+            plant = task.make_plant(settings.seed)
+            layout = JointLayout.of_plant(plant, parse_names(settings.command_joints))
+        except Exception as exc:  # run_node turns this into a clean exit with the reason
+            raise StartupError(f"cannot build the robot {settings.task} seed {settings.seed}: {exc}") from exc
+        if settings.initial_state.strip():
+            s0 = parse_vector(settings.initial_state, task.state_dim, "initial_state")
+        else:
+            s0 = task.initial_state(settings.seed, settings.episode)
+        plant.reset(s0)
+        model = plant.physics.model
+        self._qpos = np.array([model.jnt_qposadr[model.joint(n).id] for n in plant.joint_names], dtype=np.intp)
+        self._qvel = np.array([model.jnt_dofadr[model.joint(n).id] for n in plant.joint_names], dtype=np.intp)
+        self._effort_of = np.array(
+            [plant.actuated_joint_names.index(n) if n in plant.actuated_joint_names else -1 for n in plant.joint_names]
+        )
+        self._state_msg = JointState(name=list(plant.joint_names))
+        self._applied = np.zeros(plant.action_dim)
+        self.plant, self.layout = plant, layout
+        mode = "lockstep" if settings.lockstep else f"real time, every {plant.dt * 1e3:g} ms"
+        self.get_logger().info(
+            f"robot {settings.task} seed {settings.seed} ready ({mode}): joints {plant.joint_names}, commands for "
+            f"{list(layout.command_joints)} on {settings.command_topic}, s0 {np.round(s0, 6).tolist()}; "
+            f"model fingerprint {plant.model_sha256()}"
+        )
+        if settings.lockstep:
+            self._started = False  # the first state waits for a controller, whose answer it could otherwise miss
+            self.create_timer(min(settings.resend_after, 0.05), self._resend_if_unanswered)
+        else:
+            self._clock_thread = threading.Thread(target=self._run_clock, name="npp-robot-clock", daemon=True)
+            self._clock_thread.start()
+
+    # ---------------------------------------------------------------- commands
+    def on_command(self, msg: Float64MultiArray) -> None:
+        layout, plant = self.layout, self.plant
+        if layout is None or plant is None:
+            return
+        try:
+            command = finite_vector(msg.data, len(layout.command_joints), "command", f"one per joint of "
+                                    f"{list(layout.command_joints)}")  # fmt: skip
+        except ValueError as exc:
+            self.ignored_commands += 1
+            self._warn("command", f"ignored a command: {exc}")
+            return
+        action = layout.action(command)
+        if self.settings.lockstep:
+            with self._lock:
+                self._step(action)
+                self._publish(stamp(round(self.steps * plant.dt * 1e9)))
+        else:
+            self._command, self._fresh = action, True
+
+    # ---------------------------------------------------------------- stepping
+    def _step(self, action: np.ndarray) -> None:
+        assert self.plant is not None
+        self.plant.step(action)
+        self._applied = action
+        self.steps += 1
+
+    def _run_clock(self) -> None:
+        """Real time: one step per control period on the monotonic clock, the latest command held."""
+        assert self.plant is not None
+        dt = self.plant.dt
+        self._publish(self.get_clock().now().to_msg())
+        next_tick = time.monotonic() + dt
+        while not self._stopping.is_set():
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                self._stopping.wait(delay)
+            elif delay < -dt:  # more than a period late (a stalled machine): count it, keep the period
+                self.overruns += 1
+                next_tick += math.floor(-delay / dt) * dt
+            next_tick += dt
+            command, fresh = self._command, self._fresh
+            self._fresh = False
+            if command is None:
+                command = np.zeros(self.plant.action_dim)
+            elif not fresh:
+                self.held_steps += 1
+            with self._lock:
+                self._step(command)
+                if not rclpy.ok():
+                    return  # shutting down: nobody to publish to
+                self._publish(self.get_clock().now().to_msg())
+
+    def _publish(self, when) -> None:
+        assert self.plant is not None
+        data = self.plant.physics.data
+        msg = self._state_msg
+        msg.header.stamp = when
+        msg.position = float64_array(data.qpos[self._qpos])
+        msg.velocity = float64_array(data.qvel[self._qvel])
+        msg.effort = float64_array(np.where(self._effort_of >= 0, self._applied[self._effort_of], 0.0))
+        self._last_sent = time.monotonic()
+        self.state_pub.publish(msg)
+
+    def _resend_if_unanswered(self) -> None:
+        if not self._started:
+            if self._command_sub.get_publisher_count() > 0:
+                self._started = True
+                self.get_logger().info("a controller publishes commands: lockstep starts")
+                self._publish(stamp(0))
+            return
+        if time.monotonic() - self._last_sent >= self.settings.resend_after:
+            with self._lock:
+                self.state_pub.publish(self._state_msg)
+                self._last_sent = time.monotonic()
+
+    # ---------------------------------------------------------------- health
+    def health(self) -> Health:
+        mode = "lockstep" if self.settings.lockstep else "real time"
+        values = {
+            "steps": self.steps,
+            "steps on a held command": self.held_steps,
+            "ignored commands": self.ignored_commands,
+            "overruns": self.overruns,
+        }
+        return Health(f"{mode}: {self.steps} steps", values)
+
+    def destroy_node(self) -> None:
+        self._stopping.set()
+        if self._clock_thread is not None:
+            self._clock_thread.join(timeout=2.0)
+        super().destroy_node()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_node(RobotNode, argv, USAGE)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,64 @@
+"""Run folders for npp-deploy's tests: real short-horizon lqr_2_1 runs made with the core loop, and copies of
+them altered the ways the gate must catch."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sqlite3
+from pathlib import Path
+
+from npp_ros.certificate.certifier import StoppingRule
+from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
+from npp_ros.tasks.registry import get_task
+
+TASK, SEED, HORIZON, EPSILON = "lqr_2_1", 0, 100, 2.0
+FINGERPRINT = plant_fingerprint(TASK, SEED)
+NUDGE_ONE_POINT = "UPDATE points SET s_0 = s_0 + 1e-9 WHERE trajectory = 0 AND step = 3"
+NUDGE_ONE_POINT = "UPDATE points SET s_0 = s_0 + 1e-9 WHERE trajectory = 0 AND step = 3"
+
+
+def make_run(folder: Path, *, rule: StoppingRule = "sequential", max_episodes: int = 300) -> Path:
+    """An lqr_2_1 run at H = 100 (oracle checks, epsilon 2): certifies in about 30 episodes, in a second."""
+    expert = get_task(TASK).make_expert(SEED, HORIZON)
+    lipschitz = resolve_lipschitz(TASK, "analytic", expert)
+    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, certify="oracle", rule=rule)
+    loop = build_loop(config, expert, store_path=folder / "run.sqlite")
+    try:
+        loop.run(max_episodes)
+    finally:
+        assert loop.store is not None
+        loop.store.close()
+    return folder
+
+
+def altered_copy(source: Path, folder: Path, *statements: tuple[str, tuple[object, ...]]) -> Path:
+    """A copy of a run folder with SQL statements applied to its run file (what an edit from outside does)."""
+    shutil.copytree(source, folder)
+    with sqlite3.connect(folder / "run.sqlite") as conn:
+        for sql, args in statements:
+            conn.execute(sql, args)
+    return folder
+
+
+def edited_certificate(source: Path, folder: Path, **changes: object) -> Path:
+    """A copy whose certificate record has some fields changed."""
+    with sqlite3.connect(source / "run.sqlite") as conn:
+        record = json.loads(conn.execute("SELECT value FROM meta WHERE key = 'certificate'").fetchone()[0])
+    record.update(changes)
+    return altered_copy(source, folder, ("UPDATE meta SET value = ? WHERE key = 'certificate'", (json.dumps(record),)))
+
+
+def bad_folders(good: Path, root: Path) -> dict[str, tuple[Path, str]]:
+    """Each way a folder must be refused: name -> (folder, words the refusal must contain)."""
+    return {
+        "missing": (root / "nothing-here", "does not exist"),
+        "uncertified": (make_run(root / "uncertified", max_episodes=5), "no certificate"),
+        "not proven": (make_run(root / "paper-rule", rule="paper"), "not proven"),
+        "altered data": (altered_copy(good, root / "altered-data", (NUDGE_ONE_POINT, ())), "fails its SHA-256 check"),
+        "altered certificate": (edited_certificate(good, root / "altered-certificate", epsilon=50.0), "altered"),
+        "deleted certificate": (
+            altered_copy(good, root / "deleted-certificate", ("DELETE FROM meta WHERE key = 'certificate'", ())),
+            "no certificate",
+        ),
+    }

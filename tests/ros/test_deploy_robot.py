@@ -1,0 +1,341 @@
+"""npp-deploy and npp-robot as separate processes over DDS: the gate, the lockstep and real-time loops against
+the in-process policy, the watchdog, the stop service and bad joint states.
+
+The run folders are real short-horizon lqr_2_1 runs made here with the core loop (tests/deploy_runs.py).
+No test asserts a speed: the watchdog's timing is checked against its own timeout with a wide margin for a
+busy machine (the measured figures are in results/deploy, from npp-bench-deploy)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from deploy_runs import EPSILON, FINGERPRINT, HORIZON, SEED, TASK, bad_folders, make_run
+from diagnostic_msgs.msg import DiagnosticArray
+from lifecycle_msgs.srv import ChangeState, GetState
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.rollout import rollout
+from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, ERROR, Health, health_of
+from npp_ros_graph.transport.convert import float64_array, stamp
+from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES
+
+START_TIMEOUT_S = 120.0  # processes importing rclpy and MuJoCo on a shared, busy machine
+BUSY_MACHINE_SLACK_S = 1.0  # what a loaded machine may add to the watchdog's reaction, beyond one period
+DT = get_task(TASK).make_plant(SEED).dt
+# The test's own subscriptions keep everything: a lockstep loop outpaces a test spinning between checks,
+# and a shallow reader history would drop states (the robot and npp-deploy themselves use CONTROL_QOS).
+KEEP_ALL = QoSProfile(depth=100_000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, tuple[Path, str]]]:
+    root = tmp_path_factory.mktemp("deploy-runs")
+    good = make_run(root / "good")
+    return good, bad_folders(good, root)
+
+
+def certified_policy(run: Path) -> NonparametricPolicy:
+    """The certificate's policy, read here straight from the run file (not through npp_ros.deploy)."""
+    with RunStore.open(run / "run.sqlite") as store:
+        certificate, data = store.certificate(), store.load_dataset()
+    assert certificate is not None
+    return NonparametricPolicy(data.prefix(certificate["policy_trajectories"]), certificate["lipschitz"])
+
+
+def s0_text(state: np.ndarray) -> str:
+    return ",".join(repr(float(x)) for x in state)
+
+
+class Deploy:
+    """A test's handle on one npp-deploy process: its lifecycle, its parameters, its diagnostics, the commands."""
+
+    def __init__(self, client: Any, node: str = "/npp_deploy", command_topic: str = FORWARD_COMMANDS) -> None:
+        self.client, self.node = client, node
+        self.change = client.client(ChangeState, f"{node}/change_state", START_TIMEOUT_S)
+        self.get = client.client(GetState, f"{node}/get_state")
+        self.params = client.client(SetParameters, f"{node}/set_parameters")
+        self.stopper = client.client(Trigger, f"{node}/stop")
+        self.statuses: list[Any] = []
+        self.commands: list[tuple[float, list[float]]] = []
+        client.node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS_QOS)
+        self.command_sub = client.node.create_subscription(Float64MultiArray, command_topic, self._on_command, KEEP_ALL)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        self.statuses += [status for status in msg.status if status.name == self.node]
+
+    def _on_command(self, msg: Float64MultiArray) -> None:
+        self.commands.append((time.monotonic(), list(msg.data)))
+
+    def set(self, **values: Any) -> None:
+        request = SetParameters.Request(
+            parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]
+        )
+        answer = self.client.call(self.params, request)
+        assert all(result.successful for result in answer.results), [r.reason for r in answer.results]
+
+    def transition(self, label: str) -> bool:
+        request = ChangeState.Request()
+        request.transition.label = label
+        return bool(self.client.call(self.change, request, timeout=120.0, attempt_timeout=120.0).success)
+
+    def state(self) -> str:
+        return str(self.client.call(self.get, GetState.Request()).current_state.label)
+
+    def health(self, since: int = 0, timeout: float = 10.0) -> Health:
+        """The node's newest /diagnostics status after the first ``since`` ones."""
+        self.client.wait_for(lambda: len(self.statuses) > since, timeout, f"/diagnostics from {self.node}")
+        return health_of(self.statuses[-1])
+
+    def deploy(self, run: Path, **params: Any) -> None:
+        self.set(run_dir=str(run), robot_model_fingerprint=FINGERPRINT, **params)
+        assert self.transition("configure"), self.health().doing
+        # The command publisher exists from configure on: see it before the first command goes out.
+        self.client.wait_for(lambda: self.command_sub.get_publisher_count() > 0, 30.0, "npp-deploy's commands")
+        assert self.transition("activate")
+
+
+def test_the_gate_refuses_each_bad_folder_with_its_reason_and_a_valid_one_activates(runs, launch, ros_client) -> None:
+    good, bad = runs
+    proc = launch("npp-deploy")
+    deploy = Deploy(ros_client("gate_test"))
+    cases = [(folder, reason, {}) for folder, reason in bad.values()]
+    cases += [
+        (good, "is not the certified one", {"robot_model_fingerprint": "0" * 64}),
+        (good, r"epsilon 2 is larger than this deployment accepts \(max_epsilon 1\)", {"max_epsilon": 1.0}),
+    ]
+    for folder, reason, extra in cases:
+        deploy.set(**{"run_dir": str(folder), "robot_model_fingerprint": FINGERPRINT, "max_epsilon": 100.0, **extra})
+        seen = len(deploy.statuses)
+        assert not deploy.transition("configure"), f"{folder} was configured"
+        assert deploy.state() == "unconfigured"
+        health = deploy.health(seen)
+        assert health.level == ERROR and re.search(reason, health.doing), health.doing
+        assert not deploy.transition("activate")  # nothing to activate
+        launch.assert_alive(proc)
+    deploy.set(run_dir=str(good), robot_model_fingerprint=FINGERPRINT, max_epsilon=EPSILON, min_p=0.9, max_delta=0.1)
+    assert deploy.transition("configure") and deploy.state() == "inactive"
+    assert deploy.transition("activate") and deploy.state() == "active"
+    health = deploy.health(len(deploy.statuses))
+    assert health.values["lifecycle state"] == "active" and "proven" in str(health.values["policy"])
+    with pytest.raises(AssertionError, match="read at configure"):
+        deploy.set(max_epsilon=1000.0)  # an active deployment's parameters stay as configured
+    launch.stop(proc)
+    log = launch.log(proc)
+    assert "configure refused: the run holds no certificate" in log and "fails its SHA-256 check" in log
+    assert "SIGINT: safe command [0.0] sent" in log  # Ctrl-C on an active node: the safe command goes out first
+
+
+def test_the_lockstep_robot_follows_the_in_process_policy_exactly(runs, launch, ros_client) -> None:
+    good, _ = runs
+    s0 = get_task(TASK).initial_state(SEED, 1000)  # an s0 ~ rho the run never drew
+    want = rollout(get_task(TASK).make_plant(SEED), certified_policy(good).act, s0, HORIZON)
+    launch("npp-robot", {"lockstep": True, "initial_state": s0_text(s0)})
+    launch("npp-deploy")
+    client = ros_client("lockstep_test")
+    states: dict[tuple[int, int], np.ndarray] = {}
+
+    def on_state(msg: JointState) -> None:
+        states.setdefault(
+            (msg.header.stamp.sec, msg.header.stamp.nanosec), np.concatenate([msg.position, msg.velocity])
+        )
+
+    client.node.create_subscription(JointState, JOINT_STATES, on_state, KEEP_ALL)
+    deploy = Deploy(client)
+    deploy.deploy(good, state_timeout=30.0)
+    # Both topics: the command answering the last state may reach this test after the state it led to.
+    done = lambda: len(states) >= HORIZON and len(deploy.commands) >= HORIZON - 1  # noqa: E731
+    client.wait_for(done, 120.0, f"{HORIZON} lockstep states and their commands")
+    got = np.array([states[key] for key in sorted(states)][:HORIZON])
+    np.testing.assert_array_equal(got, want.states)
+    actions = np.array([command for _, command in deploy.commands[: HORIZON - 1]])
+    np.testing.assert_array_equal(actions, want.actions[: HORIZON - 1])
+    health = deploy.health(len(deploy.statuses))
+    assert int(health.values["answered"]) >= HORIZON - 1
+
+
+def test_the_real_time_robot_stays_close_to_the_in_process_policy(runs, launch, ros_client) -> None:
+    good, _ = runs
+    s0 = get_task(TASK).initial_state(SEED, 1001)
+    robot = launch("npp-robot", {"initial_state": s0_text(s0)})
+    launch("npp-deploy")
+    client = ros_client("real_time_test")
+    states: list[np.ndarray] = []
+    efforts: list[float] = []
+
+    def on_state(msg: JointState) -> None:
+        states.append(np.concatenate([msg.position, msg.velocity]))
+        efforts.append(msg.effort[0])
+
+    client.node.create_subscription(JointState, JOINT_STATES, on_state, KEEP_ALL)
+    deploy = Deploy(client)
+    deploy.deploy(good, state_timeout=2.0)  # a busy machine may delay a state past 0.1 s: not what is tested here
+    client.wait_for(lambda: any(efforts), 60.0, "the first commanded step")
+    # The state the first command answered (this test may have joined when commands already flowed).
+    first = max(next(k for k, effort in enumerate(efforts) if effort) - 1, 0)
+    steps = 60
+    client.wait_for(lambda: len(states) > first + steps, 60.0, f"{steps} real-time steps")
+    launch.stop(robot)
+    policy = certified_policy(good)
+    got = np.array(states[first : first + steps])
+    want = rollout(get_task(TASK).make_plant(SEED), policy.act, got[0], steps).states
+    # Every command the robot applied is the certified policy's action at a state the robot was in, and the
+    # robot's plant moved exactly as the model does under the commands it applied (held ones included).
+    answers = [float(policy.act(state)[0]) for state in states[: first + steps]]
+    plant = get_task(TASK).make_plant(SEED)
+    plant.reset(got[0])
+    for k in range(first, first + steps - 1):
+        assert efforts[k + 1] in answers[: k + 1], f"step {k} applied {efforts[k + 1]}, no answer to a state so far"
+        plant.step([efforts[k + 1]])
+        np.testing.assert_array_equal(plant.state(), states[k + 1])
+    # A command that misses its period leaves the previous one in force for a step: close, not equal.
+    scale = float(np.abs(want).max())
+    print(f"real time against in process: largest deviation {np.abs(got - want).max() / scale:.2%} of the scale")
+    assert np.abs(got - want).max() <= 0.05 * scale, np.abs(got - want).max(axis=0)
+
+
+def test_when_states_stop_the_safe_command_follows_within_the_timeout(runs, launch, ros_client) -> None:
+    good, _ = runs
+    timeout = 0.3
+    robot = launch("npp-robot")
+    proc = launch("npp-deploy")
+    client = ros_client("watchdog_test")
+    arrivals: list[float] = []
+    client.node.create_subscription(JointState, JOINT_STATES, lambda _: arrivals.append(time.monotonic()), KEEP_ALL)
+    deploy = Deploy(client)
+    deploy.deploy(good, state_timeout=timeout)
+    client.wait_for(lambda: len(deploy.commands) >= 10 and len(arrivals) >= 10, 60.0, "the loop to run")
+    before = len(deploy.commands)
+    launch.stop(robot)
+    client.wait_for(lambda: [0.0] in (c for _, c in deploy.commands[before:]), 30.0, "the safe command")
+    safe_at = next(t for t, c in deploy.commands[before:] if c == [0.0])
+    assert safe_at - arrivals[-1] <= timeout + DT + BUSY_MACHINE_SLACK_S
+    health = deploy.health(len(deploy.statuses))
+    assert health.level == ERROR and "joint states stopped" in health.doing
+    age_ms = float(re.search(r"no new joint state for (\d+) ms", health.error).group(1))
+    assert timeout * 1e3 <= age_ms <= (timeout + DT + BUSY_MACHINE_SLACK_S) * 1e3
+    quiet = len(deploy.commands)
+    time.sleep(4 * timeout)
+    client.wait_for(lambda: True, 0.1)
+    assert len(deploy.commands) == quiet  # no commanding while states are stopped
+    launch("npp-robot")  # states flow again
+    client.wait_for(lambda: any(any(c) for _, c in deploy.commands[quiet:]), START_TIMEOUT_S, "commands to resume")
+
+    def recovered() -> bool:
+        return deploy.health(len(deploy.statuses)).doing == "active: commanding the robot"
+
+    client.wait_for(recovered, 30.0, "the node to report it commands again")
+    assert deploy.health().level != ERROR and "no new joint state" in deploy.health().error  # kept as the last error
+    assert "joint states flow again" in launch.log(proc)
+
+
+def test_commands_are_clamped_and_the_stop_service_deactivates_at_once(runs, launch, ros_client) -> None:
+    good, _ = runs
+    launch("npp-robot")
+    launch("npp-deploy")
+    client = ros_client("stop_test")
+    deploy = Deploy(client)
+    deploy.deploy(good, effort_limit=1e-3)  # far below what the LQR policy asks for
+    client.wait_for(lambda: len([c for _, c in deploy.commands if any(c)]) >= 5, 60.0, "commands")
+    assert all(abs(c[0]) <= 1e-3 for _, c in deploy.commands)
+    client.wait_for(lambda: int(deploy.health(len(deploy.statuses)).values["clamped entries"]) > 0, 30.0, "clamps")
+    answer = client.call(deploy.stopper, Trigger.Request())
+    assert answer.success and "inactive" in answer.message
+    assert deploy.state() == "inactive"
+    client.wait_for(lambda: deploy.commands[-1][1] == [0.0], 10.0, "the safe command")
+    after = len(deploy.commands)
+    time.sleep(1.0)
+    client.wait_for(lambda: True, 0.1)
+    assert len(deploy.commands) == after  # the robot still publishes states; nothing answers them
+    assert client.call(deploy.stopper, Trigger.Request()).success  # stopping a stopped node is harmless
+    assert deploy.transition("activate")
+    client.wait_for(lambda: any(any(c) for _, c in deploy.commands[after:]), 30.0, "commands after activate")
+
+
+def test_bad_joint_states_are_refused_without_a_crash(runs, launch, ros_client) -> None:
+    good, _ = runs
+    proc = launch("npp-deploy")
+    client = ros_client("garbage_test")
+    publisher = client.node.create_publisher(JointState, JOINT_STATES, CONTROL_QOS)
+    deploy = Deploy(client)
+    deploy.deploy(good, state_timeout=60.0)
+    client.wait_for(lambda: publisher.get_subscription_count() > 0, 30.0, "npp-deploy's joint state subscription")
+    sent = 0
+
+    def send(names: list[str], position: list[float], velocity: list[float]) -> None:
+        nonlocal sent
+        sent += 1
+        msg = JointState(name=names, position=float64_array(position), velocity=float64_array(velocity))
+        msg.header.stamp = stamp(sent * 1_000_000)
+        publisher.publish(msg)
+
+    send(["joint_0", "elbow"], [0.1, 0.2], [0.0, 0.0])  # a foreign robot
+    send(["joint_0", "joint_1"], [0.1], [0.0, 0.0])  # counts that do not match the names
+    send(["joint_1", "joint_0"], [0.1, 0.2], [float("nan"), 0.0])
+    send([], [], [])
+    send(["joint_0", "joint_1"], [1e200, 0.0], [0.0, 0.0])  # finite, but too large to compare with the data
+    client.wait_for(
+        lambda: "could not answer" in launch.log(proc) or "too large" in launch.log(proc), 30.0, "a refusal"
+    )
+    assert deploy.commands == []
+    send(["wrist", "joint_1", "joint_0"], [5.0, 0.2, 0.1], [0.0, 0.0, 0.0])  # a good one, extra joint ignored
+    client.wait_for(lambda: len(deploy.commands) == 1, 30.0, "the answer to the good state")
+    want = certified_policy(good).act(np.array([0.1, 0.2, 0.0, 0.0]))
+    assert deploy.commands[0][1] == want.tolist()
+    launch.assert_alive(proc)
+    health = deploy.health(len(deploy.statuses))
+    assert int(health.values["refused states"]) == 4 and int(health.values["answered"]) == 1
+    log = launch.log(proc)
+    assert "lacks the task's joints joint_1 (it names: joint_0, elbow)" in log
+    assert "joint_1 velocity = nan" in log
+
+    # A state far from the certified data, with stop_outside_coverage: reported, and the node stops.
+    assert deploy.transition("deactivate") and deploy.transition("cleanup")
+    deploy.deploy(good, state_timeout=60.0, stop_outside_coverage=True)
+    send(["joint_0", "joint_1"], [0.1, 0.2], [40.0, 0.0])
+    client.wait_for(lambda: deploy.state() == "inactive", 30.0, "the stop outside the coverage")
+    assert "the certificate says nothing about it" in launch.log(proc)
+    launch.assert_alive(proc)
+
+
+def deploy_ctl(*args: str) -> subprocess.CompletedProcess[str]:
+    command = [sys.executable, "-m", "npp_ros_graph.tools.deploy_ctl", *args, "--timeout", "120"]
+    return subprocess.run(command, capture_output=True, text=True, timeout=300)
+
+
+def test_npp_deploy_ctl_drives_the_lifecycle_and_prints_the_gate_reason(runs, launch) -> None:
+    good, bad = runs
+    launch("npp-deploy", {"run_dir": str(bad["uncertified"][0]), "robot_model_fingerprint": FINGERPRINT}, "/refused")
+    launch("npp-deploy", {"run_dir": str(good), "robot_model_fingerprint": FINGERPRINT, "state_timeout": 30.0})
+    refused = deploy_ctl("configure", "--node", "/refused/npp_deploy")
+    assert refused.returncode == 1 and "the run holds no certificate" in refused.stderr, refused.stderr
+    assert deploy_ctl("state", "--node", "/refused/npp_deploy").stdout.strip().endswith("unconfigured")
+    for command, says in (("configure", "unconfigured -> inactive"), ("activate", "inactive -> active"),
+                          ("stop", "stopped: safe command sent"), ("state", "inactive")):  # fmt: skip
+        done = deploy_ctl(command)
+        assert done.returncode == 0 and says in done.stdout, (command, done.stdout, done.stderr)
+    gone = subprocess.run(
+        [sys.executable, "-m", "npp_ros_graph.tools.deploy_ctl", "state", "--node", "/nobody", "--timeout", "2"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert gone.returncode == 2 and "not found" in gone.stderr
+
+
+def test_every_deploy_command_has_help() -> None:
+    for module in ("npp_ros_graph.nodes.deploy", "npp_ros_graph.tools.deploy_ctl", "npp_ros_graph.nodes.robot"):
+        shown = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=120)
+        assert shown.returncode == 0 and ("usage" in shown.stdout.lower() or "subscribes" in shown.stdout), module
