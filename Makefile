@@ -2,12 +2,13 @@
 #   make run    the main job (the ROS graph runs Algorithm 1 on lqr_2_1 to a certificate)
 #   make test   the test suite (what CI runs), on two pytest-xdist workers, one module each at a time
 #   make test-quick  the core's fast tests, no ROS graph (under a minute)
+#   make docs   the documentation site, built strictly into site/ (a broken link or reference fails it)
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.npp-setup-done
 INTERFACES := $(shell find msgs_py -type f 2>/dev/null)
 
-.PHONY: setup run test test-quick lint clean-venv
+.PHONY: setup run test test-quick lint docs clean-venv
 setup: $(STAMP)
 
 $(STAMP): requirements.lock pyproject.toml scripts/setup.sh $(INTERFACES)
@@ -24,6 +25,9 @@ test-quick: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check npp_ros npp_ros_graph nodes tests && $(VENV)/bin/ruff format --check npp_ros npp_ros_graph nodes tests
+
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
 clean-venv:
 	rm -rf $(VENV)

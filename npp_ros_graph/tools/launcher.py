@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import IO
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from npp_interfaces.msg import Certificate, GapReport
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -44,6 +45,7 @@ from npp_ros.tasks.registry import by_task, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 from npp_ros_graph.graph.description import graph_parameters, node_argv
+from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, WARN, health_of
 from npp_ros_graph.runtime.node import node_name, publishers_of, release
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
@@ -113,8 +115,24 @@ class Follower(Node):
         self.certificate: Certificate | None = None
         self.create_subscription(GapReport, GAP, self.on_gap, REPORT_QOS)
         self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_QOS)
+        self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_health, DIAGNOSTICS_QOS)
         self.tty = sys.stderr.isatty()
         self._printed = 0.0
+        self._worried: dict[str, str] = {}  # node -> what it last warned of, while it does
+
+    def on_health(self, msg: DiagnosticArray) -> None:
+        """What a node waits for or failed at (/diagnostics WARN or ERROR), once, and when it is over."""
+        for status in msg.status:
+            health = health_of(status)
+            if not status.name.startswith("/npp_"):
+                continue
+            if health.level >= WARN:
+                text = health.doing + (f" (last error: {health.error})" if health.error else "")
+                if self._worried.get(status.name) != text:
+                    self._worried[status.name] = text
+                    say(f"\nnpp-run: {status.name[1:].replace('_', '-', 1)}: {text}")
+            elif self._worried.pop(status.name, None) is not None:
+                say(f"\nnpp-run: {status.name[1:].replace('_', '-', 1)}: going on ({health.doing})")
 
     def on_gap(self, msg: GapReport) -> None:
         if not self.seal.shows(msg):

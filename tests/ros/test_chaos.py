@@ -117,13 +117,18 @@ def chaos(
             fh.write(report + "\n")
 
 
-def test_each_node_paused_past_the_lease_changes_nothing(chaos: Callable[[list[Fault]], Outcome]) -> None:
+def test_each_node_paused_past_the_lease_changes_nothing(
+    chaos: Callable[[list[Fault]], Outcome], tmp_path: Path
+) -> None:
     """The sim paused during start-up, the supervisor a few seconds into the run (each for 45 s, as
     found: the run then stalled for minutes, or waited out rollout_timeout, called the expert where the
     uninterrupted run did not and diverged), then the policy and the expert, each past the 20 s lease."""
     outcome = chaos([Fault(2.5, "pause", "sim", 45.0), Fault(8.0, "pause", "supervisor", 45.0),
                      Fault(3.0, "pause", "policy", 25.0), Fault(3.0, "pause", "expert", 25.0)])  # fmt: skip
     assert len(outcome.recoveries["pause"]) >= 3, outcome.applied  # the run did not end before the pauses
+    # What the run waited for was said where the user looks: npp-run's terminal, from the nodes' /diagnostics.
+    terminal = (tmp_path / "run0-npp-run.out").read_text()
+    assert "npp-run: npp-supervisor: episode" in terminal and "waits for" in terminal, terminal[-3000:]
 
 
 def test_faults_at_random_moments_change_nothing(chaos: Callable[[list[Fault]], Outcome]) -> None:

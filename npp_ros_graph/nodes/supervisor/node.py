@@ -48,7 +48,7 @@ from npp_ros.tasks.registry import by_task, get_task
 from npp_ros_graph.nodes.supervisor.expert import RosExpert
 from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
 from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollouts
-from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
+from npp_ros_graph.runtime.diagnostics import WARN, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import (
@@ -183,11 +183,19 @@ class SupervisorNode(Node):
         self.exit_code = 0
         self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
         self.worker.start()
-        self.diagnostics = DiagnosticsReporter(self, lambda: Health(
-            "waiting for the sim's plant description" if self.loop is None else f"episode {self.loop.next_episode}"
-            + (", certified" if self.loop.certificate else ""),
-            {"oracle calls": 0 if self.loop is None else self.loop.oracle_calls}))  # fmt: skip
+        self.rollouts: RosRollouts | None = None
+        self.diagnostics = DiagnosticsReporter(self, self.health)
         self.get_logger().info("waiting for the sim's plant description")
+
+    def health(self) -> Health:
+        """What /diagnostics says of the run: its episode, or what an episode has been waiting for."""
+        loop, rollouts = self.loop, self.rollouts
+        if loop is None:
+            return Health("waiting for the sim's plant description")
+        values = {"oracle calls": loop.oracle_calls, "episode": loop.next_episode}
+        if rollouts is not None and rollouts.waiting:
+            return Health(rollouts.waiting, values, WARN)
+        return Health(f"episode {loop.next_episode}" + (", certified" if loop.certificate else ""), values)
 
     # ---------------------------------------------------------------- graph inputs
     def refuse_foreign(self, topic: str, exc: SealError) -> None:
@@ -311,7 +319,7 @@ class SupervisorNode(Node):
                 check=check,
                 ahead=self.upcoming_states(config, s.expert_ahead),
             )  # fmt: skip
-            rollouts = RosRollouts(
+            self.rollouts = rollouts = RosRollouts(
                 self.reset, self.seal, self.run_id, self.handshake, self.publish_trajectories,
                 stop=self.stop, logger=log, timeout=s.rollout_timeout,
             )  # fmt: skip

@@ -113,6 +113,12 @@ class RosRollouts:
         self.reset, self.seal, self.run_id = reset, seal, run_id
         self.handshake, self.send_trajectories = handshake, send_trajectories
         self.stop, self.logger, self.timeout = stop, logger, timeout
+        self.waiting = ""  # what the running episode has waited for beyond the usual ("": nothing), for /diagnostics
+
+    def _wait(self, text: str, warn: bool = False) -> None:
+        """Say what the episode waits for: in the log (throttled) and, until it ends, on /diagnostics."""
+        self.waiting = text
+        (self.logger.warning if warn else self.logger.info)(text, throttle_duration_sec=10.0)
 
     def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float:
         held = policy.dataset.num_trajectories
@@ -124,6 +130,7 @@ class RosRollouts:
                                      run=self.run_id)
             )  # fmt: skip
             outcome = self._result(episode, request)
+            self.waiting = ""
             attempt += 1
             if outcome is None:
                 self.logger.warning(
@@ -150,16 +157,15 @@ class RosRollouts:
             self._interrupted(episode)
             problem = self._reset(request)
             if problem is not None:
-                self.logger.warning(f"episode {episode} waits for the sim: {problem}", throttle_duration_sec=10.0)
+                self._wait(f"episode {episode} waits for the sim: {problem}", warn=True)
                 self.stop.wait(RESEND_S / 4)
                 continue
             outcome = handshake.wait_for_rollout(episode, time.monotonic() + RESEND_S)
             if outcome is not None:
                 return outcome
-            self.logger.info(
+            self._wait(
                 f"episode {episode} waits for the policy's rollout ({time.monotonic() - started:.0f} s); "
-                "asking the sim where it stands",
-                throttle_duration_sec=10.0,
+                "asking the sim where it stands"
             )
         self._interrupted(episode)
         return None
@@ -170,10 +176,9 @@ class RosRollouts:
         while not handshake.wait_for_policy(held, time.monotonic() + RESEND_S):
             self._interrupted(episode)
             reported = handshake.policy_reported
-            self.logger.info(
+            self._wait(
                 f"episode {episode} waits for the policy: it holds {max(reported, 0)} of {held} trajectories; "
-                "sending the missing ones again",
-                throttle_duration_sec=10.0,
+                "sending the missing ones again"
             )
             self.send_trajectories(max(reported, 0), held)
 
