@@ -237,6 +237,8 @@ def certificate_to_msg(certificate: Certificate, time: Time) -> CertificateMsg:
     Not carried: ``task`` (the plant description names it) and ``rule`` (the statement says it).
     """
     named = {CERTIFICATE_RENAMED.get(name, name): value for name, value in certificate.record().items()}
+    if named.get("mixture") is None:
+        named["mixture"] = math.nan  # not the mixture rule: no statistic
     carried = CertificateMsg.get_fields_and_field_types()
     msg = CertificateMsg(**{name: value for name, value in named.items() if name in carried})
     msg.header.stamp = time
