@@ -6,6 +6,8 @@ Modules that run whole experiments, command lines or thousands of simulated runs
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from npp_ros.policy.dataset import Dataset
@@ -52,6 +54,14 @@ def expert_dataset_2_1(expert_2_1: LQRExpert) -> Dataset:
     for episode in range(20):
         data.append(expert_2_1.trajectory(sample_initial_state("lqr_2_1", episode_rng(99, episode))))
     return data
+
+
+@pytest.fixture(scope="session")
+def demo_plugin(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The demo plug-in package installed into a temporary folder (tests/plugin_env.py); not on the path yet."""
+    from plugin_env import install_demo_plugin
+
+    return install_demo_plugin(tmp_path_factory.mktemp("plugin"))
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:

@@ -45,4 +45,4 @@ def test_bad_settings_get_a_clear_error(tmp_path: Path) -> None:
     run = subprocess.run([*LEARN, "--run-dir", str(tmp_path), "--lipschitz", "-3"], capture_output=True, text=True)
     assert run.returncode == 2 and "Lipschitz constant must be finite and > 0" in run.stderr
     run = subprocess.run([*LEARN, "--task", "lqr_9_9"], capture_output=True, text=True)
-    assert run.returncode == 2 and "invalid choice: 'lqr_9_9'" in run.stderr
+    assert run.returncode == 2 and "argument --task: unknown task 'lqr_9_9'; known tasks: " in run.stderr

@@ -13,7 +13,7 @@ from npp_ros.tasks.registry import TASK_NAMES, ExpertOptions, UnknownTaskError, 
 
 def test_registry_names_the_four_tasks() -> None:
     assert TASK_NAMES == ("cartpole_swingup", "lqr_2_1", "lqr_6_2", "pendulum_swingup")
-    with pytest.raises(UnknownTaskError, match=r"unknown task 'pendulum'; known tasks: cartpole_swingup, lqr_2_1"):
+    with pytest.raises(UnknownTaskError, match=r"unknown task 'pendulum'; known tasks: acrobot_swingup, cartpole"):
         get_task("pendulum")
 
 

@@ -35,3 +35,32 @@ def positive_ints(text: str) -> tuple[int, ...]:
         return tuple(positive_int(part) for part in text.split(","))
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"must be integers >= 1 separated by commas, got {text!r}") from None
+
+
+def task_name(text: str) -> str:
+    """A task: a registered name (built in or from a plug-in) or a task file, as its canonical name.
+
+    A plug-in that does not load, or a bad task file, is refused here with its one-line reason.
+    """
+    from npp_ros.tasks.registry import get_task
+
+    try:
+        return get_task(text).name
+    except (ValueError, TypeError) as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+class ListTasks(argparse.Action):
+    """``--list-tasks``: print every task and where it comes from, then exit."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=kwargs.get("help"))  # type: ignore[arg-type]
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+        from npp_ros.tasks.sources import describe_tasks
+
+        print(describe_tasks())
+        parser.exit()
+
+
+TASK_HELP = "a task: a registered name (see --list-tasks; plug-ins too) or a task file (path ending in .toml)"

@@ -92,7 +92,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--expert-horizon", type=int, default=1000, help="steps per expert trajectory (H)")
     parser.add_argument(
-        "--expert-tasks", nargs="+", choices=EXPERT_TASKS, default=list(EXPERT_TASKS), help="tasks whose expert to time"
+        "--expert-tasks",
+        nargs="+",
+        choices=(*EXPERT_TASKS, "acrobot_swingup"),
+        default=list(EXPERT_TASKS),
+        help="tasks whose expert to time",
     )
     args = parser.parse_args(argv)
     if args.expert_requests < 1 or args.expert_horizon < 2:

@@ -31,7 +31,7 @@ from distributed import Client, Future, LocalCluster, get_worker
 
 import npp_ros
 from npp_ros.certificate.certifier import CERTIFY_MODES
-from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints
+from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints, task_name
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
     DETUNED_CONTROL_WEIGHT,
@@ -48,7 +48,7 @@ from npp_ros.experiment import (
 )
 from npp_ros.experiment.arms import HELD_OUT
 from npp_ros.tasks.lqr import TASKS
-from npp_ros.tasks.registry import TASK_NAMES, by_task
+from npp_ros.tasks.registry import by_task
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 
 
@@ -57,7 +57,7 @@ def parser() -> argparse.ArgumentParser:
         prog="npp-experiment", description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     ap.add_argument(
-        "--tasks", nargs="+", choices=TASK_NAMES, default=sorted(TASKS), help="tasks (default: the paper's lqr tasks)"
+        "--tasks", nargs="+", type=task_name, default=sorted(TASKS), help="tasks (default: the paper's lqr tasks)"
     )
     ap.add_argument(
         "--seeds", nargs="+", type=nonnegative_int, default=[0, 1, 2, 3], help="seeds (plant and s0 streams)"

@@ -18,14 +18,15 @@ import numpy as np
 
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
-from npp_ros.cli.args import nonnegative_int, positive_int
+from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int, task_name
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.lipschitz import LipschitzWarning
 from npp_ros.run.evaluation import check_policy
 from npp_ros.run.progress import Counter, StatusLine
 from npp_ros.run.records import RunFileError, write_episode_log
 from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, resolve_lipschitz
-from npp_ros.tasks.registry import TASK_NAMES, ExpertOptions, StopsAtTimeBudget, by_task, get_task
+from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
+from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 
 
@@ -35,7 +36,8 @@ def parser() -> argparse.ArgumentParser:
         description=__doc__,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    ap.add_argument("--task", choices=TASK_NAMES, default="lqr_2_1", help="dm_control task (npp_ros.tasks.registry)")
+    ap.add_argument("--task", type=task_name, default="lqr_2_1", help=TASK_HELP)
+    ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
     ap.add_argument("--seed", type=nonnegative_int, default=0, help="task seed (plant) and initial-state stream")
     ap.add_argument(
         "--epsilon",
@@ -71,7 +73,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
     ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
-    ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
+    ap.add_argument("--horizon", type=positive_int, default=None, help="episode length H; default: the task's (1000)")
     ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
     ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
     ap.add_argument(
@@ -100,7 +102,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     task = get_task(args.task)
-    run_dir = args.run_dir or Path("runs") / f"learn-{args.task}-seed{args.seed}"
+    args.horizon = args.horizon or task.default_horizon
+    run_dir = args.run_dir or Path("runs") / f"learn-{short_name(args.task)}-seed{args.seed}"
     try:
         epsilon = task.epsilon(args.epsilon)
         options = ExpertOptions(gamma=args.gamma, time_budget=args.time_budget, values=args.values)

@@ -187,4 +187,5 @@ SWINGUP = OptimizerTask(
     plant_factory=CartpolePlant,
     expert_factory=CartpoleExpert,
     sampler=sample_initial_state,
+    reward_range=(0.0, 1.0),  # dm_control's tolerance-based reward
 )

@@ -401,6 +401,7 @@ def _lqr_task(name: str) -> LQRTask:
         initial_state_diameter=initial_state_diameter(),
         paper_lipschitz=PAPER_LIPSCHITZ[name],
         paper_epsilon=PAPER_EPSILON[name],
+        reward_range=(-math.inf, 1.0),  # 1 - 0.5|q|^2 - 0.05|u|^2
     )
 
 

@@ -215,6 +215,7 @@ SWINGUP = OptimizerTask(
     plant_factory=PendulumPlant,
     expert_factory=PendulumExpert,
     sampler=sample_initial_state,
+    reward_range=(0.0, 1.0),  # dm_control's tolerance-based reward
 )
 """Stored values are ``window`` (the H-step return of each stored state), not ``return-to-go``: an upright
 state held to the end is stored with value H - t under return-to-go, one state with many values, which

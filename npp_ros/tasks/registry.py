@@ -8,13 +8,14 @@ the sim, expert and supervisor nodes call :func:`get_task`.
 
 Adding a task is one module (plant, expert and one :class:`Task` instance, usually an
 :class:`OptimizerTask` around an :class:`~npp_ros.trajopt.ilqr.OptimizingExpert`) and one line in
-:data:`REGISTRY`. The registry holds import paths, so listing the names (the ``task`` parameter's
-choices, ``--task``) loads no plant, and a task module may import this one.
+:data:`REGISTRY`, or, outside npp_ros, an entry point in the group ``npp_ros.tasks`` of any
+installed package (name -> "module:attribute"), or a task file (``.toml``, npp_ros.tasks.task_file).
+The registry holds import paths, so listing the names loads no plant, and a task module may
+import this one (npp_ros.tasks.sources merges the sources).
 """
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ REGISTRY: dict[str, str] = {
 """Task name -> "module:attribute" of its :class:`Task`."""
 
 TASK_NAMES: tuple[str, ...] = tuple(sorted(REGISTRY))
+"""The built-in tasks; every task (plug-ins too) is listed by npp_ros.tasks.sources.task_names()."""
 MAX_HORIZON = 100_000
 
 
@@ -144,6 +146,8 @@ class Task:
     paper_lipschitz_note: str = "the paper's choice (Section 5); not a bound on V*"
     no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"
     optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
+    default_horizon: int = 1000  # the episode length when a command line gives none
+    reward_range: tuple[float, float] | None = None  # what one step's reward can be, where known (answer checks)
 
     # ------------------------------------------------------------------ what each task provides
     def make_plant(self, seed: int) -> Plant:
@@ -282,14 +286,11 @@ class OptimizerTask(Task):
 
 
 def get_task(name: str) -> Task:
-    """The registered task ``name``; an unknown name is refused with the known ones."""
-    if name not in REGISTRY:
-        raise UnknownTaskError(f"unknown task {name!r}; known tasks: {', '.join(TASK_NAMES)}")
-    module, attribute = REGISTRY[name].split(":")
-    task = getattr(importlib.import_module(module), attribute)
-    if not isinstance(task, Task) or task.name != name:
-        raise TypeError(f"{REGISTRY[name]} is not the Task {name!r}")
-    return task
+    """The task ``name``: built in, from a plug-in package, or a task file; an unknown name is refused with
+    the known ones, a plug-in that does not load with its error (npp_ros.tasks.sources)."""
+    from npp_ros.tasks import sources  # it imports this module's Task
+
+    return sources.load_task(name)
 
 
 def by_task(attribute: str, tasks: tuple[str, ...] | None = None) -> str:

@@ -21,8 +21,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from npp_ros.policy.vectors import finite_vector
-from npp_ros.tasks.registry import MAX_HORIZON, TASK_NAMES, Plant, Task, check_horizon, get_task
+from npp_ros.tasks.registry import MAX_HORIZON, Plant, Task, check_horizon, get_task
 from npp_ros.tasks.rollout import episode_return
+from npp_ros.tasks.sources import describe_tasks
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
 from npp_ros_graph.transport.convert import (
@@ -48,7 +49,7 @@ from npp_ros_graph.transport.topics import (
 )
 
 PARAMETERS = (
-    Param("task", "lqr_2_1", "dm_control task (the registry in npp_ros.tasks.registry)", choices=TASK_NAMES),
+    Param("task", "lqr_2_1", "a registered task (listed below; plug-ins too) or a task file (path ending in .toml)"),
     Param("seed", 0, "task seed: the plant's stiffnesses depend on it; also seeds s0 ~ rho per episode", 0, 2**32 - 1),
     Param("horizon", 1000, "control steps per episode", 1, MAX_HORIZON),
     Param("resend_after", 1.0, "seconds without an answer before the current state is sent again (0 = never)", 0.0),
@@ -65,7 +66,7 @@ class SimSettings:
     resend_after: float
 
     def __post_init__(self) -> None:
-        get_task(self.task)
+        object.__setattr__(self, "task", get_task(self.task).name)  # a task file's name carries its content hash
         check_horizon(self.horizon)
 
 
@@ -286,7 +287,8 @@ class SimNode(Node):
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_node(SimNode, argv, USAGE, events=True)  # the control loop: no wait set to rebuild per action
+    usage = lambda: f"{USAGE}\n{describe_tasks()}"  # noqa: E731  # --help only: it imports the plug-ins
+    return run_node(SimNode, argv, usage, events=True)  # the control loop: no wait set to rebuild per action
 
 
 if __name__ == "__main__":

@@ -77,15 +77,19 @@ SPIN_ONCE_S = 1.0  # the EventsExecutor's longest wait for an event before run_n
 
 
 def run_node(
-    factory: Callable[[], Node], argv: Sequence[str] | None = None, usage: str = "", events: bool = False
+    factory: Callable[[], Node],
+    argv: Sequence[str] | None = None,
+    usage: str | Callable[[], str] = "",
+    events: bool = False,
 ) -> int:
     """The Jazzy idiom: init, spin, and on Ctrl-C or external shutdown destroy and try_shutdown.
 
+    ``usage`` may be a function: --help then builds it (a listing that reads installed packages).
     ``events``: spin on rclpy's EventsExecutor where rclpy has one (see the module's docstring).
     """
     args = list(sys.argv if argv is None else argv)
     if any(a in ("-h", "--help") for a in args[1:]) and "--ros-args" not in args:
-        print(usage)
+        print(usage() if callable(usage) else usage)
         return 0
     node: Node | None = None
     executor: Executor | None = None

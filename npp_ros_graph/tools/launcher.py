@@ -38,9 +38,11 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from npp_ros.certificate.certifier import STOPPING_RULES
+from npp_ros.cli.args import TASK_HELP, ListTasks, task_name
 from npp_ros.run.records import RunFileError
 from npp_ros.run.store import WriterLock
-from npp_ros.tasks.registry import TASK_NAMES, by_task
+from npp_ros.tasks.registry import by_task, get_task
+from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 from npp_ros_graph.graph.description import graph_parameters, node_argv
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, WARN, health_of
@@ -66,9 +68,10 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="npp-run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--task", default="lqr_2_1", choices=TASK_NAMES, help="dm_control task (npp_ros.tasks.registry)")
+    ap.add_argument("--task", default="lqr_2_1", type=task_name, help=TASK_HELP)
+    ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
     ap.add_argument("--seed", type=int, default=0, help="task seed")
-    ap.add_argument("--horizon", type=int, default=1000, help="episode length")
+    ap.add_argument("--horizon", type=int, default=None, help="episode length; default: the task's (1000)")
     ap.add_argument(
         "--epsilon", type=float, default=0.0, help=f"target gap > 0; 0: the paper's ({by_task('paper_epsilon')})"
     )
@@ -331,7 +334,7 @@ def _stopped(pid: int) -> bool:
 # --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    run_dir = (args.run_dir or Path("runs") / f"graph-{args.task}-seed{args.seed}").resolve()
+    run_dir = (args.run_dir or Path("runs") / f"graph-{short_name(args.task)}-seed{args.seed}").resolve()
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     in_use = folder_in_use(run_dir)
     if in_use is not None:  # before any node: a second graph would only be refused by its supervisor
@@ -344,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", KEY_ENV) if k in env})
     params = graph_parameters(
-        args.task, args.seed, args.horizon, run_dir,
+        args.task, args.seed, args.horizon or get_task(args.task).default_horizon, run_dir,
         expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},
         supervisor={"epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
                     "rule": args.rule,

@@ -14,6 +14,7 @@ from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.task import Future
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
+from npp_ros.run.answer_check import AnswerCheck
 from npp_ros_graph.runtime.deadlines import RESEND_S, call_with_deadline
 from npp_ros_graph.transport.convert import float64_array, trajectory_from_response
 from npp_ros_graph.transport.seal import RunSeal, SealError
@@ -30,7 +31,9 @@ class RosExpert:
     """The oracle over /npp/expert/trajectory: a deadline per call, retries, clear failure.
 
     It gets what it uses: the service client, the run's plant, seal and identity, the node's stop event
-    and logger, and a count of the service's servers (what a refusal names).
+    and logger, a count of the service's servers (what a refusal names), and the check of an answer: one
+    that fails it (wrong dimensions, non-finite values, values that contradict its own trajectory on the
+    supervisor's plant) counts as a failed attempt, with the reason, and nothing of it is stored.
 
     Asking ahead (``ahead``: the s0 of the episodes after the one that asks, known in advance because
     every episode draws its s0 from its own seeded stream): in the oracle mode every episode needs the
@@ -53,11 +56,12 @@ class RosExpert:
         servers: Callable[[], int],
         timeout: float,
         retries: int,
+        check: AnswerCheck,
         ahead: Callable[[], Sequence[FloatArray]] = tuple,
     ) -> None:
         self.client, self.plant, self.seal, self.run_id = client, plant, seal, run_id
         self.stop, self.logger, self.servers = stop, logger, servers
-        self.timeout, self.retries = timeout, retries
+        self.timeout, self.retries, self.check = timeout, retries, check
         self.ahead = ahead
         self._early: dict[bytes, tuple[ExpertTrajectory.Request, Future]] = {}  # s0's bytes -> request, answer
 
@@ -104,16 +108,28 @@ class RosExpert:
         early = self._early.pop(np.asarray(initial_state, dtype=np.float64).tobytes(), None)
         self.ask_ahead()
         if early is not None and (response := self._early_answer(*early)) is not None:
-            return trajectory_from_response(response)
+            try:
+                return self._checked(response, initial_state)
+            except ValueError as exc:
+                self.logger.warning(f"refused the expert's answer asked for ahead: {exc}; asking again")
         last = "no answer"
         for attempt in range(1, self.retries + 1):
             response, last = self._attempt(initial_state)
             if response is not None:
-                return trajectory_from_response(response)
+                try:
+                    return self._checked(response, initial_state)
+                except ValueError as exc:  # DatasetError, AnswerError: the answer is wrong, not the link
+                    last = f"refused the expert's answer: {exc}"
             self.logger.warning(f"expert call {attempt}/{self.retries} failed: {last}")
             if attempt < self.retries:
                 self.stop.wait(min(self.timeout, RETRY_PAUSE_S * 2 ** (attempt - 1)))
         raise ExpertUnavailable(f"the expert did not deliver after {self.retries} attempts: {last}")
+
+    def _checked(self, response: ExpertTrajectory.Response, initial_state: FloatArray) -> Trajectory:
+        """The answer as a trajectory once it passes the answer check; its ValueError names the failed check."""
+        answer = trajectory_from_response(response)
+        self.check(answer, initial_state)
+        return answer
 
     def _attempt(self, initial_state: FloatArray) -> tuple[ExpertTrajectory.Response | None, str]:
         """One attempt: a trajectory within expert_timeout, or why not.

@@ -40,6 +40,7 @@ from npp_ros.certificate.certifier import (
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.answer_check import AnswerCheck
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
 from npp_ros.run.setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
 from npp_ros.run.store import RunStore
@@ -309,9 +310,13 @@ class SupervisorNode(Node):
                 send_trajectory=self.send_trajectory, run_seal=self.run_seal, clock=self.get_clock(), logger=log,
                 config=config, run_dir=run_dir,
             )  # fmt: skip
+            # Every answer is replayed on the supervisor's own plant before anything of it is stored.
+            tail = expert.value_basis().tail
+            check = AnswerCheck(spec.make_plant(plant.seed), plant.horizon, tail, spec.reward_range)
             oracle = RosExpert(
                 self.expert, plant, self.seal, self.run_id, stop=self.stop, logger=log,
                 servers=lambda: self.count_services(EXPERT_SERVICE), timeout=s.expert_timeout, retries=s.expert_retries,
+                check=check,
                 ahead=self.upcoming_states(config, s.expert_ahead),
             )  # fmt: skip
             self.rollouts = rollouts = RosRollouts(
