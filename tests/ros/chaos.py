@@ -27,10 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from graph import alive, children, node_modules
 
-from npp_ros_graph.graph.description import NODES as GRAPH_NODES
-
-NODES = ("sim", "policy", "expert", "supervisor")
+NODES = tuple(node_modules())  # sim, expert, policy, supervisor
 KINDS = ("pause", "pause", "kill", "kill-run")  # pauses twice as often: they are what a busy host does
 PAUSE_S = (5.0, 90.0)
 GAP_S = (0.0, 20.0)
@@ -115,29 +114,14 @@ class ChaosRun:
 
     def _children(self) -> dict[str, int]:
         assert self.proc is not None
-        found: dict[str, int] = {}
-        for entry in Path("/proc").iterdir():
-            if not entry.name.isdigit():
-                continue
-            try:
-                stat = (entry / "stat").read_text()
-                cmdline = (entry / "cmdline").read_bytes().split(b"\0")
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) != self.proc.pid:
-                continue
-            module = next((a.decode() for a in cmdline if b"npp_ros_graph." in a), "")
-            for node in NODES:
-                if module == GRAPH_NODES[node].module:  # npp-run starts each node from the graph description
-                    found[node] = int(entry.name)
-        return found
+        return children(self.proc.pid, node_modules())
 
     def _wait_until_down(self, pids: dict[str, int], limit: float = 60.0) -> None:
         """Until npp-run and the nodes of its start have exited."""
         assert self.proc is not None
         deadline = time.monotonic() + limit
         while time.monotonic() < deadline:
-            alive = [pid for pid in pids.values() if _alive(pid)]
+            alive = [pid for pid in pids.values() if alive(pid)]
             if self.proc.poll() is not None and not alive:
                 break
             self.spin(0.2)
@@ -225,14 +209,6 @@ class ChaosRun:
                 return None
             self.spin(0.1)
         raise AssertionError(f"no episode within {limit:g} s")
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 def _seconds(value: float | None) -> str:

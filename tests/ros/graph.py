@@ -7,6 +7,8 @@ a test graph is the graph npp-run starts; a test adds only what it changes (a na
 from __future__ import annotations
 
 import subprocess
+from collections.abc import Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from npp_ros_graph.graph.description import NODES, ROLES, graph_parameters
@@ -14,7 +16,7 @@ from npp_ros_graph.graph.description import NODES, ROLES, graph_parameters
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher
 
-__all__ = ["graph_parameters", "start_graph", "start_node"]
+__all__ = ["alive", "children", "graph_parameters", "node_modules", "start_graph", "start_node"]
 
 
 def start_node(
@@ -29,3 +31,33 @@ def start_graph(
 ) -> dict[str, subprocess.Popen[bytes]]:
     """The four nodes in npp-run's order, each with its parameters (see graph_parameters); role -> process."""
     return {role: start_node(launch, role, params.get(role, {}), **options) for role in ROLES}
+
+
+def node_modules() -> dict[str, str]:
+    """role -> the module npp-run starts it from (python -m ...)."""
+    return {role: NODES[role].module for role in ROLES}
+
+
+def children(parent: int, modules: Mapping[str, str]) -> dict[str, int]:
+    """The processes `parent` started from the given modules (name -> module): name -> pid."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == parent:
+            found.update({name: int(entry.name) for name, module in modules.items() if module in argv})
+    return found
+
+
+def alive(pid: int) -> bool:
+    """Running (a zombie waiting to be reaped has ended)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"

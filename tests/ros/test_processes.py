@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from domain_coordinator import domain_id
+from graph import alive, children
 
 from npp_ros_graph.graph.description import NODES as GRAPH_NODES
 from npp_ros_graph.graph.description import ROLES
@@ -58,32 +59,9 @@ def wait_until(predicate: Callable[[], bool], timeout: float, what: str) -> None
         time.sleep(0.2)
 
 
-def alive(pid: int) -> bool:
-    """Running (a zombie waiting to be reaped by init has ended)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except FileNotFoundError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
-
-
 def node_children(parent: int) -> dict[str, int]:
     """The node processes npp-run started: name -> pid."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) != parent:
-            continue
-        for name in NODES:
-            if GRAPH_NODES[name].module in argv:
-                found[name] = int(entry.name)
-    return found
+    return children(parent, {name: GRAPH_NODES[name].module for name in NODES})
 
 
 def nodes_up(run_dir: Path, parent: int) -> dict[str, int]:
@@ -141,20 +119,7 @@ def test_recorder_and_dashboard_die_with_a_killed_npp_run(tmp_path: Path, ros_do
 
 def tool_children(parent: int) -> dict[str, int]:
     """The recorder and the dashboard npp-run started: name -> pid."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == parent:
-            found.update(
-                {name: int(entry.name) for name in ("record", "dashboard") if f"npp_ros_graph.tools.{name}" in argv}
-            )
-    return found
+    return children(parent, {name: f"npp_ros_graph.tools.{name}" for name in ("record", "dashboard")})
 
 
 # ----------------------------------------------------------------------------- 2. a node that refuses
