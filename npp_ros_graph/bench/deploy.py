@@ -31,9 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from domain_coordinator import domain_id
 from lifecycle_msgs.srv import ChangeState
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -43,7 +41,7 @@ from std_msgs.msg import Float64MultiArray
 from npp_ros.run.deploy import percentiles
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
-from npp_ros_graph.bench.loop import isolated_env, spawn, wait_for
+from npp_ros_graph.bench.loop import reserved_domain, spawn, wait_for
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_of
 from npp_ros_graph.transport.convert import float64_array, stamp
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, SERVICE_QOS
@@ -268,15 +266,8 @@ def main(argv: list[str] | None = None) -> int:
         "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
         "load_average_start": list(os.getloadavg()),
     }
-    with domain_id() as domain:  # a domain no other session (tests, runs) is using
-        env = isolated_env(int(domain))
-        os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
-        os.environ.pop("ROS_STATIC_PEERS", None)
-        rclpy.init()
-        try:
-            out["cases"] = [measure_case(task, n, args, env) for task, n in cases]
-        finally:
-            rclpy.try_shutdown()
+    with reserved_domain() as env:
+        out["cases"] = [measure_case(task, n, args, env) for task, n in cases]
     out["load_average_end"] = list(os.getloadavg())
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

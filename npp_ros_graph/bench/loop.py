@@ -28,6 +28,8 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -250,6 +252,21 @@ def isolated_env(domain: int) -> dict[str, str]:
     return env
 
 
+@contextmanager
+def reserved_domain() -> Iterator[dict[str, str]]:
+    """A ROS domain no other session (tests, runs) is using, with localhost-only discovery, for this process
+    (rclpy initialised on it until the block ends) and, through the environment it yields, its partners."""
+    with domain_id() as domain:
+        env = isolated_env(int(domain))
+        os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
+        os.environ.pop("ROS_STATIC_PEERS", None)
+        rclpy.init()
+        try:
+            yield env
+        finally:
+            rclpy.try_shutdown()
+
+
 def measure(
     quick: bool = False, steps: int = 2000, repeats: int = 3, seed: int = 0, logs: Path | None = None
 ) -> dict[str, Any]:
@@ -258,15 +275,8 @@ def measure(
     cases = [(task, 2 if quick else n) for task, n in CASES]
     logs = logs or Path(os.environ.get("TMPDIR", "/tmp")) / f"npp-bench-loop-{os.getpid()}"
     logs.mkdir(parents=True, exist_ok=True)
-    with domain_id() as domain:  # a domain no other session (tests, runs) is using
-        env = isolated_env(int(domain))
-        os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
-        os.environ.pop("ROS_STATIC_PEERS", None)
-        rclpy.init()
-        try:
-            results = [measure_case(task, n, args, env, logs) for task, n in cases]
-        finally:
-            rclpy.try_shutdown()
+    with reserved_domain() as env:
+        results = [measure_case(task, n, args, env, logs) for task, n in cases]
     return {"domain_id": env["ROS_DOMAIN_ID"], "logs": str(logs), "cases": results}
 
 
