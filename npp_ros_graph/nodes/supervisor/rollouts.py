@@ -118,7 +118,11 @@ class RosRollouts:
     def _wait(self, text: str, warn: bool = False) -> None:
         """Say what the episode waits for: in the log (throttled) and, until it ends, on /diagnostics."""
         self.waiting = text
-        (self.logger.warning if warn else self.logger.info)(text, throttle_duration_sec=10.0)
+        # One call site per severity: rclpy refuses a logging call site whose severity changes between calls.
+        if warn:
+            self.logger.warning(text, throttle_duration_sec=10.0)
+        else:
+            self.logger.info(text, throttle_duration_sec=10.0)
 
     def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float:
         held = policy.dataset.num_trajectories
