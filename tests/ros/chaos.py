@@ -121,8 +121,8 @@ class ChaosRun:
         assert self.proc is not None
         deadline = time.monotonic() + limit
         while time.monotonic() < deadline:
-            alive = [pid for pid in pids.values() if alive(pid)]
-            if self.proc.poll() is not None and not alive:
+            running = [pid for pid in pids.values() if alive(pid)]
+            if self.proc.poll() is not None and not running:
                 break
             self.spin(0.2)
         else:
