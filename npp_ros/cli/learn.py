@@ -102,7 +102,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     task = get_task(args.task)
-    args.horizon = args.horizon or task.default_horizon
+    args.horizon = task.default_horizon if args.horizon is None else args.horizon
     run_dir = args.run_dir or Path("runs") / f"learn-{short_name(args.task)}-seed{args.seed}"
     try:
         epsilon = task.epsilon(args.epsilon)

@@ -347,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", KEY_ENV) if k in env})
     params = graph_parameters(
-        args.task, args.seed, args.horizon or get_task(args.task).default_horizon, run_dir,
+        args.task, args.seed, get_task(args.task).default_horizon if args.horizon is None else args.horizon, run_dir,
         expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},
         supervisor={"epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
                     "rule": args.rule,

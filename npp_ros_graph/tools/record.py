@@ -43,8 +43,8 @@ from npp_ros_graph.transport import topics
 GRAPH_TOPICS: dict[str, tuple[str, QoSProfile]] = {
     topics.STATE: ("sensor_msgs/msg/JointState", topics.CONTROL_QOS),
     topics.ACTION: ("sensor_msgs/msg/JointState", topics.CONTROL_QOS),
-    topics.GAP: ("npp_interfaces/msg/GapReport", topics.REPORT_QOS),
-    topics.EPISODE: ("npp_interfaces/msg/EpisodeResult", topics.REPORT_QOS),
+    topics.GAP: ("npp_interfaces/msg/GapReport", topics.REPORT_HISTORY_QOS),
+    topics.EPISODE: ("npp_interfaces/msg/EpisodeResult", topics.REPORT_HISTORY_QOS),
     topics.CERTIFICATE: ("npp_interfaces/msg/Certificate", topics.LATCHED_QOS),
     topics.PLANT: ("npp_interfaces/msg/PlantDescription", topics.LATCHED_QOS),
     topics.ROLLOUT_DONE: ("npp_interfaces/msg/EpisodeResult", topics.REPORT_QOS),

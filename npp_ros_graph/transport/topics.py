@@ -35,6 +35,15 @@ NOT_READY = "not ready:"
 CONTROL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 # Reports a monitor may read late: reliable, deeper queue.
 REPORT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+# The supervisor's per-episode reports (/npp/gap, /npp/episode) are kept for late subscribers that ask for
+# them (npp-record): a recorder started before the run whose discovery of the supervisor comes after the
+# first episodes still records every one. Volatile subscribers (npp-run, npp-monitor) get new ones only.
+REPORT_HISTORY_QOS = QoSProfile(
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+)
 # Requests queue while one is served; rclpy's default service queue (KEEP_LAST 10) silently drops
 # the oldest when more than 10 clients' requests are pending, so services keep a deep one.
 SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)

@@ -195,7 +195,7 @@ def test_the_bag_holds_every_gap_report_as_the_run_file_stores_it(recorded_run: 
     info = metadata(bag)
     qos = {t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"][0]["durability"]
            for t in info["topics_with_message_count"]}  # fmt: skip
-    assert qos["/npp/certificate"] == qos["/npp/sim/plant"] == "transient_local" and qos["/npp/gap"] == "volatile"
+    assert qos["/npp/certificate"] == qos["/npp/sim/plant"] == qos["/npp/gap"] == "transient_local"
     assert info["storage_identifier"] == "mcap" and info["message_count"] == sum(counts.values())
     assert {topic: n for topic, n in metadata_counts(bag).items() if n} == dict(counts)
     assert mcap_count(bag) == (sum(counts.values()), {"ros2msg"})  # any MCAP reader: the mcap package's own

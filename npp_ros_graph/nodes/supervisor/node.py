@@ -66,6 +66,7 @@ from npp_ros_graph.transport.topics import (
     LATCHED_QOS,
     PLANT,
     POLICY_STATUS,
+    REPORT_HISTORY_QOS,
     REPORT_QOS,
     RESET_SERVICE,
     ROLLOUT_DONE,
@@ -170,8 +171,8 @@ class SupervisorNode(Node):
         self.stop = threading.Event()
         self._plants: Mailbox[PlantDescription] = Mailbox(keep=1)
         self.handshake = RolloutHandshake()
-        self.gap_pub = self.create_publisher(GapReport, GAP, REPORT_QOS)
-        self.episode_pub = self.create_publisher(EpisodeResult, EPISODE, REPORT_QOS)
+        self.gap_pub = self.create_publisher(GapReport, GAP, REPORT_HISTORY_QOS)
+        self.episode_pub = self.create_publisher(EpisodeResult, EPISODE, REPORT_HISTORY_QOS)
         self.certificate_pub = self.create_publisher(CertificateMsg, CERTIFICATE, LATCHED_QOS)
         self.trajectory_pub = self.create_publisher(TrajectoryMsg, DATASET_TOPIC, REPORT_QOS)
         self.expert = self.create_client(ExpertTrajectory, EXPERT_SERVICE)
