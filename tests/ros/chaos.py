@@ -174,7 +174,11 @@ class ChaosRun:
     def _pause(self, fault: Fault, pid: int) -> None:
         os.kill(pid, signal.SIGSTOP)
         self.spin(fault.seconds)
-        os.kill(pid, signal.SIGCONT)
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:  # the run certified without it meanwhile, and npp-run ended the stopped node
+            self.outcome.applied.append(f"{fault}: the run ended during the pause")
+            return
         resumed = time.monotonic()
         waited = self._next_episode_after(resumed)
         self.outcome.applied.append(f"{fault}: next episode {_seconds(waited)} after SIGCONT")
