@@ -25,7 +25,7 @@ from ruamel.yaml import YAML
 from npp_ros.run.records import EpisodeRow
 from npp_ros.run.store import RunStore
 from npp_ros_graph.tools.bag import BagError, BagWriter, is_complete, open_reader, qos_entry, read_messages, repair
-from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, REPORT_HISTORY_QOS
 
 # A short run that certifies: horizon 50, epsilon 300 (lqr_2_1, analytic L): about 80 episodes.
 RUN_ARGS = ["--horizon", "50", "--epsilon", "300", "--max-episodes", "300"]
@@ -270,7 +270,7 @@ def test_a_sigkilled_recorder_leaves_every_flushed_message(ros_client: Any, tmp_
     GapReports; the recorder is SIGKILLed mid-stream and its bag holds everything of its last flush."""
     client = ros_client("kill_test", namespace="/killed")
     latched = client.node.create_publisher(Certificate, CERTIFICATE, LATCHED_QOS)
-    gaps = client.node.create_publisher(GapReport, GAP, REPORT_QOS)
+    gaps = client.node.create_publisher(GapReport, GAP, REPORT_HISTORY_QOS)  # as the supervisor publishes them
     latched.publish(Certificate(statement="latched before the recorder started"))
     bag = tmp_path / "bag"
     log = (tmp_path / "record.log").open("wb")
