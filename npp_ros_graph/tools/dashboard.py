@@ -110,7 +110,11 @@ class Hub:
         self.cond.notify_all()
 
     def add_episode(self, entry: dict[str, Any]) -> None:
+        """A new episode for the page; one it already shows (the supervisor's kept reports, delivered again after a
+        re-match) is left out."""
         with self.cond:
+            if entry in self.state["episodes"][-1000:]:
+                return
             self.state["episodes"].append(entry)
             self._emit("episode", entry)
 
@@ -182,7 +186,7 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
 
     from npp_ros_graph.runtime.node import release
     from npp_ros_graph.transport.seal import RunSeal
-    from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS
+    from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_HISTORY_QOS
 
     class DashboardNode(Node):
         """Feeds the hub: GapReports, the latched plant and certificate, and the graph's node names."""
@@ -191,7 +195,7 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
             super().__init__("npp_dashboard")
             seal = RunSeal.from_environment()  # given NPP_RUN_KEY (npp-run --dashboard), only that run's reports
             self.create_subscription(
-                GapReport, GAP, lambda m: seal.shows(m) and hub.add_episode(episode_entry(m)), REPORT_QOS
+                GapReport, GAP, lambda m: seal.shows(m) and hub.add_episode(episode_entry(m)), REPORT_HISTORY_QOS
             )
             self.create_subscription(
                 Certificate,
