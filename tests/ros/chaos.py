@@ -179,11 +179,7 @@ class ChaosRun:
         except ProcessLookupError:  # the run certified without it meanwhile, and npp-run ended the stopped node
             self.outcome.applied.append(f"{fault}: the run ended during the pause")
             return
-        resumed = time.monotonic()
-        waited = self._next_episode_after(resumed)
-        self.outcome.applied.append(f"{fault}: next episode {_seconds(waited)} after SIGCONT")
-        if waited is not None:
-            self.outcome.recoveries["pause"].append(waited)
+        self._recovered(fault, "pause", time.monotonic(), "SIGCONT")
 
     def _kill(self, fault: Fault, pids: dict[str, int]) -> None:
         assert self.proc is not None
@@ -195,11 +191,14 @@ class ChaosRun:
         if self.proc.returncode == 0:  # it had certified just before the fault
             self.outcome.applied.append(f"{fault}: the run had just ended")
             return
-        started = self._start()
-        waited = self._next_episode_after(started)
-        self.outcome.applied.append(f"{fault}: next episode {_seconds(waited)} after npp-run started again")
+        self._recovered(fault, "restart", self._start(), "npp-run started again")
+
+    def _recovered(self, fault: Fault, kind: str, moment: float, what: str) -> None:
+        """How long after `moment` (SIGCONT, a restart) the next episode came: in the report and the recoveries."""
+        waited = self._next_episode_after(moment)
+        self.outcome.applied.append(f"{fault}: next episode {_seconds(waited)} after {what}")
         if waited is not None:
-            self.outcome.recoveries["restart"].append(waited)
+            self.outcome.recoveries[kind].append(waited)
 
     def _next_episode_after(self, moment: float, limit: float = 600.0) -> float | None:
         """Seconds from `moment` to the first gap report after it (None: the run ended first)."""
