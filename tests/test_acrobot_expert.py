@@ -57,3 +57,10 @@ def test_a_request_is_deterministic_and_its_values_are_the_replayed_rewards() ->
     replay.reset(s0)
     rewards = [replay.step(u) for u in first.trajectory.actions]
     assert first.expert_return == pytest.approx(sum(rewards), rel=1e-12)
+
+
+def test_a_plan_with_a_handover_is_the_controllers_own_swing_until_it_nears_upright_energy() -> None:
+    expert = AcrobotExpert(0, horizon=80)
+    pumped, pumping = MujocoDynamics(expert.plant).rollout(HANGING, 80, policy=expert.controller)
+    assert expert.controller.links.energy(pumped)[0].max() < expert.controller.links.upright_energy - 2.0
+    np.testing.assert_array_equal(expert.planner.plan(HANGING, 80, handover=2.0), pumping)
