@@ -9,9 +9,9 @@ then their rates.
 
 It is registered as an entry point of npp_ros's own package (pyproject.toml, group npp_ros.tasks),
 the path any plug-in takes. Its expert plans by receding-horizon iLQR (short windows, each started
-from where the committed actions left the plant) on an energy-shaping surrogate, tries a second
-plan that lets an energy-pumping controller swing first when the first plan does not hold the
-acrobot up, then polishes the plan with a few iLQR iterations over the whole horizon. One iLQR over
+from where the committed actions left the plant) on an energy-shaping surrogate, tries other
+plans (an energy-pumping controller swinging first, longer windows) when the first does not hold
+the acrobot up, then polishes the plan with a few iLQR iterations over the whole horizon. One iLQR over
 the whole horizon from u = 0 does not swing the acrobot up (its derivatives through 10 s of a
 chaotic swing lead nowhere); short windows often do. A local optimiser, so claims are relative to
 its own returns (oracle mode).
@@ -214,9 +214,13 @@ class RecedingHorizonPlanner:
         self.window, self.commit, self.iterations = int(window), int(commit), int(iterations)
         self.window_budget_s = 600.0  # never reached by a window: the iteration cap stops it
 
-    def plan(self, x0: FloatArray, steps: int, handover: float | None = None) -> FloatArray:
-        """The plan's actions from x0: windows from the start, or after the controller's pumping."""
+    def plan(self, x0: FloatArray, steps: int, handover: float | None = None, window: int | None = None) -> FloatArray:
+        """The plan's actions from x0: windows (of ``window`` steps, default the planner's) from the start,
+        or after the controller's pumping."""
         dynamics, width = self.optimizer.dynamics, self.optimizer.action_dim
+        window = self.window if window is None else int(window)
+        if not self.commit <= window:
+            raise ValueError(f"window must be at least commit ({self.commit}), got {window}")
         actions = np.zeros((steps, width))
         state = np.asarray(x0, dtype=np.float64)
         start = 0
@@ -227,10 +231,10 @@ class RecedingHorizonPlanner:
             start = int(np.argmax(close)) if close.any() else steps
             actions[:start] = pumping[:start]
             state = pumped[start]
-        guess = np.zeros((self.window, width))
+        guess = np.zeros((window, width))
         for t in range(start, steps, self.commit):
             best = self.optimizer.solve(
-                state, self.window, time_budget=self.window_budget_s, initial_actions=guess,
+                state, window, time_budget=self.window_budget_s, initial_actions=guess,
                 max_iterations=self.iterations,
             )  # fmt: skip
             n = min(self.commit, steps - t)
@@ -291,7 +295,8 @@ class AcrobotExpert(OptimizingExpert):
         )  # fmt: skip
         self.controller = controller
         self.planner = RecedingHorizonPlanner(self.optimizer, controller)
-        self.handovers: tuple[float | None, ...] = (None, 2.0)  # the plans tried, in order (see plan)
+        # The plans tried, in order (see plan): (energy deficit at the handover or None, window steps).
+        self.candidates: tuple[tuple[float | None, int], ...] = ((None, 200), (2.0, 200), (None, 300))
         self.plan_seconds = 0.0
         # The polish always runs its few iterations: a request then stops by convergence or the cap, not the clock.
         self.min_iterations = self.max_iterations
@@ -313,12 +318,12 @@ class AcrobotExpert(OptimizingExpert):
             self.warm_start = self.controller
 
     def plan(self, x0: FloatArray, steps: int) -> FloatArray:
-        """The first plan in ``handovers`` that holds both links upright over its second half, else the
+        """The first plan in ``candidates`` that holds both links upright over its second half, else the
         one with the best true return (replayed on the plant): a plan that misses the catch is a
         chaotic swing, and another start of the windows often catches."""
         best, best_return = None, -math.inf
-        for handover in self.handovers:
-            actions = self.planner.plan(x0, steps, handover)
+        for handover, window in self.candidates:
+            actions = self.planner.plan(x0, steps, handover, window)
             raw, rewards = replay_rewards(self.plant, x0, actions)
             if held_upright(raw):
                 return actions
