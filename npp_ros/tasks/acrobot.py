@@ -9,12 +9,12 @@ then their rates.
 
 It is registered as an entry point of npp_ros's own package (pyproject.toml, group npp_ros.tasks),
 the path any plug-in takes. Its expert plans by receding-horizon iLQR (short windows, each started
-from where the committed actions left the plant) on an energy-shaping surrogate, tries other
-plans (an energy-pumping controller swinging first, longer windows) when the first does not hold
-the acrobot up, then polishes the plan with a few iLQR iterations over the whole horizon. One iLQR over
-the whole horizon from u = 0 does not swing the acrobot up (its derivatives through 10 s of a
-chaotic swing lead nowhere); short windows often do. A local optimiser, so claims are relative to
-its own returns (oracle mode).
+from where the committed actions left the plant) on an energy-shaping surrogate, tries other plans
+(an energy-pumping controller swinging first, longer windows with more iterations) when the first
+does not hold the acrobot up, then polishes the plan with a few iLQR iterations over the whole
+horizon. One iLQR over the whole horizon from u = 0 does not swing the acrobot up (its derivatives
+through 10 s of a chaotic swing lead nowhere); short windows often do. A local optimiser, so claims
+are relative to its own returns (oracle mode).
 """
 
 from __future__ import annotations
@@ -214,11 +214,19 @@ class RecedingHorizonPlanner:
         self.window, self.commit, self.iterations = int(window), int(commit), int(iterations)
         self.window_budget_s = 600.0  # never reached by a window: the iteration cap stops it
 
-    def plan(self, x0: FloatArray, steps: int, handover: float | None = None, window: int | None = None) -> FloatArray:
-        """The plan's actions from x0: windows (of ``window`` steps, default the planner's) from the start,
-        or after the controller's pumping."""
+    def plan(
+        self,
+        x0: FloatArray,
+        steps: int,
+        handover: float | None = None,
+        window: int | None = None,
+        iterations: int | None = None,
+    ) -> FloatArray:
+        """The plan's actions from x0: windows (``window`` steps, ``iterations`` each; default the
+        planner's) from the start, or after the controller's pumping."""
         dynamics, width = self.optimizer.dynamics, self.optimizer.action_dim
         window = self.window if window is None else int(window)
+        iterations = self.iterations if iterations is None else int(iterations)
         if not self.commit <= window:
             raise ValueError(f"window must be at least commit ({self.commit}), got {window}")
         actions = np.zeros((steps, width))
@@ -235,7 +243,7 @@ class RecedingHorizonPlanner:
         for t in range(start, steps, self.commit):
             best = self.optimizer.solve(
                 state, window, time_budget=self.window_budget_s, initial_actions=guess,
-                max_iterations=self.iterations,
+                max_iterations=iterations,
             )  # fmt: skip
             n = min(self.commit, steps - t)
             actions[t : t + n] = best.actions[:n]
@@ -295,8 +303,9 @@ class AcrobotExpert(OptimizingExpert):
         )  # fmt: skip
         self.controller = controller
         self.planner = RecedingHorizonPlanner(self.optimizer, controller)
-        # The plans tried, in order (see plan): (energy deficit at the handover or None, window steps).
-        self.candidates: tuple[tuple[float | None, int], ...] = ((None, 200), (2.0, 200), (None, 300))
+        # The plans tried, in order (see plan): (energy deficit at the handover or None, window steps,
+        # iterations per window).
+        self.candidates: tuple[tuple[float | None, int, int], ...] = ((None, 200, 5), (2.0, 200, 5), (None, 300, 10))
         self.plan_seconds = 0.0
         # The polish always runs its few iterations: a request then stops by convergence or the cap, not the clock.
         self.min_iterations = self.max_iterations
@@ -322,8 +331,8 @@ class AcrobotExpert(OptimizingExpert):
         one with the best true return (replayed on the plant): a plan that misses the catch is a
         chaotic swing, and another start of the windows often catches."""
         best, best_return = None, -math.inf
-        for handover, window in self.candidates:
-            actions = self.planner.plan(x0, steps, handover, window)
+        for handover, window, iterations in self.candidates:
+            actions = self.planner.plan(x0, steps, handover, window, iterations)
             raw, rewards = replay_rewards(self.plant, x0, actions)
             if held_upright(raw):
                 return actions
