@@ -29,7 +29,14 @@ from numpy.typing import ArrayLike
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.suite_plant import SuitePlant, wrap_angle
-from npp_ros.trajopt.ilqr import ILQR, ExpertSolution, MujocoDynamics, OptimizingExpert, replay_rewards
+from npp_ros.trajopt.ilqr import (
+    ILQR,
+    ExpertSolution,
+    MujocoDynamics,
+    OptimizingExpert,
+    QuadraticCost,
+    replay_rewards,
+)
 
 TASK = "acrobot_swingup"
 DEFAULT_HORIZON = 1000
@@ -157,10 +164,8 @@ class EnergyShapingCost:
         return value, grad, hess
 
     def control_terms(self, actions: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        m = actions.shape[1]
-        value = 0.5 * self.control_weight * np.sum(actions * actions, axis=1)
-        hess = np.broadcast_to(self.control_weight * np.eye(m), (len(actions), m, m))
-        return value, self.control_weight * actions, hess
+        width = actions.shape[1]
+        return QuadraticCost(np.zeros((4, 4)), self.control_weight * np.eye(width)).control_terms(actions)
 
 
 class SwingUpController:
