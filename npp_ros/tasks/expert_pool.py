@@ -20,6 +20,7 @@ import numpy as np
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.tasks.registry import Expert, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros.trajopt.ilqr import OptimizingExpert
 
 _EXPERT: Expert | None = None  # a worker process's own expert
 
@@ -35,6 +36,7 @@ class PooledAnswer:
 
     trajectory: Trajectory
     budget_stopped: bool
+    stop_reason: str | None = None  # why the optimizer stopped ("converged", "max iterations", ...); None: no optimizer
 
 
 def _build_expert(task: str, seed: int, horizon: int, options: ExpertOptions) -> None:
@@ -46,9 +48,14 @@ def _answer(state: FloatArray, horizon: int) -> PooledAnswer:
     expert = _EXPERT
     assert expert is not None, "the worker's initializer builds its expert"
     stops = expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
-    trajectory = expert.trajectory(state, horizon or expert.horizon)
+    reason = None
+    if isinstance(expert, OptimizingExpert):  # trajectory() is solve()'s trajectory; solve() also says why it stopped
+        solution = expert.solve(state, horizon or expert.horizon)
+        trajectory, reason = solution.trajectory, solution.optimization.stop_reason
+    else:
+        trajectory = expert.trajectory(state, horizon or expert.horizon)
     stopped = isinstance(expert, StopsAtTimeBudget) and expert.budget_stops > stops
-    return PooledAnswer(trajectory, stopped)
+    return PooledAnswer(trajectory, stopped, reason)
 
 
 class ExpertPool:
