@@ -64,10 +64,15 @@ def test_a_resumed_run_asks_only_for_what_its_store_lacks(tmp_path: Path) -> Non
     torn = ExpertReturns(ARM, 0, SETTINGS, states, expert, store, chunk=10)
     assert torn.missing_chunks() == [(30, 40)]
     np.testing.assert_array_equal(torn.result(), first)
+    # a damaged line (not numbers) is skipped, and only its chunk asked again
+    damaged = [lines[0], lines[1], json.dumps({"first": 10, "states": "x", "returns": ["a"]}), *lines[3:]]
+    store.write_text("\n".join(damaged) + "\n")
+    assert ExpertReturns(ARM, 0, SETTINGS, states, expert, store, chunk=10).missing_chunks() == [(10, 20)]
     # more held-out s0 than before: the first 40 are the same stream's, only the new ones are asked
     more = held_out_states(ARM.task, 0, 55)
     longer = ExpertReturns(ARM, 0, SETTINGS, more, expert, store, chunk=10)
-    assert longer.missing_chunks() == [(40, 50), (50, 55)]
+    assert longer.missing_chunks() == [(10, 20), (40, 50), (50, 55)]
+    np.testing.assert_array_equal(longer.result(), one_at_a_time(ARM, SETTINGS, more))
 
 
 def test_a_store_of_another_run_is_refused_in_one_line_and_left_untouched(tmp_path: Path) -> None:

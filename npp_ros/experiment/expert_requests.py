@@ -141,21 +141,23 @@ class ExpertReturns:
         except json.JSONDecodeError:
             header = None
         if header != self._identity():
+            found = "an unreadable first line" if header is None else f"expert returns of another run ({header})"
             raise StoredReturnsError(
-                f"{path} holds expert returns of another run ({header}, this run asks for {self._identity()}) "
-                "and was left untouched"
+                f"{path} holds {found}, not this run's ({self._identity()}), and was left untouched"
             )
         for line in lines[1:]:
-            try:
+            try:  # a line that is not a whole chunk (torn by a crash) is skipped: its s0 are asked again
                 entry = json.loads(line)
-                first, states, returns = int(entry["first"]), np.asarray(entry["states"], float), entry["returns"]
-            except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                first, stops = int(entry["first"]), int(entry.get("budget_stops", 0))
+                states, returns = np.asarray(entry["states"], float), np.asarray(entry["returns"], float)
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
                 continue
-            for k, (state, value) in enumerate(zip(states, returns, strict=False)):
-                index = first + k
-                if index < len(self.states) and np.array_equal(state, self.states[index]):
-                    self.returns[index], self.answered[index] = float(value), True
-            self.budget_stops += int(entry.get("budget_stops", 0))
+            end = first + len(returns)
+            if first < 0 or returns.ndim != 1 or states.shape != (len(returns), *self.states.shape[1:]):
+                continue
+            if end <= len(self.states) and np.array_equal(states, self.states[first:end]):
+                self.returns[first:end], self.answered[first:end] = returns, True
+                self.budget_stops += stops
 
     def _keep(self, found: ChunkAnswer) -> None:
         """Takes one chunk's returns, and appends them to the store in one write."""
