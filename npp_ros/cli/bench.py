@@ -55,6 +55,7 @@ from npp_ros.bench.measure import (
 )
 from npp_ros.bench.report import expert_markdown, markdown, throughput_markdown, with_experts, with_ros
 from npp_ros.bench.throughput import throughput_section, worker_counts
+from npp_ros.cli.args import positive_int
 from npp_ros.tasks.expert_pool import default_workers
 from npp_ros.tasks.lqr import PAPER_LIPSCHITZ
 
@@ -116,13 +117,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--throughput-requests",
-        type=int,
+        type=positive_int,
         default=12,
         help="requests per task and worker count, from the s0 of episodes 0 .. N-1, all asked at once",
     )
     parser.add_argument(
         "--throughput-workers",
-        type=int,
+        type=positive_int,
         default=None,
         metavar="M",
         help="the largest pool measured, beside 1 and 2 workers (default: one per usable core)",
@@ -130,8 +131,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.expert_requests < 1 or args.expert_horizon < 2:
         parser.error("--expert-requests must be >= 1 and --expert-horizon >= 2")
-    if args.throughput_requests < 1 or (args.throughput_workers is not None and args.throughput_workers < 1):
-        parser.error("--throughput-requests and --throughput-workers must be >= 1")
     if args.quick:
         args.trajectories = min(args.trajectories, 12)
         args.queries, args.single, args.check, args.repeats = 200, 50, 50, 2
