@@ -121,6 +121,7 @@ def test_only_throughput_answers_every_request_at_each_worker_count_alike(tmp_pa
         assert [run["workers"] for run in t["runs"]] == [1, 2]
         for run in t["runs"]:
             assert run["seconds"] > 0 and run["requests_per_s"] > 0 and run["speedup"] > 0
+            assert run["cpu_seconds"] > 0 and run["cores_used"] > 0
             assert run["answered"] == 3 and sum(run["stop_reasons"].values()) == 3
             assert run["stop_reasons"].get("time budget", 0) == run["budget_stopped"]
         assert t["runs"][0]["speedup"] == 1.0

@@ -60,6 +60,8 @@ def time_pool(
         "workers": workers,
         "seconds": wall,
         "requests_per_s": len(answers) / wall if wall > 0 else float("inf"),
+        "cpu_seconds": sum(a.cpu_seconds for a in answers),  # what the workers got of the cores meanwhile
+        "cores_used": sum(a.cpu_seconds for a in answers) / wall if wall > 0 else float("nan"),
         "answered": sum(len(a.trajectory) == horizon for a in answers),
         "budget_stopped": sum(a.budget_stopped for a in answers),
         "stop_reasons": dict(sorted(reasons.items())),
