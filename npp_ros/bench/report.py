@@ -227,6 +227,9 @@ def throughput_markdown(section: dict[str, Any]) -> list[str]:
             )
     lines.append("")
     for t in section["tasks"]:
+        if not t["compared_requests"]:
+            lines.append(f"- {t['task']}: no answers compared: the time budget cut every s0 at some worker count.")
+            continue
         same = "the same bit for bit" if t["answers_equal"] else "**not** the same"
         lines.append(f"- {t['task']}: answers at every worker count {same} on the {t['compared_requests']} of "
                      f"{t['requests']} s0 that no time budget cut at any count.")  # fmt: skip
