@@ -79,6 +79,19 @@ def test_closed_loops_equal_one_closed_loop_each_bit_for_bit(task: str) -> None:
     assert not np.array_equal(states[0], states[1])  # the step sizes do lead to different rollouts
 
 
+@pytest.mark.parametrize("controls", [1, 2, 3])
+def test_a_stacked_feedback_is_each_single_feedback_bit_for_bit(controls: int) -> None:
+    """What the batched closed loop relies on, for any number of controls: K @ dx[i] for every row i
+    is one stacked matmul's row i, to the last bit (the same BLAS call per row)."""
+    rng = np.random.default_rng(controls)
+    for n in (2, 4, 6, 12):
+        gains = rng.normal(0.0, 1.0, (controls, n))
+        dx = rng.normal(0.0, 1.0, (11, n)) * 10.0 ** rng.integers(-8, 3, (11, n))
+        stacked = np.matmul(gains, dx[:, :, None])[:, :, 0]
+        for i in range(len(dx)):
+            np.testing.assert_array_equal(stacked[i], gains @ dx[i])
+
+
 def test_term_cost_values_alone_equal_state_terms_values() -> None:
     expert = get_task("acrobot_swingup").make_expert(0, SHORT)
     dyn = expert.optimizer.dynamics

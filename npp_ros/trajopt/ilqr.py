@@ -41,6 +41,7 @@ DEFAULT_FD_EPS = 1e-6
 MU_MIN = 1e-8
 MU_MAX = 1e10
 LINE_SEARCH_STEPS = tuple(0.5**i for i in range(11))
+BATCH_FROM = 4  # step sizes a line search rolls out in one batch at the least (fewer go one at a time)
 
 
 class PhysicsPlant(Protocol):
@@ -399,9 +400,11 @@ class ILQR:
     ) -> tuple[FloatArray, FloatArray, float] | None:
         """The first step of LINE_SEARCH_STEPS the search accepts (states, actions, cost), or None.
 
-        Step sizes are rolled out in chunks, each in one batch: first as many as the last search
-        tried (the ones likely needed), then twice as many at a time. A chunk of one is
-        :meth:`MujocoDynamics.closed_loop`'s (one simulation steps faster on its own).
+        A batch of k closed loops costs less than k single ones but far more than one (the
+        simulations themselves dominate), so it pays only for step sizes likely to be needed:
+        after a search that tried at least BATCH_FROM step sizes, this one rolls out that many at
+        once, then all the rest at once; otherwise it tries BATCH_FROM - 1 one at a time
+        (:meth:`MujocoDynamics.closed_loop`), then all the rest at once.
         """
         dyn = self.dynamics
         if dyn.reference:
@@ -411,9 +414,13 @@ class ILQR:
                 if self._accepts(cost, new_cost, alpha, dv1, dv2):
                     return new_states, new_actions, new_cost
             return None
-        start, size = 0, self._search_tries
-        while start < len(LINE_SEARCH_STEPS):
+        tries = self._search_tries
+        first = [tries] if tries >= BATCH_FROM else [1] * (BATCH_FROM - 1)
+        start = 0
+        for size in [*first, len(LINE_SEARCH_STEPS)]:
             alphas = LINE_SEARCH_STEPS[start : start + size]
+            if not alphas:
+                break
             if len(alphas) == 1:
                 rolled = dyn.closed_loop(states, actions, k, gains, alphas[0])
                 chunk_states, chunk_actions = rolled[0][None], rolled[1][None]
@@ -426,7 +433,7 @@ class ILQR:
                 if self._accepts(cost, new_cost, alpha, dv1, dv2):
                     self._search_tries = start + i + 1
                     return new_states, new_actions, new_cost
-            start, size = start + len(alphas), 2 * len(alphas)
+            start += len(alphas)
         self._search_tries = len(LINE_SEARCH_STEPS)
         return None
 
