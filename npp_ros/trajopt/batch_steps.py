@@ -102,15 +102,24 @@ class BatchDifferences:
             ctrl[:, 2 * (n + j), j] = up[:, j]
             ctrl[:, 2 * (n + j) + 1, j] = down[:, j]
         rows.batch.step()
-        nxt = np.concatenate([qpos, qvel], axis=2)
-        a = np.empty((horizon, n, n))
-        b = np.empty((horizon, n, m))
-        for i in range(n):
-            a[:, :, i] = (nxt[:, 2 * i] - nxt[:, 2 * i + 1]) / (2 * eps)
-        for j in range(m):
-            span = (up[:, j] - down[:, j])[:, None]
-            b[:, :, j] = (nxt[:, 2 * (n + j)] - nxt[:, 2 * (n + j) + 1]) / span
-        return a, b
+        return centred_quotients(np.concatenate([qpos, qvel], axis=2), up, down, eps)
+
+
+def centred_quotients(nxt: FloatArray, up: FloatArray, down: FloatArray, eps: float) -> tuple[FloatArray, FloatArray]:
+    """A_t and B_t from the next states (T, 2 (n + m), n) of the +-eps simulations, in their order.
+
+    A control's quotient divides by its actual span, up - down: one-sided at a bound.
+    """
+    horizon, _, n = nxt.shape
+    m = up.shape[1]
+    a = np.empty((horizon, n, n))
+    b = np.empty((horizon, n, m))
+    for i in range(n):
+        a[:, :, i] = (nxt[:, 2 * i] - nxt[:, 2 * i + 1]) / (2 * eps)
+    for j in range(m):
+        span = (up[:, j] - down[:, j])[:, None]
+        b[:, :, j] = (nxt[:, 2 * (n + j)] - nxt[:, 2 * (n + j) + 1]) / span
+    return a, b
 
 
 class BatchClosedLoops:

@@ -286,14 +286,7 @@ class MujocoDynamics:
             nstep=1,
         )
         nxt = out[:, 0, lo : lo + n].reshape(horizon, width, n)
-        a = np.empty((horizon, n, n))
-        b = np.empty((horizon, n, m))
-        for i in range(n):
-            a[:, :, i] = (nxt[:, 2 * i] - nxt[:, 2 * i + 1]) / (2 * eps)
-        for j in range(m):
-            span = (up[:, j] - down[:, j])[:, None]
-            b[:, :, j] = (nxt[:, 2 * (n + j)] - nxt[:, 2 * (n + j) + 1]) / span
-        return a, b
+        return batch_steps.centred_quotients(nxt, up, down, eps)
 
 
 # ----------------------------------------------------------------------------- the optimizer
