@@ -50,7 +50,8 @@ def test_help_names_the_outputs(capsys) -> None:
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert "--quick" in out and "bench.json" in out and "results/bench" in out
-    assert "--only {experts}" in out and "--expert-requests" in out and "pendulum_swingup" in out
+    assert "--only {experts,throughput}" in out and "--expert-requests" in out and "pendulum_swingup" in out
+    assert "--throughput-workers" in out and "--throughput-tasks" in out
 
 
 def test_only_experts_reports_each_request_and_keeps_the_rest_of_the_file(tmp_path: Path, capsys) -> None:
@@ -119,3 +120,31 @@ def test_both_ilqr_paths_are_timed_on_the_same_s0_and_answer_alike() -> None:
     for mine, theirs in zip(batch["detail"], reference["detail"], strict=True):
         assert mine["s0"] == theirs["s0"]
         assert (mine["expert_return"], mine["iterations"]) == (theirs["expert_return"], theirs["iterations"])
+
+
+def test_only_throughput_answers_every_request_at_each_worker_count_alike(tmp_path: Path, capsys) -> None:
+    """Figures are sane (positive, every request answered, speed-up 1 at one worker); no speed is asserted."""
+    argv = ["--only", "throughput", "--throughput-requests", "3", "--throughput-workers", "2",
+            "--expert-horizon", "40", "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 0
+    result = json.loads((tmp_path / "bench.json").read_text())
+    section = result["expert_throughput"]
+    assert section["worker_counts"] == [1, 2] and section["command"] == "npp-bench " + " ".join(argv)
+    assert [t["task"] for t in section["tasks"]] == ["pendulum_swingup", "cartpole_swingup"]
+    for t in section["tasks"]:
+        assert [run["workers"] for run in t["runs"]] == [1, 2]
+        for run in t["runs"]:
+            assert run["seconds"] > 0 and run["requests_per_s"] > 0 and run["speedup"] > 0
+            assert run["cpu_seconds"] > 0 and run["cores_used"] > 0
+            assert run["answered"] == 3 and sum(run["stop_reasons"].values()) == 3
+            assert run["stop_reasons"].get("time budget", 0) == run["budget_stopped"]
+        assert t["runs"][0]["speedup"] == 1.0
+        cut = set().union(*(run["budget_stopped_requests"] for run in t["runs"]))
+        assert t["compared_requests"] == 3 - len(cut)
+        assert t["answers_equal"] is True  # where the optimizer stopped by itself, the same answers bit for bit
+        for k in range(3):
+            if k not in cut:
+                assert len({run["expert_returns"][k] for run in t["runs"]}) == 1
+    table = (tmp_path / "bench.md").read_text()
+    assert "## Expert throughput" in table and "| pendulum_swingup | 40 | 3 | 2 |" in table
+    assert "## Expert throughput" in capsys.readouterr().out

@@ -106,8 +106,10 @@ def markdown(result: dict[str, Any]) -> str:
         unit = row.get("unit", "x")  # the index and ROS rows are ratios
         lines.append(f"| {row['case']} | {row['metric']} | {row['value']:.2f}{unit} | {row['target']} | "
                      f"{'yes' if row['met'] else '**no**'} |")  # fmt: skip
-    if "cases" not in result:  # only `--only experts` has written to this folder
-        return "\n".join([*lines, "", *expert_markdown(result["experts"])])
+    if "cases" not in result:  # only `--only experts` or `--only throughput` has written to this folder
+        experts = expert_markdown(result["experts"]) if result.get("experts") else []
+        throughput = throughput_markdown(result["expert_throughput"]) if result.get("expert_throughput") else []
+        return "\n".join([*lines, "", *experts, *throughput])
     lines += ["", "## Index vs 1-NN trees (same points, same queries)", ""]
     lines += [
         "| case | points | L | mode | V_lb | V_ub | pykdtree 1-NN | cKDTree 1-NN | V_lb / 1-NN | both / 1-NN |",
@@ -197,6 +199,8 @@ def markdown(result: dict[str, Any]) -> str:
         ]
     if result.get("experts"):
         lines += expert_markdown(result["experts"])
+    if result.get("expert_throughput"):
+        lines += throughput_markdown(result["expert_throughput"])
     return "\n".join(lines) + "\n"
 
 
@@ -209,3 +213,37 @@ def with_ros(result: dict[str, Any], ros: dict[str, Any]) -> None:
                      "metric": "graph / bare ping-pong steps/s", "value": c["ratio"],
                      "target": f">= {c['target']:g}x", "met": c["met"]})  # fmt: skip
     result["targets"] = rows
+
+
+def throughput_markdown(section: dict[str, Any]) -> list[str]:
+    lines = ["## Expert throughput (requests per second through the expert pool, same s0 at every worker count)", ""]
+    lines += [f"Command: `{section['command']}`, {section['date']}; {section['usable_cores']} usable cores; "
+              f"load average at start {section['load_average_start']}, at end {section['load_average_end']}.",
+              ""]  # fmt: skip
+    lines += ["| task | H | requests | workers | wall s | requests/s | speed-up | cores used | answered "
+              "| stop reasons |", "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for t in section["tasks"]:
+        for run in t["runs"]:
+            reasons = ", ".join(f"{reason} {n}" for reason, n in run["stop_reasons"].items())
+            lines.append(
+                f"| {t['task']} | {t['horizon']} | {t['requests']} | {run['workers']} | {run['seconds']:.1f} | "
+                f"{run['requests_per_s']:.3f} | {run['speedup']:.2f}x | {run['cores_used']:.2f} | "
+                f"{run['answered']}/{t['requests']} | {reasons} |"
+            )
+    lines.append("")
+    for t in section["tasks"]:
+        if not t["compared_requests"]:
+            lines.append(f"- {t['task']}: no answers compared: the time budget cut every s0 at some worker count.")
+            continue
+        same = "the same bit for bit" if t["answers_equal"] else "**not** the same"
+        lines.append(f"- {t['task']}: answers at every worker count {same} on the {t['compared_requests']} of "
+                     f"{t['requests']} s0 that no time budget cut at any count.")  # fmt: skip
+    lines += [
+        "",
+        "Wall time from the first request to the last answer, all requests asked at once; each pool's start and "
+        "one short warm-up request per worker excluded. Cores used: the requests' CPU seconds in the workers over "
+        "that wall time (below the worker count where other jobs share the cores). 'time budget' names an answer "
+        "the optimizer's wall-clock budget cut, which depends on the machine's speed and load.",
+        "",
+    ]
+    return lines
