@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from npp_ros.bench.measure import UPRIGHT_DEGREES, Progress, machine_info, time_expert
+from npp_ros.bench.report import expert_label
 from npp_ros.cli.bench import main
 from npp_ros.tasks.registry import get_task
 
@@ -102,10 +103,23 @@ def test_only_experts_reports_each_request_and_keeps_the_rest_of_the_file(tmp_pa
 def test_expert_success_means_the_pole_was_held_upright(task: str, upright: list[float], hanging: list[float]) -> None:
     """Started upright, the expert holds the pole; hanging, 60 steps are too few to swing it up."""
     progress = Progress(2, stream=io.StringIO())
-    report = time_expert(task, [np.array(upright), np.array(hanging)], 60, 0, progress)
+    (report,) = time_expert(task, [np.array(upright), np.array(hanging)], 60, 0, progress)
     assert [r["success"] for r in report["detail"]] == [True, False]
     assert report["detail"][0]["worst_angle_deg"] <= UPRIGHT_DEGREES < report["detail"][1]["worst_angle_deg"]
     assert report["succeeded"] == 1 and report["success_rule"].endswith("last 30 steps")
+
+
+def test_both_ilqr_paths_are_timed_on_the_same_s0_and_answer_alike() -> None:
+    """--expert-paths batch reference: one result per path, each s0 asked of both, the same answers."""
+    progress = Progress(4, stream=io.StringIO())
+    starts = [get_task("cartpole_swingup").initial_state(0, k) for k in range(2)]
+    batch, reference = time_expert("cartpole_swingup", starts, 60, 0, progress, ("batch", "reference"))
+    assert (batch["path"], reference["path"]) == ("batch", "reference")
+    assert (expert_label(batch), expert_label(reference)) == ("cartpole_swingup", "cartpole_swingup (reference)")
+    assert "mujoco.batch" in batch["derivatives_by"] and "mujoco.rollout" in reference["derivatives_by"]
+    for mine, theirs in zip(batch["detail"], reference["detail"], strict=True):
+        assert mine["s0"] == theirs["s0"]
+        assert (mine["expert_return"], mine["iterations"]) == (theirs["expert_return"], theirs["iterations"])
 
 
 def test_only_throughput_answers_every_request_at_each_worker_count_alike(tmp_path: Path, capsys) -> None:

@@ -11,13 +11,18 @@ from typing import Any
 import numpy as np
 
 
+def expert_label(t: dict[str, Any]) -> str:
+    """A timed expert's task, and its iLQR code path unless it is the default one (mujoco.batch)."""
+    return f"{t['task']} ({t['path']})" if t.get("path", "batch") != "batch" else t["task"]
+
+
 def with_experts(result: dict[str, Any], experts: dict[str, Any]) -> None:
     """Puts an expert measurement into a bench result, its target rows replacing any earlier ones."""
     result["experts"] = experts
     rows = [row for row in result.get("targets", []) if not row["case"].startswith("iLQR expert")]
     for t in experts["tasks"]:
         if t["target_s"] is not None:
-            rows.append({"case": f"iLQR expert {t['task']}, H = {t['horizon']}, {t['requests']} requests",
+            rows.append({"case": f"iLQR expert {expert_label(t)}, H = {t['horizon']}, {t['requests']} requests",
                          "metric": "slowest request (s per trajectory)", "value": t["seconds"]["max_s"],
                          "unit": " s", "target": f"<= {t['target_s']:g} s", "met": t["met"]})  # fmt: skip
     result["targets"] = rows
@@ -38,7 +43,7 @@ def expert_markdown(experts: dict[str, Any]) -> list[str]:
         target = "-" if t["target_s"] is None else f"slowest <= {t['target_s']:g} s"
         met = "-" if t["met"] is None else ("yes" if t["met"] else "**no**")
         lines.append(
-            f"| {t['task']} | {t['horizon']} | {t['requests']} | {w['median_s']:.2f} | {w['q25_s']:.2f} - "
+            f"| {expert_label(t)} | {t['horizon']} | {t['requests']} | {w['median_s']:.2f} | {w['q25_s']:.2f} - "
             f"{w['q75_s']:.2f} | {w['min_s']:.2f} - {w['max_s']:.2f} | {c['median_s']:.2f} | "
             f"{int(np.median(iterations))} ({min(iterations)} - {max(iterations)}) | {reasons} | "
             f"{t['succeeded']}/{t['requests']} | {target} | {met} |"
@@ -50,11 +55,11 @@ def expert_markdown(experts: dict[str, Any]) -> list[str]:
         cells = " | ".join(f"{t['phases_s'][k]:.2f}s ({100 * t['phase_shares'][k]:.0f}%)" for k in
                            ("derivatives", "backward", "line_search", "rollout", "optimizer_other",
                             "warm_start_and_replays"))  # fmt: skip
-        lines.append(f"| {t['task']} | {cells} | {t['derivatives_by']} |")
+        lines.append(f"| {expert_label(t)} | {cells} | {t['derivatives_by']} |")
     lines += [""]
     for t in experts["tasks"]:
         o = t["options"]
-        lines.append(f"- {t['task']}: default expert (time budget {o['time_budget_s']:g} s per request, at most "
+        lines.append(f"- {expert_label(t)}: default expert (time budget {o['time_budget_s']:g} s per request, at most "
                      f"{o['max_iterations']} iterations, {o['values']} values); held upright = "
                      f"{t['success_rule']}.")  # fmt: skip
     lines += [

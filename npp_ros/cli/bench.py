@@ -39,6 +39,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenM
 
 from npp_ros.bench.measure import (
     DEFAULT_OUT,
+    EXPERT_PATHS,
     EXPERT_TASKS,
     TARGETS,
     Progress,
@@ -109,6 +110,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="tasks whose expert to time",
     )
     parser.add_argument(
+        "--expert-paths",
+        nargs="+",
+        choices=EXPERT_PATHS,
+        default=["batch"],
+        help="iLQR code paths to time, each s0 asked of one path after the other: batch (derivatives and line "
+        "search on mujoco.batch, every core) or reference (the one-at-a-time code); the answers are the same",
+    )
+    parser.add_argument(
         "--throughput-tasks",
         nargs="+",
         choices=(*EXPERT_TASKS, "acrobot_swingup"),
@@ -157,7 +166,7 @@ def write(result: dict[str, Any], out: Path) -> None:
 
 def experts_only(args: argparse.Namespace, command: str) -> int:
     """``--only experts``: the expert section into OUT's bench files, the index (and ROS) figures kept."""
-    progress = Progress(len(args.expert_tasks) * args.expert_requests + 1)
+    progress = Progress(len(args.expert_tasks) * len(args.expert_paths) * args.expert_requests + 1)
     path = args.out / "bench.json"
     result = json.loads(path.read_text()) if path.exists() else header(args, command)
     with_experts(result, expert_section(args, progress, command))
@@ -204,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     n = args.trajectories * 1000
     sizes = [s for s in (10_000, 100_000, 1_000_000) if s <= n] or [n]
     tasks = [("lqr_6_2", "analytic"), ("lqr_2_1", "analytic"), ("lqr_2_1", "paper")]
-    experts = len(args.expert_tasks) * args.expert_requests if args.experts else 0
+    experts = len(args.expert_tasks) * len(args.expert_paths) * args.expert_requests if args.experts else 0
     total = 2 + 3 * len(tasks) + 2 * len(sizes) + 1 + (not args.no_compile) + len(args.runs) + args.ros + experts + 1
     total += throughput_steps(args) if args.throughput else 0
     progress = Progress(total)

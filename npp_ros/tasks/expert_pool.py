@@ -6,7 +6,9 @@ processes can answer several requests at once. Each answer is the one-at-a-time 
 whenever the optimizer stops by convergence or its iteration cap; an answer the time budget cut
 depends on the machine's speed either way, and comes back named as such.
 
-Workers are started fresh ("spawn"), never forked from a process that runs threads.
+Workers are started fresh ("spawn"), never forked from a process that runs threads. Each worker's
+iLQR takes its derivatives on ``threads`` threads (ExpertOptions.threads; by default the cores over
+the workers, at least 1), so the pool never runs more threads than there are cores.
 """
 
 from __future__ import annotations
@@ -15,12 +17,13 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.tasks.registry import Expert, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros.trajopt.batch_steps import default_threads
 from npp_ros.trajopt.ilqr import OptimizingExpert
 
 _EXPERT: Expert | None = None  # a worker process's own expert
@@ -67,6 +70,9 @@ class ExpertPool:
         if workers < 1:
             raise ValueError(f"an expert pool needs at least one worker, got {workers}")
         self.workers = workers
+        if options.threads is None:  # threads x workers <= cores
+            options = replace(options, threads=default_threads(workers))
+        self.threads = options.threads
         self._pool = ProcessPoolExecutor(
             workers,
             mp_context=multiprocessing.get_context("spawn"),
