@@ -23,7 +23,7 @@ When to stop (``rule``):
   tests gives a false certificate with probability at most delta, however many tests the run makes
   and whenever it stops. Condition (ii) (surrogate only) looks again after every check of a test,
   so the n-th look of test k spends delta_k / (n (n + 1)).
-- ``mixture`` (default in the oracle mode): screen a policy with 20 passes in a row, then verify
+- ``mixture`` (an option): screen a policy with 20 passes in a row, then verify
   it with a mixture likelihood-ratio test that tolerates failures (npp_ros/mixture.py, with its
   proof sketch).
 - ``paper``: Theorem 4.1 as the paper uses it: n >= ln(1/delta) / (1 - p) quiet episodes,
