@@ -14,6 +14,7 @@ from npp_ros.bench.measure import UPRIGHT_DEGREES, Progress, machine_info, time_
 from npp_ros.bench.report import expert_label
 from npp_ros.cli.bench import main
 from npp_ros.tasks.registry import get_task
+from npp_ros.trajopt.batch_steps import default_threads
 
 
 def test_quick_bench_writes_markdown_and_json_with_exactness(tmp_path: Path, capsys) -> None:
@@ -133,6 +134,8 @@ def test_only_throughput_answers_every_request_at_each_worker_count_alike(tmp_pa
     assert [t["task"] for t in section["tasks"]] == ["pendulum_swingup", "cartpole_swingup"]
     for t in section["tasks"]:
         assert [run["workers"] for run in t["runs"]] == [1, 2]
+        # each worker's derivative threads: the cores over the workers, so never more threads than cores
+        assert [run["threads_per_worker"] for run in t["runs"]] == [default_threads(1), default_threads(2)]
         for run in t["runs"]:
             assert run["seconds"] > 0 and run["requests_per_s"] > 0 and run["speedup"] > 0
             assert run["cpu_seconds"] > 0 and run["cores_used"] > 0
@@ -146,5 +149,5 @@ def test_only_throughput_answers_every_request_at_each_worker_count_alike(tmp_pa
             if k not in cut:
                 assert len({run["expert_returns"][k] for run in t["runs"]}) == 1
     table = (tmp_path / "bench.md").read_text()
-    assert "## Expert throughput" in table and "| pendulum_swingup | 40 | 3 | 2 |" in table
+    assert "## Expert throughput" in table and "| pendulum_swingup | 40 | 3 | 2 x 1 |" in table
     assert "## Expert throughput" in capsys.readouterr().out

@@ -220,13 +220,14 @@ def throughput_markdown(section: dict[str, Any]) -> list[str]:
     lines += [f"Command: `{section['command']}`, {section['date']}; {section['usable_cores']} usable cores; "
               f"load average at start {section['load_average_start']}, at end {section['load_average_end']}.",
               ""]  # fmt: skip
-    lines += ["| task | H | requests | workers | wall s | requests/s | speed-up | cores used | answered "
+    lines += ["| task | H | requests | workers x threads | wall s | requests/s | speed-up | cores used | answered "
               "| stop reasons |", "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for t in section["tasks"]:
         for run in t["runs"]:
             reasons = ", ".join(f"{reason} {n}" for reason, n in run["stop_reasons"].items())
             lines.append(
-                f"| {t['task']} | {t['horizon']} | {t['requests']} | {run['workers']} | {run['seconds']:.1f} | "
+                f"| {t['task']} | {t['horizon']} | {t['requests']} | {run['workers']} x {run['threads_per_worker']} | "
+                f"{run['seconds']:.1f} | "
                 f"{run['requests_per_s']:.3f} | {run['speedup']:.2f}x | {run['cores_used']:.2f} | "
                 f"{run['answered']}/{t['requests']} | {reasons} |"
             )
@@ -242,7 +243,8 @@ def throughput_markdown(section: dict[str, Any]) -> list[str]:
         "",
         "Wall time from the first request to the last answer, all requests asked at once; each pool's start and "
         "one short warm-up request per worker excluded. Cores used: the requests' CPU seconds in the workers over "
-        "that wall time (below the worker count where other jobs share the cores). 'time budget' names an answer "
+        "that wall time (below the worker count where other jobs share the cores). Threads: each worker's iLQR "
+        "derivative threads (by default the cores over the workers). 'time budget' names an answer "
         "the optimizer's wall-clock budget cut, which depends on the machine's speed and load.",
         "",
     ]

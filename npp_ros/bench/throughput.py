@@ -53,11 +53,13 @@ def time_pool(
         futures = [pool.submit(s0) for s0 in starts]
         answers = [future.result() for future in futures]
         wall = time.perf_counter() - tick
+        threads = pool.threads
     reasons = Counter(
         "time budget" if a.budget_stopped else (a.stop_reason or "closed form") for a in answers
     )  # the pool names a budget cut even where the optimizer's result was replaced by a kept warm start
     return {
         "workers": workers,
+        "threads_per_worker": threads,  # iLQR derivative threads in each worker (cores over workers by default)
         "seconds": wall,
         "requests_per_s": len(answers) / wall if wall > 0 else float("inf"),
         "cpu_seconds": sum(a.cpu_seconds for a in answers),  # what the workers got of the cores meanwhile
