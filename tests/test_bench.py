@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 from npp_ros.bench.measure import UPRIGHT_DEGREES, Progress, machine_info, time_expert
+from npp_ros.bench.report import expert_label
 from npp_ros.cli.bench import main
 from npp_ros.tasks.registry import get_task
+from npp_ros.trajopt.batch_steps import default_threads
 
 
 def test_quick_bench_writes_markdown_and_json_with_exactness(tmp_path: Path, capsys) -> None:
@@ -49,7 +51,8 @@ def test_help_names_the_outputs(capsys) -> None:
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert "--quick" in out and "bench.json" in out and "results/bench" in out
-    assert "--only {experts}" in out and "--expert-requests" in out and "pendulum_swingup" in out
+    assert "--only {experts,throughput}" in out and "--expert-requests" in out and "pendulum_swingup" in out
+    assert "--throughput-workers" in out and "--throughput-tasks" in out
 
 
 def test_only_experts_reports_each_request_and_keeps_the_rest_of_the_file(tmp_path: Path, capsys) -> None:
@@ -101,7 +104,50 @@ def test_only_experts_reports_each_request_and_keeps_the_rest_of_the_file(tmp_pa
 def test_expert_success_means_the_pole_was_held_upright(task: str, upright: list[float], hanging: list[float]) -> None:
     """Started upright, the expert holds the pole; hanging, 60 steps are too few to swing it up."""
     progress = Progress(2, stream=io.StringIO())
-    report = time_expert(task, [np.array(upright), np.array(hanging)], 60, 0, progress)
+    (report,) = time_expert(task, [np.array(upright), np.array(hanging)], 60, 0, progress)
     assert [r["success"] for r in report["detail"]] == [True, False]
     assert report["detail"][0]["worst_angle_deg"] <= UPRIGHT_DEGREES < report["detail"][1]["worst_angle_deg"]
     assert report["succeeded"] == 1 and report["success_rule"].endswith("last 30 steps")
+
+
+def test_both_ilqr_paths_are_timed_on_the_same_s0_and_answer_alike() -> None:
+    """--expert-paths batch reference: one result per path, each s0 asked of both, the same answers."""
+    progress = Progress(4, stream=io.StringIO())
+    starts = [get_task("cartpole_swingup").initial_state(0, k) for k in range(2)]
+    batch, reference = time_expert("cartpole_swingup", starts, 60, 0, progress, ("batch", "reference"))
+    assert (batch["path"], reference["path"]) == ("batch", "reference")
+    assert (expert_label(batch), expert_label(reference)) == ("cartpole_swingup", "cartpole_swingup (reference)")
+    assert "mujoco.batch" in batch["derivatives_by"] and "mujoco.rollout" in reference["derivatives_by"]
+    for mine, theirs in zip(batch["detail"], reference["detail"], strict=True):
+        assert mine["s0"] == theirs["s0"]
+        assert (mine["expert_return"], mine["iterations"]) == (theirs["expert_return"], theirs["iterations"])
+
+
+def test_only_throughput_answers_every_request_at_each_worker_count_alike(tmp_path: Path, capsys) -> None:
+    """Figures are sane (positive, every request answered, speed-up 1 at one worker); no speed is asserted."""
+    argv = ["--only", "throughput", "--throughput-requests", "3", "--throughput-workers", "2",
+            "--expert-horizon", "40", "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 0
+    result = json.loads((tmp_path / "bench.json").read_text())
+    section = result["expert_throughput"]
+    assert section["worker_counts"] == [1, 2] and section["command"] == "npp-bench " + " ".join(argv)
+    assert [t["task"] for t in section["tasks"]] == ["pendulum_swingup", "cartpole_swingup"]
+    for t in section["tasks"]:
+        assert [run["workers"] for run in t["runs"]] == [1, 2]
+        # each worker's derivative threads: the cores over the workers, so never more threads than cores
+        assert [run["threads_per_worker"] for run in t["runs"]] == [default_threads(1), default_threads(2)]
+        for run in t["runs"]:
+            assert run["seconds"] > 0 and run["requests_per_s"] > 0 and run["speedup"] > 0
+            assert run["cpu_seconds"] > 0 and run["cores_used"] > 0
+            assert run["answered"] == 3 and sum(run["stop_reasons"].values()) == 3
+            assert run["stop_reasons"].get("time budget", 0) == run["budget_stopped"]
+        assert t["runs"][0]["speedup"] == 1.0
+        cut = set().union(*(run["budget_stopped_requests"] for run in t["runs"]))
+        assert t["compared_requests"] == 3 - len(cut)
+        assert t["answers_equal"] is True  # where the optimizer stopped by itself, the same answers bit for bit
+        for k in range(3):
+            if k not in cut:
+                assert len({run["expert_returns"][k] for run in t["runs"]}) == 1
+    table = (tmp_path / "bench.md").read_text()
+    assert "## Expert throughput" in table and "| pendulum_swingup | 40 | 3 | 2 x 1 |" in table
+    assert "## Expert throughput" in capsys.readouterr().out

@@ -20,7 +20,7 @@ def test_pool_answers_are_the_one_at_a_time_answers_bit_for_bit() -> None:
     with ExpertPool(TASK, 0, HORIZON, OPTIONS, workers=2) as pool:
         got = [f.result(timeout=600) for f in [pool.submit(s0) for s0 in states]]  # all asked at once
     for answer, expected in zip(got, want, strict=True):
-        assert not answer.budget_stopped
+        assert not answer.budget_stopped and answer.stop_reason in {"converged", "max iterations"}
         np.testing.assert_array_equal(answer.trajectory.states, expected.states)
         np.testing.assert_array_equal(answer.trajectory.actions, expected.actions)
         np.testing.assert_array_equal(answer.trajectory.values, expected.values)

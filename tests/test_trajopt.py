@@ -194,7 +194,7 @@ def test_batched_fd_equals_mjd_transition_fd() -> None:
     rng = np.random.default_rng(0)
     states, actions = rng.uniform(-3, 3, (60, 2)), rng.uniform(-1.5, 1.5, (60, 1))  # some beyond the bounds
     a, b = dyn.jacobians(states, actions)
-    a2, b2 = dyn._batched_jacobians(states, actions)
+    a2, b2 = dyn._rollout_jacobians(states, actions)
     np.testing.assert_allclose(a2, a, rtol=0, atol=1e-9)
     np.testing.assert_allclose(b2, b, rtol=0, atol=1e-9)
 

@@ -29,7 +29,8 @@ from npp_ros.policy.compression import compression_report, index_report
 from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.policy.kdtree import BoundIndex
 from npp_ros.tasks.lqr import LQRExpert, sample_initial_state
-from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.registry import ExpertOptions, get_task
+from npp_ros.trajopt.batch_steps import default_threads
 
 try:  # the registry's fastest plain 1-NN tree; the benchmark still runs without it
     from pykdtree.kdtree import KDTree as PyKDTree
@@ -41,6 +42,7 @@ DEFAULT_OUT = Path("results/bench")
 EXPERT_TASKS = ("pendulum_swingup", "cartpole_swingup")  # timed by default; acrobot_swingup on request
 POLE_ANGLE = {"pendulum_swingup": 0, "cartpole_swingup": 1, "acrobot_swingup": 0}  # upright angle's entry (stored)
 EXPERT_TARGET_KEY = {"pendulum_swingup": "pendulum_expert_s"}
+EXPERT_PATHS = ("batch", "reference")  # the iLQR expert's code paths (MujocoDynamics.reference)
 UPRIGHT_DEGREES = 8.0  # dm_control's pendulum rewards 1 within 8 degrees of upright
 
 
@@ -380,56 +382,73 @@ def worst_angle_degrees(states: FloatArray, angle: int, steps: int, lower_link: 
     return float(np.degrees(np.max(tail)))
 
 
-def time_expert(name: str, starts: list[FloatArray], horizon: int, seed: int, progress: Progress) -> dict[str, Any]:
+def time_expert(
+    name: str,
+    starts: list[FloatArray],
+    horizon: int,
+    seed: int,
+    progress: Progress,
+    paths: tuple[str, ...] = ("batch",),
+) -> list[dict[str, Any]]:
     """Seconds per request of the task's default expert (options and budget), one request at a time.
 
     A request is the whole answer the expert node gives: warm-start rollout, iLQR, and the replays
     on the plant for the true rewards. The optimizer's own phase timings say where its part went;
     the rest of a request is the warm start and the replays. A request succeeded when the pole
     stays within 8 degrees of upright over the last half of the horizon (500 steps at H = 1000).
+    With several iLQR code paths (EXPERT_PATHS), each s0 is asked of one path after the other, so
+    that the paths meet the same load; one result per path.
     """
     task = get_task(name)
-    expert: Any = task.make_expert(seed, horizon)
-    expert.solve(starts[0], min(horizon, 50))  # warm-up: lazy loads and first-call costs stay out of the timings
+    experts: dict[str, Any] = {}
+    for path in paths:
+        experts[path] = task.make_expert(seed, horizon, ExpertOptions(threads=default_threads()))  # alone: every core
+        experts[path].optimizer.dynamics.reference = path == "reference"
+        experts[path].solve(starts[0], min(horizon, 50))  # warm-up: lazy loads and first-call costs stay out
     hold = max(1, horizon // 2)
-    phases = {"derivatives": 0.0, "backward": 0.0, "line_search": 0.0, "rollout": 0.0, "optimizer_other": 0.0,
-              "warm_start_and_replays": 0.0}  # fmt: skip
-    rows, wall, cpu = [], [], []
+    phases = {path: {"derivatives": 0.0, "backward": 0.0, "line_search": 0.0, "rollout": 0.0, "optimizer_other": 0.0,
+                     "warm_start_and_replays": 0.0} for path in paths}  # fmt: skip
+    rows: dict[str, list[dict[str, Any]]] = {path: [] for path in paths}
+    wall: dict[str, list[float]] = {path: [] for path in paths}
+    cpu: dict[str, list[float]] = {path: [] for path in paths}
     for k, s0 in enumerate(starts):
-        tick, cpu_tick = time.perf_counter(), time.process_time()
-        solution = expert.solve(s0)
-        wall.append(time.perf_counter() - tick)
-        cpu.append(time.process_time() - cpu_tick)
-        opt = solution.optimization
-        for key in ("derivatives", "backward", "line_search", "rollout"):
-            phases[key] += opt.timings[key]
-        phases["optimizer_other"] += opt.wall_time - sum(opt.timings.values())
-        phases["warm_start_and_replays"] += wall[-1] - opt.wall_time
-        worst = worst_angle_degrees(solution.trajectory.states, POLE_ANGLE[name], hold, name == "acrobot_swingup")
-        rows.append({
-            "s0": [float(x) for x in s0], "seconds": wall[-1], "cpu_seconds": cpu[-1], "iterations": opt.iterations,
-            "stop_reason": opt.stop_reason, "expert_return": solution.expert_return,
-            "kept_warm_start": solution.kept_warm_start, "worst_angle_deg": worst,
-            "success": bool(worst <= UPRIGHT_DEGREES),
-        })  # fmt: skip
-        progress.step(f"{name} request {k + 1}/{len(starts)}: {wall[-1]:.2f}s, {opt.stop_reason} after "
-                      f"{opt.iterations} iterations, return {solution.expert_return:.0f}, "
-                      f"held upright: {'yes' if rows[-1]['success'] else 'no'}")  # fmt: skip
-    total = float(sum(wall))
+        for path, expert in experts.items():
+            tick, cpu_tick = time.perf_counter(), time.process_time()
+            solution = expert.solve(s0)
+            wall[path].append(time.perf_counter() - tick)
+            cpu[path].append(time.process_time() - cpu_tick)
+            opt = solution.optimization
+            for key in ("derivatives", "backward", "line_search", "rollout"):
+                phases[path][key] += opt.timings[key]
+            phases[path]["optimizer_other"] += opt.wall_time - sum(opt.timings.values())
+            phases[path]["warm_start_and_replays"] += wall[path][-1] - opt.wall_time
+            worst = worst_angle_degrees(solution.trajectory.states, POLE_ANGLE[name], hold, name == "acrobot_swingup")
+            rows[path].append({
+                "s0": [float(x) for x in s0], "seconds": wall[path][-1], "cpu_seconds": cpu[path][-1],
+                "iterations": opt.iterations, "stop_reason": opt.stop_reason, "expert_return": solution.expert_return,
+                "kept_warm_start": solution.kept_warm_start, "worst_angle_deg": worst,
+                "success": bool(worst <= UPRIGHT_DEGREES),
+            })  # fmt: skip
+            progress.step(f"{name} ({path}) request {k + 1}/{len(starts)}: {wall[path][-1]:.2f}s, {opt.stop_reason} "
+                          f"after {opt.iterations} iterations, return {solution.expert_return:.0f}, "
+                          f"held upright: {'yes' if rows[path][-1]['success'] else 'no'}")  # fmt: skip
     target = TARGETS.get(EXPERT_TARGET_KEY.get(name, ""))
-    timing = seconds_summary(wall)
-    return {
-        "task": name, "horizon": horizon, "requests": len(starts), "seed": seed,
-        "options": {"time_budget_s": expert.time_budget, "max_iterations": expert.max_iterations,
-                    "values": expert.values},
-        "derivatives_by": "batched one-step rollouts (mujoco.rollout, RK4)" if expert.optimizer.dynamics.batched_fd
-        else "mujoco.mjd_transitionFD",
-        "success_rule": f"pole within {UPRIGHT_DEGREES:g} degrees of upright over the last {hold} steps",
-        "seconds": timing, "cpu_seconds": seconds_summary(cpu),
-        "phases_s": phases, "phase_shares": {k: v / total for k, v in phases.items()},
-        "succeeded": sum(r["success"] for r in rows), "target_s": target,
-        "met": None if target is None else timing["max_s"] <= target, "detail": rows,
-    }  # fmt: skip
+    results = []
+    for path, expert in experts.items():
+        total = float(sum(wall[path]))
+        timing = seconds_summary(wall[path])
+        results.append({
+            "task": name, "path": path, "horizon": horizon, "requests": len(starts), "seed": seed,
+            "options": {"time_budget_s": expert.time_budget, "max_iterations": expert.max_iterations,
+                        "values": expert.values},
+            "derivatives_by": expert.optimizer.dynamics.derivatives_by,
+            "success_rule": f"pole within {UPRIGHT_DEGREES:g} degrees of upright over the last {hold} steps",
+            "seconds": timing, "cpu_seconds": seconds_summary(cpu[path]),
+            "phases_s": phases[path], "phase_shares": {k: v / total for k, v in phases[path].items()},
+            "succeeded": sum(r["success"] for r in rows[path]), "target_s": target,
+            "met": None if target is None else timing["max_s"] <= target, "detail": rows[path],
+        })  # fmt: skip
+    return results
 
 
 def expert_section(args: argparse.Namespace, progress: Progress, command: str) -> dict[str, Any]:
@@ -440,7 +459,7 @@ def expert_section(args: argparse.Namespace, progress: Progress, command: str) -
     for name in args.expert_tasks:
         task = get_task(name)
         starts = [task.initial_state(args.seed, k) for k in range(args.expert_requests)]
-        tasks.append(time_expert(name, starts, args.expert_horizon, args.seed, progress))
+        tasks += time_expert(name, starts, args.expert_horizon, args.seed, progress, tuple(args.expert_paths))
     return {"command": command, "date": started, "load_average_start": load_start,
             "load_average_end": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
             "tasks": tasks}  # fmt: skip

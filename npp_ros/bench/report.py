@@ -11,13 +11,18 @@ from typing import Any
 import numpy as np
 
 
+def expert_label(t: dict[str, Any]) -> str:
+    """A timed expert's task, and its iLQR code path unless it is the default one (mujoco.batch)."""
+    return f"{t['task']} ({t['path']})" if t.get("path", "batch") != "batch" else t["task"]
+
+
 def with_experts(result: dict[str, Any], experts: dict[str, Any]) -> None:
     """Puts an expert measurement into a bench result, its target rows replacing any earlier ones."""
     result["experts"] = experts
     rows = [row for row in result.get("targets", []) if not row["case"].startswith("iLQR expert")]
     for t in experts["tasks"]:
         if t["target_s"] is not None:
-            rows.append({"case": f"iLQR expert {t['task']}, H = {t['horizon']}, {t['requests']} requests",
+            rows.append({"case": f"iLQR expert {expert_label(t)}, H = {t['horizon']}, {t['requests']} requests",
                          "metric": "slowest request (s per trajectory)", "value": t["seconds"]["max_s"],
                          "unit": " s", "target": f"<= {t['target_s']:g} s", "met": t["met"]})  # fmt: skip
     result["targets"] = rows
@@ -38,7 +43,7 @@ def expert_markdown(experts: dict[str, Any]) -> list[str]:
         target = "-" if t["target_s"] is None else f"slowest <= {t['target_s']:g} s"
         met = "-" if t["met"] is None else ("yes" if t["met"] else "**no**")
         lines.append(
-            f"| {t['task']} | {t['horizon']} | {t['requests']} | {w['median_s']:.2f} | {w['q25_s']:.2f} - "
+            f"| {expert_label(t)} | {t['horizon']} | {t['requests']} | {w['median_s']:.2f} | {w['q25_s']:.2f} - "
             f"{w['q75_s']:.2f} | {w['min_s']:.2f} - {w['max_s']:.2f} | {c['median_s']:.2f} | "
             f"{int(np.median(iterations))} ({min(iterations)} - {max(iterations)}) | {reasons} | "
             f"{t['succeeded']}/{t['requests']} | {target} | {met} |"
@@ -50,11 +55,11 @@ def expert_markdown(experts: dict[str, Any]) -> list[str]:
         cells = " | ".join(f"{t['phases_s'][k]:.2f}s ({100 * t['phase_shares'][k]:.0f}%)" for k in
                            ("derivatives", "backward", "line_search", "rollout", "optimizer_other",
                             "warm_start_and_replays"))  # fmt: skip
-        lines.append(f"| {t['task']} | {cells} | {t['derivatives_by']} |")
+        lines.append(f"| {expert_label(t)} | {cells} | {t['derivatives_by']} |")
     lines += [""]
     for t in experts["tasks"]:
         o = t["options"]
-        lines.append(f"- {t['task']}: default expert (time budget {o['time_budget_s']:g} s per request, at most "
+        lines.append(f"- {expert_label(t)}: default expert (time budget {o['time_budget_s']:g} s per request, at most "
                      f"{o['max_iterations']} iterations, {o['values']} values); held upright = "
                      f"{t['success_rule']}.")  # fmt: skip
     lines += [
@@ -101,8 +106,10 @@ def markdown(result: dict[str, Any]) -> str:
         unit = row.get("unit", "x")  # the index and ROS rows are ratios
         lines.append(f"| {row['case']} | {row['metric']} | {row['value']:.2f}{unit} | {row['target']} | "
                      f"{'yes' if row['met'] else '**no**'} |")  # fmt: skip
-    if "cases" not in result:  # only `--only experts` has written to this folder
-        return "\n".join([*lines, "", *expert_markdown(result["experts"])])
+    if "cases" not in result:  # only `--only experts` or `--only throughput` has written to this folder
+        experts = expert_markdown(result["experts"]) if result.get("experts") else []
+        throughput = throughput_markdown(result["expert_throughput"]) if result.get("expert_throughput") else []
+        return "\n".join([*lines, "", *experts, *throughput])
     lines += ["", "## Index vs 1-NN trees (same points, same queries)", ""]
     lines += [
         "| case | points | L | mode | V_lb | V_ub | pykdtree 1-NN | cKDTree 1-NN | V_lb / 1-NN | both / 1-NN |",
@@ -192,6 +199,8 @@ def markdown(result: dict[str, Any]) -> str:
         ]
     if result.get("experts"):
         lines += expert_markdown(result["experts"])
+    if result.get("expert_throughput"):
+        lines += throughput_markdown(result["expert_throughput"])
     return "\n".join(lines) + "\n"
 
 
@@ -204,3 +213,39 @@ def with_ros(result: dict[str, Any], ros: dict[str, Any]) -> None:
                      "metric": "graph / bare ping-pong steps/s", "value": c["ratio"],
                      "target": f">= {c['target']:g}x", "met": c["met"]})  # fmt: skip
     result["targets"] = rows
+
+
+def throughput_markdown(section: dict[str, Any]) -> list[str]:
+    lines = ["## Expert throughput (requests per second through the expert pool, same s0 at every worker count)", ""]
+    lines += [f"Command: `{section['command']}`, {section['date']}; {section['usable_cores']} usable cores; "
+              f"load average at start {section['load_average_start']}, at end {section['load_average_end']}.",
+              ""]  # fmt: skip
+    lines += ["| task | H | requests | workers x threads | wall s | requests/s | speed-up | cores used | answered "
+              "| stop reasons |", "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for t in section["tasks"]:
+        for run in t["runs"]:
+            reasons = ", ".join(f"{reason} {n}" for reason, n in run["stop_reasons"].items())
+            lines.append(
+                f"| {t['task']} | {t['horizon']} | {t['requests']} | {run['workers']} x {run['threads_per_worker']} | "
+                f"{run['seconds']:.1f} | "
+                f"{run['requests_per_s']:.3f} | {run['speedup']:.2f}x | {run['cores_used']:.2f} | "
+                f"{run['answered']}/{t['requests']} | {reasons} |"
+            )
+    lines.append("")
+    for t in section["tasks"]:
+        if not t["compared_requests"]:
+            lines.append(f"- {t['task']}: no answers compared: the time budget cut every s0 at some worker count.")
+            continue
+        same = "the same bit for bit" if t["answers_equal"] else "**not** the same"
+        lines.append(f"- {t['task']}: answers at every worker count {same} on the {t['compared_requests']} of "
+                     f"{t['requests']} s0 that no time budget cut at any count.")  # fmt: skip
+    lines += [
+        "",
+        "Wall time from the first request to the last answer, all requests asked at once; each pool's start and "
+        "one short warm-up request per worker excluded. Cores used: the requests' CPU seconds in the workers over "
+        "that wall time (below the worker count where other jobs share the cores). Threads: each worker's iLQR "
+        "derivative threads (by default the cores over the workers). 'time budget' names an answer "
+        "the optimizer's wall-clock budget cut, which depends on the machine's speed and load.",
+        "",
+    ]
+    return lines

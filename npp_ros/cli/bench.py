@@ -12,7 +12,11 @@ Measures side by side, on real LQR expert trajectories (``LQRExpert.trajectory``
 * optionally the compression of stored runs (``--runs``) and the ROS loop rate (``--ros``);
 * optionally the iLQR experts of the nonlinear tasks (``--experts``; ``--only experts`` runs that
   part alone): seconds per H-step trajectory from s0 ~ rho with each task's default expert
-  options and time budget, where the time goes, and whether the pole was held upright.
+  options and time budget, where the time goes, and whether the pole was held upright;
+* optionally the experts' throughput (``--throughput``; ``--only throughput`` runs that part alone):
+  requests per second through the expert pool at 1, 2 and m workers on the same s0, the speed-ups,
+  the optimizer's stop reasons (answers the time budget cut named), and whether every worker count
+  gave the same answers.
 
 Everything is single-threaded (OMP_NUM_THREADS=1 for pykdtree), so the ratios compare
 algorithms, not core counts. Writes ``bench.md`` and ``bench.json`` into the output folder.
@@ -35,6 +39,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenM
 
 from npp_ros.bench.measure import (
     DEFAULT_OUT,
+    EXPERT_PATHS,
     EXPERT_TASKS,
     TARGETS,
     Progress,
@@ -49,7 +54,10 @@ from npp_ros.bench.measure import (
     targets,
     tie_case,
 )
-from npp_ros.bench.report import expert_markdown, markdown, with_experts, with_ros
+from npp_ros.bench.report import expert_markdown, markdown, throughput_markdown, with_experts, with_ros
+from npp_ros.bench.throughput import throughput_section, worker_counts
+from npp_ros.cli.args import positive_int
+from npp_ros.tasks.expert_pool import default_workers
 from npp_ros.tasks.lqr import PAPER_LIPSCHITZ
 
 
@@ -81,8 +89,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--no-compile", action="store_true", help="skip the cold-cache compile measurement")
     parser.add_argument("--experts", action="store_true", help="also time the iLQR experts (see --expert-requests)")
     parser.add_argument(
+        "--throughput", action="store_true", help="also measure expert requests per second at 1, 2 and m workers"
+    )
+    parser.add_argument(
         "--only",
-        choices=["experts"],
+        choices=["experts", "throughput"],
         default=None,
         help="run only this part; its section and target rows go into OUT/bench.json and bench.md, replacing an "
         "earlier run's, and the rest of those files is kept",
@@ -98,6 +109,34 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         default=list(EXPERT_TASKS),
         help="tasks whose expert to time",
     )
+    parser.add_argument(
+        "--expert-paths",
+        nargs="+",
+        choices=EXPERT_PATHS,
+        default=["batch"],
+        help="iLQR code paths to time, each s0 asked of one path after the other: batch (derivatives and line "
+        "search on mujoco.batch, every core) or reference (the one-at-a-time code); the answers are the same",
+    )
+    parser.add_argument(
+        "--throughput-tasks",
+        nargs="+",
+        choices=(*EXPERT_TASKS, "acrobot_swingup"),
+        default=list(EXPERT_TASKS),
+        help="tasks whose expert throughput to measure (H = --expert-horizon)",
+    )
+    parser.add_argument(
+        "--throughput-requests",
+        type=positive_int,
+        default=12,
+        help="requests per task and worker count, from the s0 of episodes 0 .. N-1, all asked at once",
+    )
+    parser.add_argument(
+        "--throughput-workers",
+        type=positive_int,
+        default=None,
+        metavar="M",
+        help="the largest pool measured, beside 1 and 2 workers (default: one per usable core)",
+    )
     args = parser.parse_args(argv)
     if args.expert_requests < 1 or args.expert_horizon < 2:
         parser.error("--expert-requests must be >= 1 and --expert-horizon >= 2")
@@ -106,6 +145,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         args.queries, args.single, args.check, args.repeats = 200, 50, 50, 2
         args.brute_budget = 2e5
         args.expert_requests, args.expert_horizon = min(args.expert_requests, 2), min(args.expert_horizon, 200)
+        args.throughput_requests = min(args.throughput_requests, 4)
     return args
 
 
@@ -126,7 +166,7 @@ def write(result: dict[str, Any], out: Path) -> None:
 
 def experts_only(args: argparse.Namespace, command: str) -> int:
     """``--only experts``: the expert section into OUT's bench files, the index (and ROS) figures kept."""
-    progress = Progress(len(args.expert_tasks) * args.expert_requests + 1)
+    progress = Progress(len(args.expert_tasks) * len(args.expert_paths) * args.expert_requests + 1)
     path = args.out / "bench.json"
     result = json.loads(path.read_text()) if path.exists() else header(args, command)
     with_experts(result, expert_section(args, progress, command))
@@ -137,17 +177,45 @@ def experts_only(args: argparse.Namespace, command: str) -> int:
     return 0
 
 
+def throughput(args: argparse.Namespace, progress: Progress, command: str) -> dict[str, Any]:
+    return throughput_section(args.throughput_tasks, args.throughput_requests, args.expert_horizon, args.seed,
+                              args.throughput_workers, progress, command)  # fmt: skip
+
+
+def throughput_steps(args: argparse.Namespace) -> int:
+    """Progress steps of the throughput part: one per task and worker count (1, 2, m: at most three)."""
+    most = args.throughput_workers or default_workers()
+    return len(args.throughput_tasks) * len(worker_counts(most))
+
+
+def throughput_only(args: argparse.Namespace, command: str) -> int:
+    """``--only throughput``: the throughput section into OUT's bench files, the rest of them kept."""
+    progress = Progress(throughput_steps(args) + 1)
+    path = args.out / "bench.json"
+    result = json.loads(path.read_text()) if path.exists() else header(args, command)
+    result["expert_throughput"] = throughput(args, progress, command)
+    result.setdefault("targets", [])
+    result.setdefault("load_average_end", result["expert_throughput"]["load_average_end"])
+    write(result, args.out)
+    progress.step(f"wrote the expert throughput into {path} and {args.out / 'bench.md'}")
+    sys.stdout.write("\n".join(throughput_markdown(result["expert_throughput"])))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     command = "npp-bench " + " ".join(sys.argv[1:] if argv is None else argv)
     if args.only == "experts":
         return experts_only(args, command)
+    if args.only == "throughput":
+        return throughput_only(args, command)
     n = args.trajectories * 1000
     sizes = [s for s in (10_000, 100_000, 1_000_000) if s <= n] or [n]
     tasks = [("lqr_6_2", "analytic"), ("lqr_2_1", "analytic"), ("lqr_2_1", "paper")]
-    experts = len(args.expert_tasks) * args.expert_requests if args.experts else 0
+    experts = len(args.expert_tasks) * len(args.expert_paths) * args.expert_requests if args.experts else 0
     total = 2 + 3 * len(tasks) + 2 * len(sizes) + 1 + (not args.no_compile) + len(args.runs) + args.ros + experts + 1
+    total += throughput_steps(args) if args.throughput else 0
     progress = Progress(total)
     result = header(args, command)
     datasets = {}
@@ -187,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
         with_ros(result, ros_loop(args, progress))
     if args.experts:
         with_experts(result, expert_section(args, progress, command))
+    if args.throughput:
+        result["expert_throughput"] = throughput(args, progress, command)
     checks = [c.exact["exact"] for c in cases] + [r["exact"]["exact"] for r in scaling] + [ties["exact"]]
     result["all_exact"] = bool(all(checks))
     result["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None

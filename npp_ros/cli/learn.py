@@ -27,6 +27,7 @@ from npp_ros.run.records import RunFileError, write_episode_log
 from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
 from npp_ros.tasks.sources import short_name
+from npp_ros.trajopt.batch_steps import default_threads
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 
 
@@ -106,7 +107,10 @@ def main(argv: list[str] | None = None) -> int:
     run_dir = args.run_dir or Path("runs") / f"learn-{short_name(args.task)}-seed{args.seed}"
     try:
         epsilon = task.epsilon(args.epsilon)
-        options = ExpertOptions(gamma=args.gamma, time_budget=args.time_budget, values=args.values)
+        # one expert, alone in this process: its derivatives may take every core
+        options = ExpertOptions(
+            gamma=args.gamma, time_budget=args.time_budget, values=args.values, threads=default_threads()
+        )
         expert = task.make_expert(args.seed, args.horizon, options)
         choice = args.lipschitz or task.default_lipschitz_choice()
         lipschitz = resolve_lipschitz(args.task, choice, expert)

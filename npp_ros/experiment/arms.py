@@ -123,11 +123,15 @@ def default_arms(
     return arms
 
 
-def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> Expert:
+def expert_options(arm: Arm, settings: ExperimentSettings) -> ExpertOptions:
+    """The options of an arm's data expert: what, with the task and seed, decides its answers."""
     task = get_task(arm.task)
     budget = settings.time_budget if isinstance(task, OptimizerTask) else None  # closed-form experts take none
-    options = ExpertOptions(kind=arm.expert, control_weight=settings.control_weight, time_budget=budget)
-    return task.make_expert(seed, settings.horizon, options)
+    return ExpertOptions(kind=arm.expert, control_weight=settings.control_weight, time_budget=budget)
+
+
+def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> Expert:
+    return get_task(arm.task).make_expert(seed, settings.horizon, expert_options(arm, settings))
 
 
 def evaluation_states(task: str, seed: int, count: int) -> FloatArray:

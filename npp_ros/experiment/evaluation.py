@@ -19,8 +19,9 @@ from npp_ros.experiment.arms import (
     ExperimentSettings,
     evaluation_states,
 )
+from npp_ros.experiment.expert_requests import ExpertReturns
 from npp_ros.policy.bounds import NonparametricPolicy
-from npp_ros.policy.dataset import Dataset
+from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.run.evaluation import (
     VIOLATION_TOLERANCE,
     HeldOutCheck,
@@ -110,13 +111,15 @@ class Evaluator:
         settings: ExperimentSettings,
         expert: Expert,
         progress: Callable[[int, int], None] | None = None,
+        store: Path | None = None,
     ) -> None:
+        """``store``: a file that keeps the expert's returns from the evaluation s0 for a resumed run."""
         self.settings = settings
         self.expert = expert
         task = self.task = get_task(arm.task)
         self.plant = task.make_plant(seed)
         self.states = evaluation_states(arm.task, seed, settings.evaluations)
-        self.expert_returns = task.expert_returns(expert, self.plant, self.states, settings.horizon, progress)
+        self.expert_returns = ExpertReturns(arm, seed, settings, self.states, expert, store).result(progress)
         if not task.optimal_expert:
             self.optimal_returns = np.full(len(self.states), np.nan)
         elif arm.expert == task.experts[0]:
@@ -169,6 +172,7 @@ def check_certificate(
     expert: Expert,
     count: int,
     progress: Callable[[str, int, int], None] | None = None,
+    expert_returns: FloatArray | None = None,
 ) -> HeldOutCheck:
     """The certified policy (the greedy policy over the trajectories it names) on ``count`` fresh s0.
 
@@ -176,20 +180,38 @@ def check_certificate(
 
     The gap is to the exact optimal H-step return where the claim is about V* and the expert is
     optimal; otherwise (oracle mode, the detuned expert, an optimizer expert) to the expert's own
-    H-step return from the same s0.
+    H-step return from the same s0. ``expert_returns``: the expert's returns from the held-out s0
+    where already asked for (:func:`held_out_states`, in parallel); else asked here one at a time.
     """
     task = get_task(arm.task)
-    rng = np.random.default_rng([seed, HELD_OUT_STREAM])
-    states = np.array([task.sample_initial_state(rng) for _ in range(count)])
+    states = held_out_states(arm.task, seed, count)
     spec = certificate.spec
     policy = NonparametricPolicy(dataset.prefix(certificate.policy_trajectories), spec.lipschitz.value)
     return check_policy(
         policy, task, task.make_plant(seed), expert, states, settings.horizon,
         epsilon=spec.epsilon, p=spec.p, delta=spec.delta,
-        against_expert=spec.certify == "oracle" or arm.expert != task.experts[0],
+        against_expert=compares_with_expert(arm, spec.certify),
         progress=None if progress is None else lambda k, n: progress("policy", k, n),
         expert_progress=None if progress is None else lambda k, n: progress("expert", k, n),
+        expert_returns=expert_returns,
     )  # fmt: skip
+
+
+def held_out_states(task: str, seed: int, count: int) -> FloatArray:
+    """The fresh s0 on which a certificate of ``seed`` is checked: a stream of their own, the first ``count``."""
+    spec = get_task(task)
+    rng = np.random.default_rng([seed, HELD_OUT_STREAM])
+    return np.array([spec.sample_initial_state(rng) for _ in range(count)])
+
+
+def compares_with_expert(arm: Arm, certify: str) -> bool:
+    """Whether a certificate's claim is about the expert's own returns (oracle mode, a suboptimal expert)."""
+    return certify == "oracle" or arm.expert != get_task(arm.task).experts[0]
+
+
+def held_out_asks_expert(arm: Arm, certify: str) -> bool:
+    """Whether the held-out check needs expert requests: it compares with the expert, or the task knows no optimum."""
+    return compares_with_expert(arm, certify) or not get_task(arm.task).optimal_expert
 
 
 def read_held_out(run_dir: Path) -> HeldOutCheck | None:

@@ -17,9 +17,12 @@ from npp_ros.experiment.evaluation import (
     HeldOutCheck,
     append_evaluations,
     check_certificate,
+    held_out_asks_expert,
+    held_out_states,
     read_evaluations,
     read_held_out,
 )
+from npp_ros.experiment.expert_requests import EVALUATION_FILE, HELD_OUT_FILE, LATER, ExpertReturns
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.loop import NPPLoop, Observer
@@ -81,7 +84,14 @@ def run_arm_seed(
     budget = settings.max_episodes[arm.task]
     progress = _EpisodeProgress(report, key, budget, epsilon, config.spec.condition)
     loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", observers=[progress])
+    held_out_returns: ExpertReturns | None = None
     try:
+        if not (run_dir / "heldout.json").exists() and held_out_asks_expert(arm, config.spec.certify):
+            # they do not depend on the certificate: on a Dask cluster, idle workers answer them while the run runs
+            states = held_out_states(arm.task, seed, settings.held_out)
+            held_out_returns = ExpertReturns(
+                arm, seed, settings, states, expert, run_dir / HELD_OUT_FILE, priority=LATER
+            ).start()
         evaluations_path = run_dir / "evaluations.csv"
         done = {row.checkpoint for row in read_evaluations(evaluations_path)}
         evaluator: Evaluator | None = None
@@ -100,9 +110,8 @@ def run_arm_seed(
             else:  # resumed past an unevaluated checkpoint: rebuild the data as it was there
                 policy = NonparametricPolicy(loop.dataset.prefix(calls), lipschitz.value)
             if evaluator is None:
-                evaluator = Evaluator(
-                    arm, seed, settings, expert, lambda k, n: report(f"{key}: the expert from evaluation s0 {k}/{n}")
-                )
+                asked = lambda k, n: report(f"{key}: the expert from evaluation s0 {k}/{n}")  # noqa: E731
+                evaluator = Evaluator(arm, seed, settings, expert, asked, store=run_dir / EVALUATION_FILE)
             label = f"{key}: evaluating at episode {reached}"
             rows = evaluator.evaluate(reached, policy, lambda k, n, label=label: report(f"{label}: {k}/{n}"))
             append_evaluations(evaluations_path, rows)
@@ -114,12 +123,17 @@ def run_arm_seed(
             def held_out(phase: str, done: int, total: int) -> None:
                 report(f"{key}: checking the certificate on held-out s0: {phase} {done}/{total}")
 
+            returns = None
+            if held_out_returns is not None:  # asked for ahead: wait for them, this run's slot free meanwhile
+                returns = held_out_returns.result(lambda k, n: held_out("expert", k, n))
             check = check_certificate(
-                loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out, held_out
+                loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out, held_out, returns
             )
             (run_dir / "heldout.json").write_text(json.dumps(asdict(check), indent=2) + "\n")
         return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)
     finally:
+        if held_out_returns is not None:
+            held_out_returns.close()  # keeps what finished, drops what a run without a certificate asked for
         if loop.store is not None:
             loop.store.close()
 

@@ -87,18 +87,24 @@ def check_policy(
     against_expert: bool,
     progress: Callable[[int, int], None] | None = None,
     expert_progress: Callable[[int, int], None] | None = None,
+    expert_returns: FloatArray | None = None,
 ) -> HeldOutCheck:
     """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
 
     ``against_expert``: the expert's own H-step return from the same s0 (oracle mode, or a
     suboptimal expert); otherwise the task's optimal H-step return (lqr: H - 0.5 s0'P_H s0). A task
-    that knows no optimum is always checked against its expert.
+    that knows no optimum is always checked against its expert. ``expert_returns``: the expert's
+    returns from ``states`` where the caller already asked for them (in parallel); else asked here.
     """
     started = time.perf_counter()
     returns, slopes = policy_rollouts(plant, policy, states, horizon, task.value_slope(expert), progress=progress)
     optimal = None if against_expert else task.optimal_returns(expert, plant, states, horizon)
     if optimal is None:
-        reference = task.expert_returns(expert, plant, states, horizon, expert_progress)
+        reference = (
+            task.expert_returns(expert, plant, states, horizon, expert_progress)
+            if expert_returns is None
+            else np.asarray(expert_returns, dtype=np.float64)
+        )
         what = "the expert's H-step return"
     else:
         reference, what = optimal, "the optimal H-step return V*_H"

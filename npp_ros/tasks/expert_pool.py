@@ -6,20 +6,25 @@ processes can answer several requests at once. Each answer is the one-at-a-time 
 whenever the optimizer stops by convergence or its iteration cap; an answer the time budget cut
 depends on the machine's speed either way, and comes back named as such.
 
-Workers are started fresh ("spawn"), never forked from a process that runs threads.
+Workers are started fresh ("spawn"), never forked from a process that runs threads. Each worker's
+iLQR takes its derivatives on ``threads`` threads (ExpertOptions.threads; by default the cores over
+the workers, at least 1), so the pool never runs more threads than there are cores.
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import time
 from concurrent.futures import Future, ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.tasks.registry import Expert, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros.trajopt.batch_steps import default_threads
+from npp_ros.trajopt.ilqr import OptimizingExpert
 
 _EXPERT: Expert | None = None  # a worker process's own expert
 
@@ -35,6 +40,8 @@ class PooledAnswer:
 
     trajectory: Trajectory
     budget_stopped: bool
+    stop_reason: str | None = None  # why the optimizer stopped ("converged", "max iterations", ...); None: no optimizer
+    cpu_seconds: float = 0.0  # the worker's CPU time for this request: on a busy machine, less than its wall time
 
 
 def _build_expert(task: str, seed: int, horizon: int, options: ExpertOptions) -> None:
@@ -46,9 +53,14 @@ def _answer(state: FloatArray, horizon: int) -> PooledAnswer:
     expert = _EXPERT
     assert expert is not None, "the worker's initializer builds its expert"
     stops = expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
-    trajectory = expert.trajectory(state, horizon or expert.horizon)
+    reason, started = None, time.process_time()
+    if isinstance(expert, OptimizingExpert):  # trajectory() is solve()'s trajectory; solve() also says why it stopped
+        solution = expert.solve(state, horizon or expert.horizon)
+        trajectory, reason = solution.trajectory, solution.optimization.stop_reason
+    else:
+        trajectory = expert.trajectory(state, horizon or expert.horizon)
     stopped = isinstance(expert, StopsAtTimeBudget) and expert.budget_stops > stops
-    return PooledAnswer(trajectory, stopped)
+    return PooledAnswer(trajectory, stopped, reason, time.process_time() - started)
 
 
 class ExpertPool:
@@ -58,6 +70,9 @@ class ExpertPool:
         if workers < 1:
             raise ValueError(f"an expert pool needs at least one worker, got {workers}")
         self.workers = workers
+        if options.threads is None:  # threads x workers <= cores
+            options = replace(options, threads=default_threads(workers))
+        self.threads = options.threads
         self._pool = ProcessPoolExecutor(
             workers,
             mp_context=multiprocessing.get_context("spawn"),

@@ -29,7 +29,7 @@ from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES
+from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
 REGISTRY: dict[str, str] = {
     "lqr_2_1": "npp_ros.tasks.lqr:LQR_2_1",
@@ -124,6 +124,7 @@ class ExpertOptions:
     time_budget: float | None = None  # seconds per request (optimizer experts)
     max_iterations: int | None = None  # iLQR iterations per request (optimizer experts)
     values: str | None = None  # value mode (optimizer experts, see OptimizingExpert)
+    threads: int | None = None  # iLQR derivative threads (mujoco.batch, same answers at any count); None = 1
     control_weight: float = 0.1  # the detuned lqr expert's control-cost scale
 
 
@@ -272,13 +273,16 @@ class OptimizerTask(Task):
         extra: dict[str, Any] = {}
         if options.max_iterations is not None:
             extra["max_iterations"] = options.max_iterations
-        return self.expert_factory(
+        expert = self.expert_factory(
             seed=seed,
             horizon=check_horizon(horizon),
             time_budget=self.default_time_budget if options.time_budget is None else options.time_budget,
             values=options.values or self.default_values,
             **extra,
         )
+        if options.threads is not None and isinstance(expert, OptimizingExpert):
+            expert.optimizer.dynamics.threads = options.threads
+        return expert
 
     def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
         assert self.sampler is not None

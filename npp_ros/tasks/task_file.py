@@ -612,6 +612,33 @@ class TermCost:
                     hess[k] += term.weight / (scale * scale) * np.outer(dq, dq)
         return value, grad, hess
 
+    def state_values(self, states: FloatArray) -> FloatArray:
+        """state_terms' values alone, the same numbers: the line search needs no Jacobians, nor the
+        centre-of-mass pass they need (site positions come from the kinematics alone)."""
+        value = 0.5 * self.velocity_weight * np.sum(states[:, self.nq :] ** 2, axis=1)
+        if not self.state_terms_list:
+            return value
+        mj, model, data = self._mujoco, self.model, self.data
+        for k in range(len(states)):
+            data.qpos[:] = states[k, : self.nq]
+            mj.mj_kinematics(model, data)
+            for term in self.state_terms_list:
+                e = self._residual(term, self._quantity(term, states[k]))
+                value[k] += 0.5 * term.weight * e * e
+        return value
+
+    def _quantity(self, term: Term, x: FloatArray) -> float:
+        """The term's quantity at x (kinematics already at x), as _value_and_gradient computes it."""
+        model, site_xpos = self.model, self.data.site_xpos
+        if term.quantity == "joint_position":
+            return float(x[int(model.jnt_qposadr[term.target[0]])])
+        if term.quantity == "joint_velocity":
+            return float(x[self.nq + int(model.jnt_dofadr[term.target[0]])])
+        if term.quantity == "site_position":
+            return float(site_xpos[term.target[0], term.axis])
+        a, b = term.target
+        return float(np.linalg.norm(site_xpos[a] - site_xpos[b]))
+
     def control_terms(self, actions: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         count, m = actions.shape
         value = 0.5 * self.control_weight * np.sum(actions * actions, axis=1)
@@ -675,12 +702,15 @@ class FileTask(OptimizerTask):
                 f"the {self.definition.label} expert computes undiscounted H-step returns; gamma must be 1"
             )
         own = self.definition.expert
-        return FileExpert(
+        expert = FileExpert(
             self.definition, seed, check_horizon(horizon),
             time_budget=options.time_budget or own.get("time_budget", self.default_time_budget),
             max_iterations=options.max_iterations or own.get("max_iterations", 30),
             values=options.values or own.get("values", "window"),
         )  # fmt: skip
+        if options.threads is not None:
+            expert.optimizer.dynamics.threads = options.threads
+        return expert
 
     def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
         assert self.definition is not None

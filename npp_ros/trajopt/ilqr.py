@@ -35,11 +35,13 @@ from numpy.typing import ArrayLike
 
 from npp_ros.certificate.values import ValueBasis, theorem_34_condition
 from npp_ros.policy.dataset import FloatArray, Trajectory
+from npp_ros.trajopt import batch_steps
 
 DEFAULT_FD_EPS = 1e-6
 MU_MIN = 1e-8
 MU_MAX = 1e10
 LINE_SEARCH_STEPS = tuple(0.5**i for i in range(11))
+BATCH_FROM = 4  # step sizes a line search rolls out in one batch at the least (fewer go one at a time)
 
 
 class PhysicsPlant(Protocol):
@@ -94,9 +96,17 @@ class MujocoDynamics:
 
     The state is [qpos, qvel]; that is a coordinate chart only when nq = nv (hinge and slide
     joints, as on the lqr, pendulum and cartpole tasks) and there is no actuator activation.
+
+    RK4 models are differenced on ``mujoco.batch`` with ``threads`` threads (1 unless the caller
+    knows the cores are free: see :func:`~npp_ros.trajopt.batch_steps.default_threads`), and the
+    line search rolls several step sizes out at once there
+    (:mod:`npp_ros.trajopt.batch_steps`); the numbers are those of the one-at-a-time code, which
+    ``reference=True`` runs instead (to check against, and to time side by side).
     """
 
-    def __init__(self, plant: PhysicsPlant, fd_eps: float = DEFAULT_FD_EPS) -> None:
+    def __init__(
+        self, plant: PhysicsPlant, fd_eps: float = DEFAULT_FD_EPS, *, threads: int = 1, reference: bool = False
+    ) -> None:
         import mujoco
 
         if not (math.isfinite(fd_eps) and fd_eps > 0):
@@ -129,6 +139,29 @@ class MujocoDynamics:
         self.batched_fd = int(m.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_RK4)
         self._spec = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
         self._qpos_at = int(mujoco.mj_stateSize(m, int(mujoco.mjtState.mjSTATE_TIME)))
+        self.reference = bool(reference)
+        self._threads = batch_steps.check_threads(threads)
+        self._differences = batch_steps.BatchDifferences(m, self._threads)
+        self._closed_loops = batch_steps.BatchClosedLoops(m)
+
+    @property
+    def threads(self) -> int:
+        """Threads of the batched centred differences (the answers are the same at any count)."""
+        return self._threads
+
+    @threads.setter
+    def threads(self, threads: int) -> None:
+        self._threads = batch_steps.check_threads(threads)
+        self._differences = batch_steps.BatchDifferences(self.model, self._threads)
+
+    @property
+    def derivatives_by(self) -> str:
+        """How :meth:`jacobians` takes its centred differences, for reports."""
+        if not self.batched_fd:
+            return "mujoco.mjd_transitionFD"
+        if self.reference:
+            return "batched one-step rollouts (mujoco.rollout, RK4)"
+        return f"one-step simulations on mujoco.batch, {self._threads} thread{'s' * (self._threads > 1)} (RK4)"
 
     def _start(self, x: FloatArray, u: FloatArray) -> None:
         """Fresh data at (x, u), as the plant's reset leaves it: no solver warm start or time carried
@@ -188,10 +221,19 @@ class MujocoDynamics:
             advance(actions[t], states[t + 1])
         return states, actions
 
+    def closed_loops(
+        self, ref_states: FloatArray, ref_actions: FloatArray, k: FloatArray, gains: FloatArray, alphas: Sequence[float]
+    ) -> tuple[FloatArray, FloatArray]:
+        """:meth:`closed_loop` for each of ``alphas`` at once: states (len(alphas), T + 1, n), actions."""
+        feedforward = np.stack([ref_actions + alpha * k for alpha in alphas])
+        return self._closed_loops.rollouts(ref_states, feedforward, gains, self.lower, self.upper)
+
     def jacobians(self, states: FloatArray, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
         """A_t = d x_{t+1} / d x_t, B_t = d x_{t+1} / d u_t by centred differences, per step."""
+        if self.batched_fd and not self.reference:
+            return self._differences.jacobians(states, actions, self.fd_eps, self.lower, self.upper)
         if self.batched_fd:
-            return self._batched_jacobians(states, actions)
+            return self._rollout_jacobians(states, actions)
         horizon = len(actions)
         a = np.empty((horizon, self.state_dim, self.state_dim))
         b = np.empty((horizon, self.state_dim, self.action_dim))
@@ -207,7 +249,7 @@ class MujocoDynamics:
             fd(m, d, eps, True, a[t], b[t], None, None)
         return a, b
 
-    def _batched_jacobians(self, states: FloatArray, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def _rollout_jacobians(self, states: FloatArray, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Centred differences from 2 (n + m) one-step rollouts per step, all in one C call.
 
         A control at its bound is differenced one-sidedly (MuJoCo clamps ctrl, so a step past the
@@ -244,14 +286,7 @@ class MujocoDynamics:
             nstep=1,
         )
         nxt = out[:, 0, lo : lo + n].reshape(horizon, width, n)
-        a = np.empty((horizon, n, n))
-        b = np.empty((horizon, n, m))
-        for i in range(n):
-            a[:, :, i] = (nxt[:, 2 * i] - nxt[:, 2 * i + 1]) / (2 * eps)
-        for j in range(m):
-            span = (up[:, j] - down[:, j])[:, None]
-            b[:, :, j] = (nxt[:, 2 * (n + j)] - nxt[:, 2 * (n + j) + 1]) / span
-        return a, b
+        return batch_steps.centred_quotients(nxt, up, down, eps)
 
 
 # ----------------------------------------------------------------------------- the optimizer
@@ -305,22 +340,95 @@ class ILQR:
     failed line search, shrinks on success). Line search: alpha in 1, 1/2, ..., 1/1024; a step
     is accepted when it lowers the cost by at least a tenth of the predicted decrease (or at all,
     when the predicted decrease is at rounding level). Bounds are the actuators' ctrlrange.
+
+    The search rolls out several step sizes at once (:meth:`MujocoDynamics.closed_loops`) and
+    accepts the first that passes, in the order above: the step the one-at-a-time search accepts.
+    ``threads`` and ``reference`` are :class:`MujocoDynamics`'; ``reference=True`` also searches one
+    step size at a time and takes the cost from ``state_terms``, as the optimizer always did.
     """
 
-    def __init__(self, plant: PhysicsPlant, cost: StageCost, fd_eps: float = DEFAULT_FD_EPS) -> None:
+    def __init__(
+        self,
+        plant: PhysicsPlant,
+        cost: StageCost,
+        fd_eps: float = DEFAULT_FD_EPS,
+        *,
+        threads: int = 1,
+        reference: bool = False,
+    ) -> None:
         from npp_ros.trajopt import kernels as ilqr_kernels  # numba loads with the optimizer, not with a plant
 
-        self.dynamics = MujocoDynamics(plant, fd_eps)
+        self.dynamics = MujocoDynamics(plant, fd_eps, threads=threads, reference=reference)
         ilqr_kernels.compile_kernels()
         self._backward_pass = ilqr_kernels.backward_pass
         self.cost = cost
         self.state_dim = self.dynamics.state_dim
         self.action_dim = self.dynamics.action_dim
+        self._search_tries = 1  # step sizes the last line search tried: how many the next one rolls out first
 
     def total_cost(self, states: FloatArray, actions: FloatArray) -> float:
-        s, _, _ = self.cost.state_terms(states[1:])
+        state_values = getattr(self.cost, "state_values", None)
+        if state_values is None or self.dynamics.reference:
+            s, _, _ = self.cost.state_terms(states[1:])
+        else:
+            s = state_values(states[1:])
         c, _, _ = self.cost.control_terms(actions)
         return float(s.sum() + c.sum())
+
+    @staticmethod
+    def _accepts(cost: float, new_cost: float, alpha: float, dv1: float, dv2: float) -> bool:
+        expected = -(alpha * dv1 + alpha * alpha * dv2)
+        actual = cost - new_cost
+        return math.isfinite(new_cost) and actual > 0 and (actual >= 0.1 * expected or expected < 1e-12 * abs(cost))
+
+    def _line_search(
+        self,
+        states: FloatArray,
+        actions: FloatArray,
+        cost: float,
+        k: FloatArray,
+        gains: FloatArray,
+        dv1: float,
+        dv2: float,
+    ) -> tuple[FloatArray, FloatArray, float] | None:
+        """The first step of LINE_SEARCH_STEPS the search accepts (states, actions, cost), or None.
+
+        A batch of k closed loops costs less than k single ones but far more than one (the
+        simulations themselves dominate), so it pays only for step sizes likely to be needed:
+        after a search that tried at least BATCH_FROM step sizes, this one rolls out that many at
+        once, then all the rest at once; otherwise it tries BATCH_FROM - 1 one at a time
+        (:meth:`MujocoDynamics.closed_loop`), then all the rest at once.
+        """
+        dyn = self.dynamics
+        if dyn.reference:
+            for alpha in LINE_SEARCH_STEPS:
+                new_states, new_actions = dyn.closed_loop(states, actions, k, gains, alpha)
+                new_cost = self.total_cost(new_states, new_actions)
+                if self._accepts(cost, new_cost, alpha, dv1, dv2):
+                    return new_states, new_actions, new_cost
+            return None
+        tries = self._search_tries
+        first = [tries] if tries >= BATCH_FROM else [1] * (BATCH_FROM - 1)
+        start = 0
+        for size in [*first, len(LINE_SEARCH_STEPS)]:
+            alphas = LINE_SEARCH_STEPS[start : start + size]
+            if not alphas:
+                break
+            if len(alphas) == 1:
+                rolled = dyn.closed_loop(states, actions, k, gains, alphas[0])
+                chunk_states, chunk_actions = rolled[0][None], rolled[1][None]
+            else:
+                chunk_states, chunk_actions = dyn.closed_loops(states, actions, k, gains, alphas)
+            for i, alpha in enumerate(alphas):
+                # Copies: the cost sees arrays laid out as the one-at-a-time search's own.
+                new_states, new_actions = chunk_states[i].copy(), chunk_actions[i].copy()
+                new_cost = self.total_cost(new_states, new_actions)
+                if self._accepts(cost, new_cost, alpha, dv1, dv2):
+                    self._search_tries = start + i + 1
+                    return new_states, new_actions, new_cost
+            start += len(alphas)
+        self._search_tries = len(LINE_SEARCH_STEPS)
+        return None
 
     def check_request(self, x0: ArrayLike, horizon: int, actions: ArrayLike | None) -> tuple[FloatArray, int]:
         x = np.asarray(x0, dtype=np.float64)
@@ -385,6 +493,7 @@ class ILQR:
         timings["rollout"] += time.perf_counter() - tick
         cost = self.total_cost(states, actions)
         history = [cost]
+        self._search_tries = 1  # a request's searches start afresh, whatever the last request's did
         mu, delta = 1e-6, 1.0
         k_prev = np.zeros((horizon, self.action_dim))
         iterations = 0
@@ -433,23 +542,12 @@ class ILQR:
                 break
 
             tick = time.perf_counter()
-            accepted = False
-            for alpha in LINE_SEARCH_STEPS:
-                new_states, new_actions = dyn.closed_loop(states, actions, k, gains, alpha)
-                new_cost = self.total_cost(new_states, new_actions)
-                expected = -(alpha * dv1 + alpha * alpha * dv2)
-                actual = cost - new_cost
-                if (
-                    math.isfinite(new_cost)
-                    and actual > 0
-                    and (actual >= 0.1 * expected or expected < 1e-12 * abs(cost))
-                ):
-                    accepted = True
-                    break
+            step = self._line_search(states, actions, cost, k, gains, dv1, dv2)
             search_time = max(search_time, time.perf_counter() - tick)
             timings["line_search"] += time.perf_counter() - tick
             iterations += 1
-            if accepted:
+            if step is not None:
+                new_states, new_actions, new_cost = step
                 last_decrease = (cost - new_cost) / max(abs(cost), 1e-12)
                 states, actions, cost = new_states, new_actions, new_cost
                 history.append(cost)

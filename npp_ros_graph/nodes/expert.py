@@ -32,6 +32,7 @@ from npp_ros.policy.dataset import Trajectory
 from npp_ros.policy.vectors import finite_vector, state_digest
 from npp_ros.tasks.expert_pool import ExpertPool, PooledAnswer, default_workers
 from npp_ros.tasks.registry import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros.trajopt.batch_steps import default_threads
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
@@ -48,6 +49,8 @@ PARAMETERS = (
     Param("max_iterations", 0, "iLQR iterations per request for an optimizer expert; 0 = the task's default", 0),
     Param("workers", 0, "processes computing an optimizer expert's requests at once (answers are the one-at-a-time "
           "answers); 0 = one per core; a closed-form expert answers in the node", 0),
+    Param("threads", 0, "threads of each worker's iLQR derivatives (mujoco.batch; answers are the same at any "
+          "count); 0 = the cores over the workers, at least 1, so that workers x threads <= cores", 0),
 )  # fmt: skip
 
 
@@ -61,16 +64,18 @@ class ExpertSettings:
     time_budget: float
     max_iterations: int
     workers: int
+    threads: int
 
     def __post_init__(self) -> None:
         check_gamma(self.gamma)
 
-    def options(self) -> ExpertOptions:
+    def options(self, workers: int) -> ExpertOptions:
         """What the task's make_expert gets; 0 is the task's default (a closed-form expert refuses others)."""
         return ExpertOptions(
             gamma=self.gamma,
             time_budget=self.time_budget or None,
             max_iterations=self.max_iterations or None,
+            threads=self.threads or default_threads(workers),
         )
 
 
@@ -97,11 +102,11 @@ class ExpertNode(Node):
         super().__init__("npp_expert")
         settings = declare_settings(self, PARAMETERS, ExpertSettings)
         self.gamma, self.max_horizon, self.max_queue = settings.gamma, settings.max_horizon, settings.max_queue
-        self.options = settings.options()
+        self.workers = settings.workers or default_workers()
+        self.options = settings.options(self.workers)
         self.waiting = 0  # accepted requests not yet answered (executor thread only)
         self.busy_refusals = 0
         self.computed = 0  # trajectories computed (by the worker thread, or under _counting by the pool's)
-        self.workers = settings.workers or default_workers()
         self._pool: ExpertPool | None = None  # an optimizer expert's worker processes (started by the worker thread)
         self._pool_for: tuple[str, int, int] | None = None  # the plant they model: task, seed, horizon
         self._pool_budget_stops = 0  # answers of the pool the time budget cut (under _counting)
@@ -263,7 +268,9 @@ class ExpertNode(Node):
         if self._pool is None:
             assert self._pool_for is not None
             self._pool = ExpertPool(*self._pool_for, self.options, self.workers)
-            self.get_logger().info(f"computing trajectories in {self.workers} worker processes")
+            self.get_logger().info(
+                f"computing trajectories in {self.workers} worker processes, {self._pool.threads} iLQR threads each"
+            )
         started = time.monotonic()
         self._pool.submit(state, horizon).add_done_callback(
             lambda answer: self._pooled_answer(expert, state, done, started, answer)

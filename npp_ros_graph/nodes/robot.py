@@ -4,7 +4,8 @@ Real time (default): a thread steps the task's plant once per control period (it
 clock and publishes /joint_states after every step, as joint_state_broadcaster does; the command
 applied is the latest std_msgs/Float64MultiArray from the controller's topic, held until the next
 arrives (a zero-order hold, no lockstep: a late command leaves the previous one in force, as
-forward_command_controller does). Before the first command it applies zero.
+forward_command_controller does). Before the first command it applies zero, or, with
+``start_on_command:=true``, holds the plant at s0 and starts its clock with the first command.
 
 Lockstep (``lockstep:=true``, for exact comparisons): once a controller publishes on the command
 topic, it publishes a state, then steps only when a command answers it, and publishes the next; a
@@ -40,6 +41,8 @@ from npp_ros_graph.transport.convert import float64_array, stamp
 from npp_ros_graph.transport.parameters import Param, StartupError, declare_settings, parameter_help
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES
 
+HOLD_REPUBLISH_S = 0.05  # start_on_command: how often s0 goes out again while the robot waits
+
 PARAMETERS = (
     Param("task", "lqr_2_1", "the task whose plant this robot is", choices=TASK_NAMES),
     Param("seed", 0, "task seed (the plant's model depends on it)", 0, 2**32 - 1),
@@ -48,6 +51,8 @@ PARAMETERS = (
     Param("episode", 0, "which s0 ~ rho to start in when initial_state is empty (the run's stream for this seed)", 0),
     Param("lockstep", False, "step only when a command answers the latest state (tests); else real time"),
     Param("resend_after", 0.5, "lockstep: seconds before an unanswered state is published again", 1e-3),
+    Param("start_on_command", False, "real time: hold the plant at s0, publishing it every 50 ms, until the first "
+          "command; then the clock starts (an episode that starts exactly at s0, as npp-trial needs)"),
     Param("joint_states_topic", JOINT_STATES, "where the joint states go"),
     Param("command_topic", FORWARD_COMMANDS, "the controller's command topic"),
     Param("command_joints", "", "the controller's joints in command order, comma-separated; empty = the model's "
@@ -65,6 +70,7 @@ class RobotSettings:
     episode: int
     lockstep: bool
     resend_after: float
+    start_on_command: bool
     joint_states_topic: str
     command_topic: str
     command_joints: str
@@ -185,6 +191,10 @@ class RobotNode(Node):
         dt = self.plant.dt
         self._publish(self.get_clock().now().to_msg())
         next_tick = time.monotonic() + dt
+        if self.settings.start_on_command:
+            while self._command is None and not self._stopping.wait(HOLD_REPUBLISH_S):
+                self._publish(self.get_clock().now().to_msg())
+            next_tick = time.monotonic()  # the first command answers s0: it is applied at once
         while not self._stopping.is_set():
             delay = next_tick - time.monotonic()
             if delay > 0:

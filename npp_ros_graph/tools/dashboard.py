@@ -100,6 +100,7 @@ class Hub:
     def __init__(self, source: str, mode: str) -> None:
         self.state: dict[str, Any] = {
             "source": source, "mode": mode, "plant": None, "episodes": [], "certificate": None, "nodes": None,
+            "health": {},
         }  # fmt: skip
         self.events: list[tuple[int, str, Any]] = []
         self.cond = threading.Condition()
@@ -180,16 +181,19 @@ def load_bag(folder: Path, hub: Hub) -> None:
 def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> None:
     """Subscribe to the run's topics and watch the graph's nodes until Ctrl-C."""
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from npp_interfaces.msg import Certificate, GapReport, PlantDescription
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
 
+    from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, LEVEL_NAMES, health_of
     from npp_ros_graph.runtime.node import release
     from npp_ros_graph.transport.seal import RunSeal
     from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_HISTORY_QOS
 
     class DashboardNode(Node):
-        """Feeds the hub: GapReports, the latched plant and certificate, and the graph's node names."""
+        """Feeds the hub: GapReports, the latched plant and certificate, the graph's node names and every
+        node's health from /diagnostics."""
 
         def __init__(self) -> None:
             super().__init__("npp_dashboard")
@@ -204,11 +208,24 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
                 LATCHED_QOS,
             )
             self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
+            self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_diagnostics, DIAGNOSTICS_QOS)
+            self.health: dict[str, dict[str, str]] = {}
             self.create_timer(1.0, self.look_at_nodes)
             self.look_at_nodes()
 
         def on_plant(self, msg: PlantDescription) -> None:
             hub.set("plant", {"task": msg.task, "seed": int(msg.seed), "horizon": int(msg.horizon)})
+
+        def on_diagnostics(self, msg: DiagnosticArray) -> None:
+            """The newest status of each node, by its node name (a status is named by the node's full name)."""
+            for status in msg.status:
+                health = health_of(status)
+                self.health[status.name.rsplit("/", 1)[-1]] = {
+                    "level": LEVEL_NAMES.get(health.level, str(health.level)),
+                    "doing": health.doing,
+                    "error": health.error,
+                }
+            hub.set("health", dict(self.health))
 
         def look_at_nodes(self) -> None:
             ns = self.get_namespace()

@@ -92,7 +92,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--rule", default="mode", choices=("mode", *STOPPING_RULES),
         help="when to stop: a streak per policy (sequential), a screen then a failure-tolerant test (mixture), or "
-        "the paper's one-shot rule; mode: the checked quantity's default (oracle: mixture, else sequential)",
+        "the paper's one-shot rule; mode: the checked quantity's default (sequential in every mode)",
     )  # fmt: skip
     ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
     ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")

@@ -116,19 +116,41 @@ class ChaosRun:
         assert self.proc is not None
         return children(self.proc.pid, node_modules())
 
-    def _wait_until_down(self, pids: dict[str, int], limit: float = 60.0) -> None:
-        """Until npp-run and the nodes of its start have exited."""
+    def _wait_until_down(self, pids: dict[str, int], limit: float = 180.0) -> None:
+        """Until npp-run and the nodes of its start have exited. The limit is generous (a loaded
+        machine slows a shutdown down); a process still there after it hangs, and the failure says
+        which, in what kernel state, and what its log said last."""
         assert self.proc is not None
         deadline = time.monotonic() + limit
         while time.monotonic() < deadline:
-            running = [pid for pid in pids.values() if alive(pid)]
+            running = {name: pid for name, pid in pids.items() if alive(pid)}
             if self.proc.poll() is not None and not running:
                 break
             self.spin(0.2)
         else:
-            raise AssertionError(f"npp-run or its nodes did not exit within {limit:g} s of the fault")
+            lingering = {"npp-run": self.proc.pid} if self.proc.poll() is None else {}
+            lingering.update(running)
+            raise AssertionError(
+                f"npp-run or its nodes did not exit within {limit:g} s of the fault:\n"
+                + "\n".join(self._describe(name, pid) for name, pid in lingering.items())
+            )
         self._read_expert_log()
         self.outcome.restarts_at.append(len(self.outcome.computed))
+
+    def _describe(self, name: str, pid: int) -> str:
+        """A lingering process: its kernel state and wait channel, and the last lines of its log."""
+        proc = Path(f"/proc/{pid}")
+        try:
+            state = next(line for line in (proc / "status").read_text().splitlines() if line.startswith("State:"))
+            wchan = (proc / "wchan").read_text().strip() or "-"
+            threads = len(list((proc / "task").iterdir()))
+        except (OSError, StopIteration):
+            return f"  {name} (pid {pid}): gone while described"
+        log = self.run_dir / "logs" / f"{name}.log"
+        tail = log.read_text(errors="replace").splitlines()[-5:] if log.exists() else ["(no log)"]
+        lines = "\n".join(f"      {line}" for line in tail)
+        state = state.split(":", 1)[1].strip()
+        return f"  {name} (pid {pid}): {state}, wchan {wchan}, {threads} threads; log ends:\n{lines}"
 
     def _read_expert_log(self) -> None:
         """Once per start of npp-run, after it ended: the next start replaces the log."""

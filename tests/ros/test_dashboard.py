@@ -121,6 +121,8 @@ def test_the_page_follows_a_run_to_its_certificate(launch: Any, dashboards: list
         browser.wait_for(
             "[...document.querySelectorAll('#nodes li.alive')].length >= 5", 60, "the four nodes and the recorder"
         )
+        # each graph node's newest /diagnostics status under its name
+        browser.wait_for("document.querySelectorAll('#nodes li.health').length >= 4", 60, "the nodes' health")
         time.sleep(1.0)  # let the last frame paint
         shot = browser.screenshot(tmp_path / "dashboard.png")
         if SCREENSHOT_COPY:

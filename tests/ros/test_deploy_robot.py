@@ -7,6 +7,7 @@ busy machine (the measured figures are in results/deploy, from npp-bench-deploy)
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -339,3 +340,21 @@ def test_every_deploy_command_has_help() -> None:
     for module in ("npp_ros_graph.nodes.deploy", "npp_ros_graph.tools.deploy_ctl", "npp_ros_graph.nodes.robot"):
         shown = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=120)
         assert shown.returncode == 0 and ("usage" in shown.stdout.lower() or "subscribes" in shown.stdout), module
+
+
+def test_npp_trial_rehearses_the_certified_run_on_the_real_time_robot(runs, tmp_path: Path) -> None:
+    """npp-trial deploys through the gate and runs npp-robot in real time from fresh s0, episode by episode."""
+    good, _ = runs
+    cmd = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(good), "--episodes", "2", "--horizon", "50",
+           "--out", str(tmp_path)]  # fmt: skip
+    subprocess.run(cmd, check=True, timeout=600)
+    out = json.loads((tmp_path / "trial.json").read_text())
+    assert out["summary"]["episodes"] == 2 and len(out["episodes"]) == 2
+    assert out["certificate"]["certify"] == "oracle"
+    for episode in out["episodes"]:
+        assert episode["replay_mismatches"] == 0, episode  # the robot moved exactly as the model does
+        assert episode["first_command_answers_s0"], episode  # it waited at s0 for the policy's answer
+        assert 0.0 < episode["fresh_command_share"] <= 1.0
+        if episode["fresh_command_share"] == 1.0:  # no command missed its period: the in-process episode exactly
+            assert episode["robot_return"] == episode["in_process_return"], episode
+    assert "npp-trial" in (tmp_path / "trial.md").read_text()

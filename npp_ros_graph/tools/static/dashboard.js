@@ -2,7 +2,7 @@
 "use strict";
 
 const SVG = "http://www.w3.org/2000/svg";
-let state = { episodes: [], certificate: null, nodes: null, plant: null, source: "", mode: "live" };
+let state = { episodes: [], certificate: null, nodes: null, health: {}, plant: null, source: "", mode: "live" };
 let connected = false;
 let pending = false;
 
@@ -188,10 +188,17 @@ function drawNodes() {
     return;
   }
   for (const n of state.nodes) {
-    const li = el("li", { class: n.alive ? "alive" : "gone" });
+    const health = n.alive ? (state.health || {})[n.name] : undefined;
+    const level = health ? health.level.toLowerCase() : "";
+    const li = el("li", { class: `${n.alive ? "alive" : "gone"} ${level}`.trim() });
     li.append(el("span", { class: "state" }), el("span", {}, n.name),
       el("span", { class: "role" }, n.alive ? (n.role === "graph" ? "alive" : "alive (tool)") : "not running"));
     list.append(li);
+    if (health) {
+      const text = health.level === "OK" ? health.doing : `${health.level}: ${health.doing}` +
+        (health.error ? ` (last error: ${health.error})` : "");
+      list.append(el("li", { class: `health ${level}` }, text));
+    }
   }
 }
 
@@ -201,7 +208,7 @@ function connect() {
   source.addEventListener("error", () => { connected = false; schedule(); });
   source.addEventListener("snapshot", (ev) => { state = JSON.parse(ev.data); schedule(); });
   source.addEventListener("episode", (ev) => { state.episodes.push(JSON.parse(ev.data)); schedule(); });
-  for (const key of ["certificate", "nodes", "plant"]) {
+  for (const key of ["certificate", "nodes", "health", "plant"]) {
     source.addEventListener(key, (ev) => { state[key] = JSON.parse(ev.data); schedule(); });
   }
 }

@@ -1,0 +1,238 @@
+"""The data expert's H-step returns from many s0, asked for in chunks that run in parallel.
+
+A checkpoint evaluation and a certificate's held-out check need one expert request per s0, and
+an optimizer expert's request takes seconds. These returns depend only on the task, the seed, the
+expert's options, the horizon and the s0, never on the policy, so a run can ask for them as soon
+as it starts. Inside a Dask task (npp-experiment's runs), each chunk of s0 becomes a Dask task of
+its own that builds the seed's expert where it runs, so the chunks spread over the cluster's
+workers; the run secedes from its worker's thread pool while it waits, so it holds no slot that a
+chunk could use. Outside Dask the chunks are answered one after the other by the expert given.
+
+A fresh expert answers a state as the run's own expert does (an expert's answer does not depend
+on what it answered before), so the returns are the one-at-a-time returns wherever the optimizer
+stops by convergence or its iteration cap; an answer the time budget cut depends on the machine's
+speed either way, and is counted.
+
+With a ``store`` file, every finished chunk is appended to it as one JSON line (its s0 and
+returns), so a resumed command asks only for the s0 still missing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from distributed import Future, as_completed, get_client, get_worker, worker_client
+
+from npp_ros.experiment.arms import Arm, ExperimentSettings, expert_options, make_expert
+from npp_ros.policy.dataset import FloatArray
+from npp_ros.tasks.registry import Expert, Plant, StopsAtTimeBudget, Task, get_task
+
+CHUNK = 10  # s0 per chunk: seconds to a minute of expert work on the swing-up tasks
+HELD_OUT_FILE = "heldout-expert.jsonl"  # a run folder's expert returns from its held-out s0
+EVALUATION_FILE = "evaluation-expert.jsonl"  # ... and from its checkpoint evaluation s0
+NOW, LATER = 1, -1  # Dask priorities of chunks around the runs' 0: a started run waits for them, or not yet
+
+
+class StoredReturnsError(ValueError):
+    """A store file made for another run (task, seed, expert or horizon): refused, left untouched."""
+
+
+@dataclass(frozen=True)
+class ChunkAnswer:
+    """The expert's returns from ``len(returns)`` s0 starting at index ``first``."""
+
+    first: int
+    returns: list[float]
+    budget_stops: int  # answers the time budget cut before convergence or the iteration cap
+    worker: str  # the Dask worker that answered ("" in process)
+
+
+def in_dask_task() -> bool:
+    """Whether this code runs inside a task on a Dask worker."""
+    try:
+        get_worker()
+    except ValueError:
+        return False
+    return True
+
+
+def _budget_stops(expert: Expert) -> int:
+    return expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
+
+
+def answer(
+    task: Task,
+    expert: Expert,
+    plant: Plant,
+    first: int,
+    states: FloatArray,
+    horizon: int,
+    worker: str = "",
+    progress: Callable[[int, int], None] | None = None,
+) -> ChunkAnswer:
+    """``expert``'s H-step returns from ``states`` (the task's own way: requests, or its controller rolled out)."""
+    before = _budget_stops(expert)
+    returns = task.expert_returns(expert, plant, states, horizon, progress)
+    return ChunkAnswer(first, [float(r) for r in returns], _budget_stops(expert) - before, worker)
+
+
+def answer_on_worker(arm: Arm, seed: int, settings: ExperimentSettings, first: int, states: FloatArray) -> ChunkAnswer:
+    """One chunk as a Dask task: the seed's data expert and plant built on this worker."""
+    task = get_task(arm.task)
+    expert = make_expert(arm, seed, settings)
+    return answer(task, expert, task.make_plant(seed), first, states, settings.horizon, f"worker {get_worker().name}")
+
+
+class ExpertReturns:
+    """The data expert of (``arm``, ``seed``)'s H-step returns from ``states``, asked for in chunks.
+
+    ``start()`` submits the chunks still missing when called inside a Dask task and does nothing
+    elsewhere; ``result()`` waits for them, or answers them here with ``expert``; ``close()`` keeps
+    what finished and drops the rest. ``priority``: the chunks' Dask priority against the runs (0):
+    LATER for returns asked for ahead (runs waiting for a worker go first), NOW for returns a
+    started run waits for.
+    """
+
+    def __init__(
+        self,
+        arm: Arm,
+        seed: int,
+        settings: ExperimentSettings,
+        states: FloatArray,
+        expert: Expert,
+        store: Path | None = None,
+        chunk: int = CHUNK,
+        priority: int = NOW,
+    ) -> None:
+        if chunk < 1:
+            raise ValueError(f"a chunk holds at least one s0, got {chunk}")
+        self.arm, self.seed, self.settings, self.expert, self.store, self.chunk, self.priority = (
+            arm, seed, settings, expert, store, chunk, priority
+        )  # fmt: skip
+        self.states = np.asarray(states, dtype=np.float64)
+        self.returns = np.full(len(self.states), math.nan)
+        self.answered = np.zeros(len(self.states), dtype=bool)
+        self.budget_stops = 0
+        self.workers: set[str] = set()  # the Dask workers that answered chunks in this process's lifetime
+        self._futures: list[Future] = []
+        if store is not None:
+            self._load(store)
+
+    # ------------------------------------------------------------------ the store
+    def _identity(self) -> dict[str, Any]:
+        return {
+            "task": self.arm.task, "seed": int(self.seed), "horizon": int(self.settings.horizon),
+            "expert": asdict(expert_options(self.arm, self.settings)),
+        }  # fmt: skip
+
+    def _load(self, path: Path) -> None:
+        """Takes the stored returns whose s0 are these s0; a torn last line (a crash mid-write) is asked again."""
+        if not path.exists() or path.stat().st_size == 0:  # an empty file: a crash before its first write
+            return
+        lines = path.read_text().splitlines()
+        try:
+            header = json.loads(lines[0]) if lines else None
+        except json.JSONDecodeError:
+            header = None
+        if header != self._identity():
+            found = "an unreadable first line" if header is None else f"expert returns of another run ({header})"
+            raise StoredReturnsError(
+                f"{path} holds {found}, not this run's ({self._identity()}), and was left untouched"
+            )
+        for line in lines[1:]:
+            try:  # a line that is not a whole chunk (torn by a crash) is skipped: its s0 are asked again
+                entry = json.loads(line)
+                first, stops = int(entry["first"]), int(entry.get("budget_stops", 0))
+                states, returns = np.asarray(entry["states"], float), np.asarray(entry["returns"], float)
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
+                continue
+            end = first + len(returns)
+            if first < 0 or returns.ndim != 1 or states.shape != (len(returns), *self.states.shape[1:]):
+                continue
+            if end <= len(self.states) and np.array_equal(states, self.states[first:end]):
+                self.returns[first:end], self.answered[first:end] = returns, True
+                self.budget_stops += stops
+
+    def _keep(self, found: ChunkAnswer) -> None:
+        """Takes one chunk's returns, and appends them to the store in one write."""
+        hi = found.first + len(found.returns)
+        self.returns[found.first : hi] = found.returns
+        self.answered[found.first : hi] = True
+        self.budget_stops += found.budget_stops
+        if found.worker:
+            self.workers.add(found.worker)
+        if self.store is None:
+            return
+        size = self.store.stat().st_size if self.store.exists() else 0
+        lines = [] if size else [json.dumps(self._identity())]
+        if size:
+            with self.store.open("rb") as fh:
+                fh.seek(size - 1)
+                if fh.read(1) != b"\n":  # a line torn by a crash stays apart from the next
+                    lines.append("")
+        entry = {"first": found.first, "states": self.states[found.first : hi].tolist(), "returns": found.returns,
+                 "budget_stops": found.budget_stops}  # fmt: skip
+        lines.append(json.dumps(entry))
+        with self.store.open("a") as fh:
+            fh.write("\n".join(lines) + "\n")
+            fh.flush()
+
+    # ------------------------------------------------------------------ asking
+    def missing_chunks(self) -> list[tuple[int, int]]:
+        """The (first, end) index ranges still to ask for, each at most ``chunk`` long."""
+        ranges: list[tuple[int, int]] = []
+        for index in map(int, np.flatnonzero(~self.answered)):
+            if ranges and ranges[-1][1] == index and index - ranges[-1][0] < self.chunk:
+                ranges[-1] = (ranges[-1][0], index + 1)
+            else:
+                ranges.append((index, index + 1))
+        return ranges
+
+    def start(self) -> ExpertReturns:
+        """Inside a Dask task: the missing chunks go to the cluster now; elsewhere nothing happens yet."""
+        if self._futures or not in_dask_task():
+            return self
+        client = get_client()
+        chunks = self.missing_chunks()
+        ask = [(answer_on_worker, self.arm, self.seed, self.settings, lo, self.states[lo:hi]) for lo, hi in chunks]
+        self._futures = [client.submit(*call, priority=self.priority, pure=False) for call in ask]
+        return self
+
+    def result(self, progress: Callable[[int, int], None] | None = None) -> FloatArray:
+        """Every return, waiting for the chunks (or answering them here); ``progress(done, total)`` as they come."""
+        total = len(self.states)
+        if in_dask_task():
+            self.start()
+            if self._futures:
+                with worker_client():  # secedes: this task's slot is free for a chunk while it waits
+                    for future in as_completed(self._futures):
+                        self._keep(future.result())
+                        if progress is not None:
+                            progress(int(self.answered.sum()), total)
+                self._futures = []
+        else:
+            chunks = self.missing_chunks()
+            task = get_task(self.arm.task)
+            plant = task.make_plant(self.seed) if chunks else None
+            for lo, hi in chunks:
+                done = int(self.answered.sum())
+                step = None if progress is None else (lambda k, _n, done=done: progress(done + k, total))
+                self._keep(answer(task, self.expert, plant, lo, self.states[lo:hi], self.settings.horizon, "", step))
+                if progress is not None:  # also where the task answers a chunk in one batch, without progress
+                    progress(int(self.answered.sum()), total)
+        return self.returns.copy()
+
+    def close(self) -> None:
+        """Keeps the chunks that finished (a resumed run will not ask again) and cancels the others."""
+        for future in self._futures:
+            if future.done() and future.status == "finished":
+                self._keep(future.result())
+            else:
+                future.cancel()
+        self._futures = []

@@ -1,0 +1,108 @@
+"""Expert returns asked for in chunks give the one-at-a-time returns: in process, from a run folder's
+store, and spread over the workers of a Dask cluster."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import cloudpickle
+import numpy as np
+import pytest
+from distributed import Client, LocalCluster
+
+from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
+from npp_ros.experiment.evaluation import held_out_states
+from npp_ros.experiment.expert_requests import ExpertReturns, StoredReturnsError
+from npp_ros.tasks.registry import get_task
+
+ARM = Arm("lqr_2_1", "optimal", "analytic", "oracle", "sequential")  # oracle mode: checked against the expert
+SETTINGS = ExperimentSettings(max_episodes={"lqr_2_1": 10}, horizon=200, held_out=40)
+PENDULUM = Arm("pendulum_swingup", "ilqr", "5", "oracle", "sequential")
+# the iteration cap or convergence decides every answer, never the clock
+PENDULUM_SETTINGS = ExperimentSettings(max_episodes={"pendulum_swingup": 10}, horizon=40, time_budget=120.0)
+
+
+def one_at_a_time(arm: Arm, settings: ExperimentSettings, states: np.ndarray) -> np.ndarray:
+    """The reference: one expert, all s0 in one call, as the held-out check asked before chunks."""
+    task = get_task(arm.task)
+    expert = make_expert(arm, 0, settings)
+    return task.expert_returns(expert, task.make_plant(0), states, settings.horizon)
+
+
+def test_chunks_in_process_are_the_one_call_returns_and_report_progress() -> None:
+    states = held_out_states(ARM.task, 0, SETTINGS.held_out)
+    seen: list[tuple[int, int]] = []
+    asked = ExpertReturns(ARM, 0, SETTINGS, states, make_expert(ARM, 0, SETTINGS), chunk=7)
+    assert asked.missing_chunks()[:2] == [(0, 7), (7, 14)] and asked.missing_chunks()[-1] == (35, 40)
+    got = asked.start().result(lambda k, n: seen.append((k, n)))
+    np.testing.assert_array_equal(got, one_at_a_time(ARM, SETTINGS, states))
+    assert seen[-1] == (40, 40) and len(seen) >= 6  # at least once per chunk (lqr answers a chunk in one batch)
+    assert asked.budget_stops == 0 and asked.workers == set()
+
+
+def test_an_optimizer_expert_per_chunk_answers_as_one_expert_for_all() -> None:
+    states = held_out_states(PENDULUM.task, 0, 4)
+    fresh = ExpertReturns(PENDULUM, 0, PENDULUM_SETTINGS, states, make_expert(PENDULUM, 0, PENDULUM_SETTINGS), chunk=1)
+    np.testing.assert_array_equal(fresh.result(), one_at_a_time(PENDULUM, PENDULUM_SETTINGS, states))
+
+
+def test_a_resumed_run_asks_only_for_what_its_store_lacks(tmp_path: Path) -> None:
+    store = tmp_path / "heldout-expert.jsonl"
+    states = held_out_states(ARM.task, 0, SETTINGS.held_out)
+    expert = make_expert(ARM, 0, SETTINGS)
+    first = ExpertReturns(ARM, 0, SETTINGS, states, expert, store, chunk=10).result()
+    lines = store.read_text().splitlines()
+    assert len(lines) == 1 + 4 and json.loads(lines[0])["task"] == "lqr_2_1"
+    again = ExpertReturns(ARM, 0, SETTINGS, states, expert, store, chunk=10)
+    assert again.missing_chunks() == []
+    np.testing.assert_array_equal(again.result(), first)
+    # a crash tore the last line: its chunk is asked again, nothing else
+    store.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][: len(lines[-1]) // 2])
+    torn = ExpertReturns(ARM, 0, SETTINGS, states, expert, store, chunk=10)
+    assert torn.missing_chunks() == [(30, 40)]
+    np.testing.assert_array_equal(torn.result(), first)
+    # a damaged line (not numbers) is skipped, and only its chunk asked again
+    damaged = [lines[0], lines[1], json.dumps({"first": 10, "states": "x", "returns": ["a"]}), *lines[3:]]
+    store.write_text("\n".join(damaged) + "\n")
+    assert ExpertReturns(ARM, 0, SETTINGS, states, expert, store, chunk=10).missing_chunks() == [(10, 20)]
+    # more held-out s0 than before: the first 40 are the same stream's, only the new ones are asked
+    more = held_out_states(ARM.task, 0, 55)
+    longer = ExpertReturns(ARM, 0, SETTINGS, more, expert, store, chunk=10)
+    assert longer.missing_chunks() == [(10, 20), (40, 50), (50, 55)]
+    np.testing.assert_array_equal(longer.result(), one_at_a_time(ARM, SETTINGS, more))
+
+
+def test_a_store_of_another_run_is_refused_in_one_line_and_left_untouched(tmp_path: Path) -> None:
+    store = tmp_path / "heldout-expert.jsonl"
+    states = held_out_states(ARM.task, 0, 10)
+    ExpertReturns(ARM, 0, SETTINGS, states, make_expert(ARM, 0, SETTINGS), store).result()
+    before = store.read_bytes()
+    with pytest.raises(StoredReturnsError, match="holds expert returns of another run") as refused:
+        ExpertReturns(ARM, 1, SETTINGS, held_out_states(ARM.task, 1, 10), make_expert(ARM, 1, SETTINGS), store)
+    assert "\n" not in str(refused.value) and store.read_bytes() == before
+
+
+def ask_in_a_run(arm: Arm, settings: ExperimentSettings, states: np.ndarray, store: Path) -> dict[str, Any]:
+    """What a run on a Dask worker does: ask ahead, go on, then wait for the returns."""
+    asked = ExpertReturns(arm, 0, settings, states, make_expert(arm, 0, settings), store, chunk=5).start()
+    progress: list[int] = []
+    returns = asked.result(lambda k, _n: progress.append(k))
+    asked.close()
+    return {"returns": returns, "workers": sorted(asked.workers), "progress": progress}
+
+
+@pytest.mark.slow
+def test_on_a_dask_cluster_the_chunks_spread_over_its_workers_and_give_the_same_returns(tmp_path: Path) -> None:
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
+    states = held_out_states(ARM.task, 0, SETTINGS.held_out)
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0"
+    ) as cluster, Client(cluster) as client:  # fmt: skip
+        got = client.submit(ask_in_a_run, ARM, SETTINGS, states, tmp_path / "store.jsonl").result(timeout=600)
+    np.testing.assert_array_equal(got["returns"], one_at_a_time(ARM, SETTINGS, states))
+    assert len(got["workers"]) == 2, got["workers"]  # the run's own worker took chunks too while it waited
+    assert got["progress"][-1] == 40 and got["progress"] == sorted(got["progress"])
+    assert len((tmp_path / "store.jsonl").read_text().splitlines()) == 1 + 8  # every chunk stored, once
