@@ -41,7 +41,7 @@ from std_msgs.msg import Float64MultiArray
 from npp_ros.run.deploy import percentiles
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
-from npp_ros_graph.bench.loop import reserved_domain, spawn, wait_for
+from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_of
 from npp_ros_graph.transport.convert import float64_array, stamp
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, SERVICE_QOS
@@ -188,11 +188,7 @@ def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: di
         answer = robot.health.values.get("answer time p50 / p99 (us)", "-") if robot.health else "-"
         delays = watchdog_delays(executor, robot, args.stops)
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except Exception:
-            proc.kill()
+        stop(proc)
         executor.remove_node(robot)
         robot.destroy_node()
         executor.shutdown()

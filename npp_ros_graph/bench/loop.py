@@ -171,6 +171,16 @@ def spawn(module_args: list[str], env: dict[str, str], log: Path) -> subprocess.
     return subprocess.Popen([sys.executable, "-m", *module_args], env=env, stdout=handle, stderr=subprocess.STDOUT)
 
 
+def stop(proc: subprocess.Popen, grace: float = 10.0) -> None:
+    """SIGTERM (a node's clean shutdown), then SIGKILL after ``grace`` seconds."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=grace)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: dict[str, str], logs: Path) -> dict:
     t = time.perf_counter()
     expert = LQRExpert(task, 0)

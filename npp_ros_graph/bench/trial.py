@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -45,7 +44,7 @@ from npp_ros.bench.measure import POLE_ANGLE, UPRIGHT_DEGREES, worst_angle_degre
 from npp_ros.run.deploy import Acceptance, Deployment, JointLayout, load_deployment, stored_state
 from npp_ros.tasks.rollout import rollout
 from npp_ros_graph.bench.deploy import transition
-from npp_ros_graph.bench.loop import reserved_domain, spawn, wait_for
+from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.transport.topics import JOINT_STATES
 
 FIRST_TRIAL_EPISODE = 10**6  # s0 of episodes no run draws: fresh for the policy
@@ -176,11 +175,7 @@ def run_episode(executor: SingleThreadedExecutor, node: TrialNode, deployment: D
         finally:
             transition(executor, node, "deactivate", 60.0)
     finally:
-        robot.terminate()
-        try:
-            robot.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            robot.kill()
+        stop(robot)
     raws, efforts = np.array(node.raws), np.array(node.efforts)
     node.expect(np.zeros(0))
     return judge(deployment, episode, s0, raws, efforts, horizon)
@@ -290,11 +285,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"{r.robot_return:.1f}, in process {r.in_process_return:.1f}, fresh commands "
                     f"{r.fresh_command_share:.1%}")  # fmt: skip
         finally:
-            deploy.terminate()
-            try:
-                deploy.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                deploy.kill()
+            stop(deploy)
             executor.remove_node(node)
             node.destroy_node()
             executor.shutdown()
