@@ -355,6 +355,9 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     for signum in (signal.SIGHUP, signal.SIGTERM):
         signal.signal(signum, _raise_stopped)
+    # Started from a script's background job, npp-run inherits an ignored SIGINT, and Python then keeps it
+    # ignored: Ctrl-C and `kill -INT` must stop the run all the same.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     procs: dict[str, subprocess.Popen] = {}
     extras: dict[str, subprocess.Popen] = {}  # started first and stopped last, so that they see the whole run
     follower: Follower | None = None

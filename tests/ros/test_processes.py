@@ -28,13 +28,16 @@ GONE_TIMEOUT_S = 30.0  # the children get SIGTERM at once; a loaded machine may 
 NODES = ROLES  # the graph's four nodes, in the order npp-run starts them
 
 
-def npp_run(run_dir: Path, domain: int, *extra: str, log: Path) -> subprocess.Popen[str]:
-    """npp-run on its own domain; episodes never certify (tiny epsilon), so it runs until stopped."""
+def npp_run(run_dir: Path, domain: int, *extra: str, log: Path, sigint_ignored: bool = False) -> subprocess.Popen[str]:
+    """npp-run on its own domain; episodes never certify (tiny epsilon), so it runs until stopped.
+
+    ``sigint_ignored``: started as a script's background job starts it, with SIGINT ignored."""
     command = [
         sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id", str(domain),
         "--horizon", "50", "--epsilon", "0.001", "--max-episodes", "100000", *extra,
     ]  # fmt: skip
-    return subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, text=True)
+    ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if sigint_ignored else None
+    return subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, text=True, preexec_fn=ignore)
 
 
 @contextmanager
@@ -96,6 +99,23 @@ def test_nodes_die_with_npp_run(tmp_path: Path, ros_domain: int, signum: signal.
     assert code == -signum if signum == signal.SIGKILL else code == 128 + signum
     if signum != signal.SIGKILL:
         assert f"{signum.name} received; stopping the nodes" in out.read_text()
+
+
+def test_sigint_stops_npp_run_started_with_sigint_ignored(tmp_path: Path, ros_domain: int) -> None:
+    """A script's background job starts npp-run with SIGINT ignored; Ctrl-C or kill -INT still stops it all."""
+    run_dir, out = tmp_path / "run", tmp_path / "npp-run.out"
+    with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), log=out, sigint_ignored=True)) as run:
+        children = nodes_up(run_dir, run.pid)
+        run.send_signal(signal.SIGINT)
+        code = run.wait(120)
+        try:
+            wait_until(lambda: not any(alive(pid) for pid in children.values()), GONE_TIMEOUT_S, "the nodes to end")
+        finally:
+            for pid in children.values():
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+    assert code == 130
+    assert "interrupted; stopping the nodes" in out.read_text()
 
 
 def test_recorder_and_dashboard_die_with_a_killed_npp_run(tmp_path: Path, ros_domain: int) -> None:
