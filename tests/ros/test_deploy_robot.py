@@ -155,7 +155,10 @@ def test_the_lockstep_robot_follows_the_in_process_policy_exactly(runs, launch, 
             (msg.header.stamp.sec, msg.header.stamp.nanosec), np.concatenate([msg.position, msg.velocity])
         )
 
-    client.node.create_subscription(JointState, JOINT_STATES, on_state, KEEP_ALL)
+    joint_states = client.node.create_subscription(JointState, JOINT_STATES, on_state, KEEP_ALL)
+    # Lockstep starts with npp-deploy's first command: this test must hear the robot before then, or it
+    # misses the first states (discovery may match npp-deploy and the robot sooner than this test).
+    client.wait_for(lambda: joint_states.get_publisher_count() > 0, START_TIMEOUT_S, "the robot's joint states")
     deploy = Deploy(client)
     deploy.deploy(good, state_timeout=30.0)
     # Both topics: the command answering the last state may reach this test after the state it led to.
