@@ -85,6 +85,22 @@ def test_a_store_of_another_run_is_refused_in_one_line_and_left_untouched(tmp_pa
     assert "\n" not in str(refused.value) and store.read_bytes() == before
 
 
+def test_a_store_made_at_another_thread_count_is_this_runs(tmp_path: Path) -> None:
+    """Threads set how fast answers come, not what they are: a header with or without them is the run's."""
+    store = tmp_path / "heldout-expert.jsonl"
+    states = held_out_states(ARM.task, 0, 10)
+    first = ExpertReturns(ARM, 0, SETTINGS, states, make_expert(ARM, 0, SETTINGS), store).result()
+    lines = store.read_text().splitlines()
+    header = json.loads(lines[0])
+    assert "threads" not in header["expert"]
+    for threads in (None, 2):  # what earlier versions wrote: the thread count in the expert's options
+        header["expert"]["threads"] = threads
+        store.write_text("\n".join([json.dumps(header), *lines[1:]]) + "\n")
+        resumed = ExpertReturns(ARM, 0, SETTINGS, states, make_expert(ARM, 0, SETTINGS), store)
+        assert resumed.missing_chunks() == []
+        np.testing.assert_array_equal(resumed.result(), first)
+
+
 def ask_in_a_run(arm: Arm, settings: ExperimentSettings, states: np.ndarray, store: Path) -> dict[str, Any]:
     """What a run on a Dask worker does: ask ahead, go on, then wait for the returns."""
     asked = ExpertReturns(arm, 0, settings, states, make_expert(arm, 0, settings), store, chunk=5).start()

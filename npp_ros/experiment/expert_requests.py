@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -128,7 +128,7 @@ class ExpertReturns:
     def _identity(self) -> dict[str, Any]:
         return {
             "task": self.arm.task, "seed": int(self.seed), "horizon": int(self.settings.horizon),
-            "expert": asdict(expert_options(self.arm, self.settings)),
+            "expert": expert_options(self.arm, self.settings).answer_identity(),
         }  # fmt: skip
 
     def _load(self, path: Path) -> None:
@@ -140,6 +140,8 @@ class ExpertReturns:
             header = json.loads(lines[0]) if lines else None
         except json.JSONDecodeError:
             header = None
+        if isinstance(header, dict) and isinstance(header.get("expert"), dict):
+            header["expert"].pop("threads", None)  # written by versions that counted it (see answer_identity)
         if header != self._identity():
             found = "an unreadable first line" if header is None else f"expert returns of another run ({header})"
             raise StoredReturnsError(

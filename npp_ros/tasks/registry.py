@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -126,6 +126,14 @@ class ExpertOptions:
     values: str | None = None  # value mode (optimizer experts, see OptimizingExpert)
     threads: int | None = None  # iLQR derivative threads (mujoco.batch, same answers at any count); None = 1
     control_weight: float = 0.1  # the detuned lqr expert's control-cost scale
+
+    def answer_identity(self) -> dict[str, Any]:
+        """The options that decide the expert's answers, for records that must match a run's own.
+
+        ``threads`` is left out: it sets how fast the answers come, never what they are, so a record
+        made at one thread count (or before the option existed) stays this run's at any other.
+        """
+        return {field.name: getattr(self, field.name) for field in fields(self) if field.name != "threads"}
 
 
 DEFAULT_OPTIONS = ExpertOptions()
