@@ -6,9 +6,23 @@ their section into the same files without loading what the index bench measures 
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+
+def write_report(folder: Path, name: str, result: dict[str, Any], text: str) -> tuple[Path, Path]:
+    """``folder/name.json`` (the figures, for scripts) and ``folder/name.md`` (the tables, for people).
+
+    Every benchmark writes its result this way, so each results folder holds both forms side by side.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    figures, tables = folder / f"{name}.json", folder / f"{name}.md"
+    figures.write_text(json.dumps(result, indent=2) + "\n")
+    tables.write_text(text)
+    return figures, tables
 
 
 def expert_label(t: dict[str, Any]) -> str:

@@ -54,7 +54,14 @@ from npp_ros.bench.measure import (
     targets,
     tie_case,
 )
-from npp_ros.bench.report import expert_markdown, markdown, throughput_markdown, with_experts, with_ros
+from npp_ros.bench.report import (
+    expert_markdown,
+    markdown,
+    throughput_markdown,
+    with_experts,
+    with_ros,
+    write_report,
+)
 from npp_ros.bench.throughput import throughput_section, worker_counts
 from npp_ros.cli.args import positive_int
 from npp_ros.tasks.expert_pool import default_workers
@@ -160,8 +167,7 @@ def header(args: argparse.Namespace, command: str) -> dict[str, Any]:
 
 
 def write(result: dict[str, Any], out: Path) -> None:
-    (out / "bench.json").write_text(json.dumps(result, indent=2) + "\n")
-    (out / "bench.md").write_text(markdown(result))
+    write_report(out, "bench", result, markdown(result))
 
 
 def experts_only(args: argparse.Namespace, command: str) -> int:

@@ -23,7 +23,6 @@ and DIR/bench.md with the command, the date and the load average.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -38,6 +37,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from npp_ros.bench.report import write_report
 from npp_ros.run.deploy import percentiles
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
@@ -266,10 +266,8 @@ def main(argv: list[str] | None = None) -> int:
         out["cases"] = [measure_case(task, n, args, env) for task, n in cases]
     out["load_average_end"] = list(os.getloadavg())
     if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "bench.json").write_text(json.dumps(out, indent=2) + "\n")
-        (args.out / "bench.md").write_text(markdown(out))
-        log(f"wrote {args.out / 'bench.json'} and {args.out / 'bench.md'}")
+        figures, tables = write_report(args.out, "bench", out, markdown(out))
+        log(f"wrote {figures} and {tables}")
     return 0
 
 

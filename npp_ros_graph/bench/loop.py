@@ -292,14 +292,12 @@ def measure(
 
 def write_into(folder: Path, ros: dict[str, Any]) -> None:
     """The ROS section of folder/bench.json and bench.md, replaced; the rest as npp-bench wrote it."""
-    from npp_ros.bench.report import markdown, with_ros  # the bench report alone: no index measurement loads
+    from npp_ros.bench.report import markdown, with_ros, write_report  # the report alone: no index measurement loads
 
-    path = folder / "bench.json"
-    result = json.loads(path.read_text())
+    result = json.loads((folder / "bench.json").read_text())
     with_ros(result, ros)
-    path.write_text(json.dumps(result, indent=2) + "\n")
-    (folder / "bench.md").write_text(markdown(result))
-    log(f"wrote the ROS loop into {path} and {folder / 'bench.md'}")
+    figures, tables = write_report(folder, "bench", result, markdown(result))
+    log(f"wrote the ROS loop into {figures} and {tables}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,7 +24,6 @@ DIR/trial.json and DIR/trial.md with the command, the date and the load average.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -41,6 +40,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from npp_ros.bench.measure import POLE_ANGLE, UPRIGHT_DEGREES, worst_angle_degrees
+from npp_ros.bench.report import write_report
 from npp_ros.run.deploy import Acceptance, Deployment, JointLayout, load_deployment, stored_state
 from npp_ros.tasks.rollout import rollout
 from npp_ros_graph.bench.deploy import transition
@@ -292,10 +292,8 @@ def main(argv: list[str] | None = None) -> int:
     out["load_average_end"] = list(os.getloadavg())
     out["summary"] = summary(rows, float(deployment.certificate["epsilon"]))
     out["episodes"] = [asdict(r) | {"gap": r.gap} for r in rows]
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "trial.json").write_text(json.dumps(out, indent=2) + "\n")
-    (args.out / "trial.md").write_text(markdown(out))
-    log(f"wrote {args.out / 'trial.json'} and {args.out / 'trial.md'}")
+    figures, tables = write_report(args.out, "trial", out, markdown(out))
+    log(f"wrote {figures} and {tables}")
     return 0
 
 
