@@ -369,6 +369,11 @@ def seconds_summary(samples: list[float]) -> dict[str, Any]:
             "samples_s": [float(x) for x in arr]}  # fmt: skip
 
 
+def held_part(task: str) -> str:
+    """What must stay upright for a request to count as a swing-up: the pole, or both of the acrobot's links."""
+    return "both links" if task == "acrobot_swingup" else "pole"
+
+
 def worst_angle_degrees(states: FloatArray, angle: int, steps: int, lower_link: bool = False) -> float:
     """Largest |pole angle| (degrees from upright) over the last ``steps`` stored states (wrapped angles).
 
@@ -442,7 +447,7 @@ def time_expert(
             "options": {"time_budget_s": expert.time_budget, "max_iterations": expert.max_iterations,
                         "values": expert.values},
             "derivatives_by": expert.optimizer.dynamics.derivatives_by,
-            "success_rule": f"pole within {UPRIGHT_DEGREES:g} degrees of upright over the last {hold} steps",
+            "success_rule": f"{held_part(name)} within {UPRIGHT_DEGREES:g} degrees of upright, last {hold} steps",
             "seconds": timing, "cpu_seconds": seconds_summary(cpu[path]),
             "phases_s": phases[path], "phase_shares": {k: v / total for k, v in phases[path].items()},
             "succeeded": sum(r["success"] for r in rows[path]), "target_s": target,
