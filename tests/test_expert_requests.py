@@ -16,6 +16,9 @@ from distributed import Client, LocalCluster
 from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
 from npp_ros.experiment.evaluation import held_out_states
 from npp_ros.experiment.expert_requests import ExpertReturns, StoredReturnsError
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import Dataset
+from npp_ros.run.evaluation import check_policy
 from npp_ros.tasks.registry import get_task
 
 ARM = Arm("lqr_2_1", "optimal", "analytic", "oracle", "sequential")  # oracle mode: checked against the expert
@@ -99,6 +102,26 @@ def test_a_store_made_at_another_thread_count_is_this_runs(tmp_path: Path) -> No
         resumed = ExpertReturns(ARM, 0, SETTINGS, states, make_expert(ARM, 0, SETTINGS), store)
         assert resumed.missing_chunks() == []
         np.testing.assert_array_equal(resumed.result(), first)
+
+
+def test_the_held_out_check_counts_the_reference_answers_the_time_budget_cut() -> None:
+    """Such answers depend on the machine's speed: heldout.json says how many, asked here or ahead."""
+    cut = ExperimentSettings(max_episodes={"pendulum_swingup": 10}, horizon=40, time_budget=1e-9)
+    task, states = get_task(PENDULUM.task), held_out_states(PENDULUM.task, 0, 3)
+    expert = make_expert(PENDULUM, 0, cut)
+    data = Dataset(len(states[0]), 1)
+    data.append(expert.trajectory(states[0]))
+    policy = NonparametricPolicy(data, 5.0)
+    check = dict(epsilon=130.0, p=0.9, delta=0.1, against_expert=True)
+    here = check_policy(policy, task, task.make_plant(0), make_expert(PENDULUM, 0, cut), states, 40, **check)
+    asked = ExpertReturns(PENDULUM, 0, cut, states, make_expert(PENDULUM, 0, cut), chunk=2)
+    ahead = asked.result()
+    given = check_policy(policy, task, task.make_plant(0), expert, states, 40, **check,
+                         expert_returns=ahead, expert_budget_stops=asked.budget_stops)  # fmt: skip
+    assert here.expert_budget_stops == given.expert_budget_stops == asked.budget_stops == 3
+    untimed = check_policy(policy, task, task.make_plant(0), make_expert(PENDULUM, 0, PENDULUM_SETTINGS), states, 40,
+                           **check)  # fmt: skip
+    assert untimed.expert_budget_stops == 0
 
 
 def ask_in_a_run(arm: Arm, settings: ExperimentSettings, states: np.ndarray, store: Path) -> dict[str, Any]:

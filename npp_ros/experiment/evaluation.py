@@ -173,6 +173,7 @@ def check_certificate(
     count: int,
     progress: Callable[[str, int, int], None] | None = None,
     expert_returns: FloatArray | None = None,
+    expert_budget_stops: int = 0,
 ) -> HeldOutCheck:
     """The certified policy (the greedy policy over the trajectories it names) on ``count`` fresh s0.
 
@@ -181,7 +182,8 @@ def check_certificate(
     The gap is to the exact optimal H-step return where the claim is about V* and the expert is
     optimal; otherwise (oracle mode, the detuned expert, an optimizer expert) to the expert's own
     H-step return from the same s0. ``expert_returns``: the expert's returns from the held-out s0
-    where already asked for (:func:`held_out_states`, in parallel); else asked here one at a time.
+    where already asked for (:func:`held_out_states`, in parallel; ``expert_budget_stops`` of them cut
+    by its time budget); else asked here one at a time.
     """
     task = get_task(arm.task)
     states = held_out_states(arm.task, seed, count)
@@ -193,7 +195,7 @@ def check_certificate(
         against_expert=compares_with_expert(arm, spec.certify),
         progress=None if progress is None else lambda k, n: progress("policy", k, n),
         expert_progress=None if progress is None else lambda k, n: progress("expert", k, n),
-        expert_returns=expert_returns,
+        expert_returns=expert_returns, expert_budget_stops=expert_budget_stops,
     )  # fmt: skip
 
 

@@ -31,7 +31,8 @@ from distributed import Future, as_completed, get_client, get_worker, worker_cli
 
 from npp_ros.experiment.arms import Arm, ExperimentSettings, expert_options, make_expert
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.tasks.registry import Expert, Plant, StopsAtTimeBudget, Task, get_task
+from npp_ros.run.evaluation import budget_stops
+from npp_ros.tasks.registry import Expert, Plant, Task, get_task
 
 CHUNK = 10  # s0 per chunk: seconds to a minute of expert work on the swing-up tasks
 HELD_OUT_FILE = "heldout-expert.jsonl"  # a run folder's expert returns from its held-out s0
@@ -62,10 +63,6 @@ def in_dask_task() -> bool:
     return True
 
 
-def _budget_stops(expert: Expert) -> int:
-    return expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
-
-
 def answer(
     task: Task,
     expert: Expert,
@@ -77,9 +74,9 @@ def answer(
     progress: Callable[[int, int], None] | None = None,
 ) -> ChunkAnswer:
     """``expert``'s H-step returns from ``states`` (the task's own way: requests, or its controller rolled out)."""
-    before = _budget_stops(expert)
+    before = budget_stops(expert)
     returns = task.expert_returns(expert, plant, states, horizon, progress)
-    return ChunkAnswer(first, [float(r) for r in returns], _budget_stops(expert) - before, worker)
+    return ChunkAnswer(first, [float(r) for r in returns], budget_stops(expert) - before, worker)
 
 
 def answer_on_worker(arm: Arm, seed: int, settings: ExperimentSettings, first: int, states: FloatArray) -> ChunkAnswer:

@@ -123,11 +123,12 @@ def run_arm_seed(
             def held_out(phase: str, done: int, total: int) -> None:
                 report(f"{key}: checking the certificate on held-out s0: {phase} {done}/{total}")
 
-            returns = None
+            returns, stops = None, 0
             if held_out_returns is not None:  # asked for ahead: wait for them, this run's slot free meanwhile
                 returns = held_out_returns.result(lambda k, n: held_out("expert", k, n))
+                stops = held_out_returns.budget_stops
             check = check_certificate(
-                loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out, held_out, returns
+                loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out, held_out, returns, stops
             )
             (run_dir / "heldout.json").write_text(json.dumps(asdict(check), indent=2) + "\n")
         return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)

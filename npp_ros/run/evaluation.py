@@ -20,7 +20,7 @@ from scipy.stats import binom
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.tasks.registry import Expert, Plant, Task
+from npp_ros.tasks.registry import Expert, Plant, StopsAtTimeBudget, Task
 from npp_ros.tasks.rollout import rollout_batch
 
 CHUNK = 100  # rollouts stepped in lockstep
@@ -71,6 +71,12 @@ class HeldOutCheck:
     gap_max: float
     wall_time: float
     visited_slope: float = float("nan")  # the largest |grad V^expert| the policy visited
+    expert_budget_stops: int = 0  # reference answers the expert's time budget cut: they depend on the machine's speed
+
+
+def budget_stops(expert: Expert) -> int:
+    """How many of ``expert``'s answers so far its time budget cut (0 for an expert without one)."""
+    return expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
 
 
 def check_policy(
@@ -88,23 +94,26 @@ def check_policy(
     progress: Callable[[int, int], None] | None = None,
     expert_progress: Callable[[int, int], None] | None = None,
     expert_returns: FloatArray | None = None,
+    expert_budget_stops: int = 0,
 ) -> HeldOutCheck:
     """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
 
     ``against_expert``: the expert's own H-step return from the same s0 (oracle mode, or a
     suboptimal expert); otherwise the task's optimal H-step return (lqr: H - 0.5 s0'P_H s0). A task
     that knows no optimum is always checked against its expert. ``expert_returns``: the expert's
-    returns from ``states`` where the caller already asked for them (in parallel); else asked here.
+    returns from ``states`` where the caller already asked for them (in parallel), with
+    ``expert_budget_stops`` of them cut by its time budget; else asked here, and counted here.
     """
     started = time.perf_counter()
     returns, slopes = policy_rollouts(plant, policy, states, horizon, task.value_slope(expert), progress=progress)
     optimal = None if against_expert else task.optimal_returns(expert, plant, states, horizon)
     if optimal is None:
-        reference = (
-            task.expert_returns(expert, plant, states, horizon, expert_progress)
-            if expert_returns is None
-            else np.asarray(expert_returns, dtype=np.float64)
-        )
+        if expert_returns is None:
+            before = budget_stops(expert)
+            reference = task.expert_returns(expert, plant, states, horizon, expert_progress)
+            expert_budget_stops = budget_stops(expert) - before
+        else:
+            reference = np.asarray(expert_returns, dtype=np.float64)
         what = "the expert's H-step return"
     else:
         reference, what = optimal, "the optimal H-step return V*_H"
@@ -117,4 +126,5 @@ def check_policy(
         states=count, reference=what, within=within, fraction=within / count, p_value=p_value,
         rejected=p_value < delta, below_v_lb=below, gap_q50=float(np.median(gaps)), gap_max=float(np.max(gaps)),
         wall_time=time.perf_counter() - started, visited_slope=float(np.max(slopes)) if len(slopes) else math.nan,
+        expert_budget_stops=expert_budget_stops if optimal is None else 0,
     )  # fmt: skip
