@@ -31,7 +31,6 @@ from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.suite_plant import SuitePlant, wrap_angle
 from npp_ros.trajopt.ilqr import (
     ILQR,
-    ExpertSolution,
     MujocoDynamics,
     OptimizingExpert,
     QuadraticCost,
@@ -264,31 +263,13 @@ def held_upright(states: FloatArray, degrees: float = 8.0) -> bool:
     return bool(np.degrees(links.max()) <= degrees)
 
 
-class PlannedStart:
-    """The warm start OptimizingExpert rolls out: the plan's actions in order, then the controller.
-
-    OptimizingExpert asks its warm start for the H actions of the rollout from s0 first, then for the
-    continuation past H (window values); this object answers the first ``len(actions)`` calls from
-    the plan and every later one from the controller.
-    """
-
-    def __init__(self, actions: FloatArray, controller: SwingUpController) -> None:
-        self.actions, self.controller, self.calls = actions, controller, 0
-
-    def __call__(self, x: FloatArray) -> FloatArray:
-        self.calls += 1
-        if self.calls <= len(self.actions):
-            return self.actions[self.calls - 1]
-        return self.controller(x)
-
-
 class AcrobotExpert(OptimizingExpert):
     """Receding-horizon iLQR plan on :class:`EnergyShapingCost`, polished over the whole horizon.
 
-    A request: plan (see :meth:`plan`), then OptimizingExpert's own request with that plan as the
-    warm start: the polish by ``max_iterations`` iLQR iterations over H steps (the time budget cannot
-    cut them: a request is deterministic, and overruns the budget on a slow machine), the replays
-    for the true rewards, and the plan kept when the polish scores worse. Past the plan,
+    A request: OptimizingExpert's own, with the plan (see :meth:`plan`) as its warm actions: the
+    polish by ``max_iterations`` iLQR iterations over H steps (the time budget cannot cut them: a
+    request is deterministic, and overruns the budget on a slow machine), the replays for the true
+    rewards, and the plan kept when the polish scores worse. Past the plan,
     :class:`SwingUpController` continues (window values).
     """
 
@@ -318,18 +299,13 @@ class AcrobotExpert(OptimizingExpert):
         self.task = TASK
         self.reward_lipschitz_detail = "not computed for the smooth swing-up reward"
 
-    def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
-        """One request: the plan, then OptimizingExpert's polish and replays with the plan as the warm start."""
-        x0 = self.plant.check_state(initial_state, "requested state")
-        steps = self.horizon if horizon is None or horizon == 0 else int(horizon)
+    def warm_actions(self, x0: FloatArray, steps: int) -> FloatArray:
+        """The plan's actions, clamped as a rollout applies them (the plan's seconds are timed apart)."""
         tick = time.perf_counter()
         plan = self.plan(x0, steps)
         self.plan_seconds = time.perf_counter() - tick
-        self.warm_start = PlannedStart(plan, self.controller)
-        try:
-            return super().solve(x0, horizon)
-        finally:
-            self.warm_start = self.controller
+        _, actions = self.optimizer.dynamics.rollout(x0, steps, actions=plan)
+        return actions
 
     def plan(self, x0: FloatArray, steps: int) -> FloatArray:
         """The first plan in ``candidates`` that holds both links upright over its second half, else the
@@ -347,11 +323,9 @@ class AcrobotExpert(OptimizingExpert):
         return best
 
     def optimizer_budget(self, rollout_seconds: float, replay_seconds: float, spent: float) -> float:
-        """OptimizingExpert's budget, less the plan's seconds: the budget covers the whole request."""
-        return max(
-            super().optimizer_budget(rollout_seconds, replay_seconds, spent) - self.plan_seconds,
-            self.min_optimizer_share * self.time_budget,
-        )
+        """OptimizingExpert's budget: ``spent`` holds the plan's seconds (the budget covers the whole
+        request), and the controller's continuation is predicted from the rollout alone."""
+        return super().optimizer_budget(rollout_seconds - self.plan_seconds, replay_seconds, spent)
 
 
 SWINGUP = OptimizerTask(

@@ -730,7 +730,7 @@ class OptimizingExpert:
         steps = self.horizon if horizon is None or horizon == 0 else int(horizon)
         window = self.values == "window"
         start = self.clock()
-        _, warm = self.optimizer.dynamics.rollout(x0, steps, policy=self.warm_start)
+        warm = self.warm_actions(x0, steps)
         rolled = self.clock()
         warm_raw, warm_rewards = replay_rewards(self.plant, x0, warm)
         replayed = self.clock()
@@ -760,6 +760,16 @@ class OptimizingExpert:
         # Q_0 is the replayed H-step return in both value modes: the expert's own return at s0 (oracle mode).
         trajectory = Trajectory(self.represent(raw), result.actions.copy(), values, expert_return=float(values[0]))
         return ExpertSolution(trajectory, result, raw, kept_warm_start)
+
+    def warm_actions(self, x0: FloatArray, steps: int) -> FloatArray:
+        """The ``steps`` actions iLQR starts from: ``warm_start`` rolled out from ``x0`` (clamped).
+
+        A subclass that plans its start another way overrides this; ``warm_start`` still continues
+        every replay past H (window values), and ``optimizer_budget`` reads this call's seconds as
+        the controller's rollout time.
+        """
+        _, actions = self.optimizer.dynamics.rollout(x0, steps, policy=self.warm_start)
+        return actions
 
     def optimizer_budget(self, rollout_seconds: float, replay_seconds: float, spent: float) -> float:
         """iLQR's seconds: the budget less what this request has spent and its replay still to come.
