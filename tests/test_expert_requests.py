@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import cloudpickle
 import numpy as np
 import pytest
-from distributed import Client, LocalCluster
+from distributed import Client, LocalCluster, get_worker, wait
 
 from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
 from npp_ros.experiment.evaluation import held_out_states
@@ -124,24 +125,57 @@ def test_the_held_out_check_counts_the_reference_answers_the_time_budget_cut() -
     assert untimed.expert_budget_stops == 0
 
 
-def ask_in_a_run(arm: Arm, settings: ExperimentSettings, states: np.ndarray, store: Path) -> dict[str, Any]:
-    """What a run on a Dask worker does: ask ahead, go on, then wait for the returns."""
+def ask_in_a_run(
+    arm: Arm, settings: ExperimentSettings, states: np.ndarray, store: Path, after_one_elsewhere: bool = False
+) -> dict[str, Any]:
+    """What a run on a Dask worker does: ask ahead, go on, then wait for the returns.
+
+    ``after_one_elsewhere``: the run goes on until another worker has answered a chunk.
+    """
+    started = time.monotonic()
     asked = ExpertReturns(arm, 0, settings, states, make_expert(arm, 0, settings), store, chunk=5).start()
+    if after_one_elsewhere:
+        wait(list(asked._futures.values()), return_when="FIRST_COMPLETED")
     progress: list[int] = []
     returns = asked.result(lambda k, _n: progress.append(k))
     asked.close()
-    return {"returns": returns, "workers": sorted(asked.workers), "progress": progress}
+    return {"returns": returns, "workers": sorted(asked.workers), "progress": progress,
+            "worker": f"worker {get_worker().name}", "started": started, "ended": time.monotonic()}  # fmt: skip
+
+
+def another_run() -> float:
+    return time.monotonic()
+
+
+def two_worker_cluster() -> LocalCluster:
+    return LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0"
+    )
 
 
 @pytest.mark.slow
 def test_on_a_dask_cluster_the_chunks_spread_over_its_workers_and_give_the_same_returns(tmp_path: Path) -> None:
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
     states = held_out_states(ARM.task, 0, SETTINGS.held_out)
-    with LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0"
-    ) as cluster, Client(cluster) as client:  # fmt: skip
-        got = client.submit(ask_in_a_run, ARM, SETTINGS, states, tmp_path / "store.jsonl").result(timeout=600)
+    with two_worker_cluster() as cluster, Client(cluster) as client:
+        got = client.submit(ask_in_a_run, ARM, SETTINGS, states, tmp_path / "store.jsonl", True).result(timeout=600)
     np.testing.assert_array_equal(got["returns"], one_at_a_time(ARM, SETTINGS, states))
-    assert len(got["workers"]) == 2, got["workers"]  # the run's own worker took chunks too while it waited
+    assert set(got["workers"]) - {got["worker"]}, got  # the other worker answered chunks
     assert got["progress"][-1] == 40 and got["progress"] == sorted(got["progress"])
     assert len((tmp_path / "store.jsonl").read_text().splitlines()) == 1 + 8  # every chunk stored, once
+
+
+@pytest.mark.slow
+def test_a_run_answers_the_chunks_no_worker_started_and_keeps_its_slot(tmp_path: Path) -> None:
+    """One slot: the run's chunks cannot start elsewhere, so it answers them all, and the next run waits for it."""
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    states = held_out_states(PENDULUM.task, 0, 10)
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0"
+    ) as cluster, Client(cluster) as client:  # fmt: skip
+        first = client.submit(ask_in_a_run, PENDULUM, PENDULUM_SETTINGS, states, tmp_path / "s.jsonl", priority=1)
+        second = client.submit(another_run, priority=0)
+        got, second_started = first.result(timeout=600), second.result(timeout=600)
+    np.testing.assert_array_equal(got["returns"], one_at_a_time(PENDULUM, PENDULUM_SETTINGS, states))
+    assert got["workers"] == [got["worker"]] and got["progress"][-1] == 10
+    assert second_started > got["ended"]  # the waiting run never gave its slot to the next one

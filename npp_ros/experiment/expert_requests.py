@@ -5,8 +5,9 @@ an optimizer expert's request takes seconds. These returns depend only on the ta
 expert's options, the horizon and the s0, never on the policy, so a run can ask for them as soon
 as it starts. Inside a Dask task (npp-experiment's runs), each chunk of s0 becomes a Dask task of
 its own that builds the seed's expert where it runs, so the chunks spread over the cluster's
-workers; the run secedes from its worker's thread pool while it waits, so it holds no slot that a
-chunk could use. Outside Dask the chunks are answered one after the other by the expert given.
+workers that are free. When the run needs them it answers, in its own slot, every chunk no worker
+has started, and waits only for those being answered elsewhere. Outside Dask the chunks are
+answered one after the other by the expert given.
 
 A fresh expert answers a state as the run's own expert does (an expert's answer does not depend
 on what it answered before), so the returns are the one-at-a-time returns wherever the optimizer
@@ -22,12 +23,13 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from distributed import Future, as_completed, get_client, get_worker, worker_client
+from distributed import Future, get_client, get_worker, wait
 
 from npp_ros.experiment.arms import Arm, ExperimentSettings, expert_options, make_expert
 from npp_ros.policy.dataset import FloatArray
@@ -80,7 +82,7 @@ def answer(
 
 
 def answer_on_worker(arm: Arm, seed: int, settings: ExperimentSettings, first: int, states: FloatArray) -> ChunkAnswer:
-    """One chunk as a Dask task: the seed's data expert and plant built on this worker."""
+    """One chunk on a Dask worker (its own task, or the run's): the seed's expert and plant built here."""
     task = get_task(arm.task)
     expert = make_expert(arm, seed, settings)
     return answer(task, expert, task.make_plant(seed), first, states, settings.horizon, f"worker {get_worker().name}")
@@ -117,7 +119,7 @@ class ExpertReturns:
         self.answered = np.zeros(len(self.states), dtype=bool)
         self.budget_stops = 0
         self.workers: set[str] = set()  # the Dask workers that answered chunks in this process's lifetime
-        self._futures: list[Future] = []
+        self._futures: dict[tuple[int, int], Future] = {}  # (first, end) of each chunk the cluster was asked for
         if store is not None:
             self._load(store)
 
@@ -198,23 +200,27 @@ class ExpertReturns:
         if self._futures or not in_dask_task():
             return self
         client = get_client()
-        chunks = self.missing_chunks()
-        ask = [(answer_on_worker, self.arm, self.seed, self.settings, lo, self.states[lo:hi]) for lo, hi in chunks]
-        self._futures = [client.submit(*call, priority=self.priority, pure=False) for call in ask]
+        self._futures = {
+            (lo, hi): client.submit(
+                answer_on_worker, self.arm, self.seed, self.settings, lo, self.states[lo:hi],
+                priority=self.priority, pure=False,
+            )
+            for lo, hi in self.missing_chunks()
+        }  # fmt: skip
         return self
 
     def result(self, progress: Callable[[int, int], None] | None = None) -> FloatArray:
         """Every return, waiting for the chunks (or answering them here); ``progress(done, total)`` as they come."""
         total = len(self.states)
+
+        def kept(found: ChunkAnswer) -> None:
+            self._keep(found)
+            if progress is not None:
+                progress(int(self.answered.sum()), total)
+
         if in_dask_task():
             self.start()
-            if self._futures:
-                with worker_client():  # secedes: this task's slot is free for a chunk while it waits
-                    for future in as_completed(self._futures):
-                        self._keep(future.result())
-                        if progress is not None:
-                            progress(int(self.answered.sum()), total)
-                self._futures = []
+            self._answer_with_the_cluster(kept)
         else:
             chunks = self.missing_chunks()
             task = get_task(self.arm.task)
@@ -222,16 +228,54 @@ class ExpertReturns:
             for lo, hi in chunks:
                 done = int(self.answered.sum())
                 step = None if progress is None else (lambda k, _n, done=done: progress(done + k, total))
-                self._keep(answer(task, self.expert, plant, lo, self.states[lo:hi], self.settings.horizon, "", step))
-                if progress is not None:  # also where the task answers a chunk in one batch, without progress
-                    progress(int(self.answered.sum()), total)
+                kept(answer(task, self.expert, plant, lo, self.states[lo:hi], self.settings.horizon, "", step))
         return self.returns.copy()
+
+    def _answer_with_the_cluster(self, kept: Callable[[ChunkAnswer], None]) -> None:
+        """Inside the run's task: answers here every chunk no worker has started, and waits for the others.
+
+        The run keeps its worker's slot (it never secedes): a seceded task takes a slot back only when
+        another task ends, so on a busy cluster a waiting run would sit behind a whole other run. A
+        chunk answered here is the one a worker would have given (:func:`answer_on_worker`, a fresh
+        expert); its task is cancelled. A chunk whose task a worker is running is waited for, and
+        answered here after all if the cluster drops it (a worker lost, the task back in the queue).
+        """
+        client = get_client()
+        pending = dict(self._futures)
+        while pending:
+            for (lo, hi), future in list(pending.items()):
+                if future.status == "pending":
+                    continue
+                del pending[(lo, hi)]
+                if future.status in ("finished", "error"):  # an expert's error fails the run, as in process
+                    kept(future.result())
+                else:  # cancelled or lost by the cluster
+                    kept(answer_on_worker(self.arm, self.seed, self.settings, lo, self.states[lo:hi]))
+            if not pending:
+                break
+            # The chunks workers are running now, from their heartbeats (about 1 s old): not those merely
+            # assigned, which a worker busy with a run would not start before that run ends. A chunk
+            # started since the last heartbeat looks unstarted, and is answered twice (the same answer).
+            # A lambda travels by value: the scheduler need not have npp_ros installed.
+            running = set(client.run_on_scheduler(
+                lambda dask_scheduler: [ts.key for ws in dask_scheduler.workers.values() for ts in ws.executing]
+            ))  # fmt: skip
+            idle = [(chunk, future) for chunk, future in pending.items() if future.key not in running]
+            if idle:
+                (lo, hi), future = idle[0]
+                future.cancel()
+                del pending[(lo, hi)]
+                kept(answer_on_worker(self.arm, self.seed, self.settings, lo, self.states[lo:hi]))
+            else:
+                with suppress(TimeoutError):
+                    wait(list(pending.values()), timeout=1.0, return_when="FIRST_COMPLETED")
+        self._futures = {}
 
     def close(self) -> None:
         """Keeps the chunks that finished (a resumed run will not ask again) and cancels the others."""
-        for future in self._futures:
-            if future.done() and future.status == "finished":
+        for future in self._futures.values():
+            if future.status == "finished":
                 self._keep(future.result())
             else:
                 future.cancel()
-        self._futures = []
+        self._futures = {}

@@ -124,7 +124,7 @@ def run_arm_seed(
                 report(f"{key}: checking the certificate on held-out s0: {phase} {done}/{total}")
 
             returns, stops = None, 0
-            if held_out_returns is not None:  # asked for ahead: wait for them, this run's slot free meanwhile
+            if held_out_returns is not None:  # asked for ahead: what no worker started is answered here
                 returns = held_out_returns.result(lambda k, n: held_out("expert", k, n))
                 stops = held_out_returns.budget_stops
             check = check_certificate(
