@@ -6,7 +6,10 @@ For each of ``--starts`` s0 ~ rho (episodes 10^6 + k of the run's stream, never 
 the greedy policy over every trajectory the run stored (with the run's L) and the run's task expert
 (default options) are rolled out for H steps on the task's plant. It prints both returns, the first
 step at which the stored states differ by more than ``--tolerance`` in any entry, and both states
-there: what the policy had to do that its data did not show it.
+there: what the policy had to do that its data did not show it. It also prints how far the
+policy's states are from the nearest stored state (Euclidean, in the stored state): at s0, where
+it leaves the expert's path, and the median over its rollout. Far from every stored state, the
+policy replays an action made for another state.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.run.store import RunStore
@@ -33,6 +37,7 @@ def main() -> None:
     task = get_task(meta.task)
     plant, expert = task.make_plant(meta.seed), task.make_expert(meta.seed, meta.horizon)
     policy = NonparametricPolicy(data, meta.lipschitz)
+    stored = cKDTree(data.states)
     print(f"{meta.task} seed {meta.seed}, H {meta.horizon}: greedy policy over {data.num_trajectories} trajectories, "
           f"L {meta.lipschitz:g}")  # fmt: skip
     for k in range(args.starts):
@@ -47,6 +52,10 @@ def main() -> None:
         if off.size:
             there = f"expert {np.round(reference.states[where], 3)}, policy {np.round(ours.states[where], 3)}"
             print(f"  step {where}: {there}")
+        nearest, _ = stored.query(ours.states)
+        left = f"{nearest[where]:.3f}" if off.size else "-"
+        print(f"  nearest stored state: at s0 {nearest[0]:.3f}, where the policy leaves the path {left}, "
+              f"median over its rollout {np.median(nearest):.3f}")  # fmt: skip
 
 
 if __name__ == "__main__":
