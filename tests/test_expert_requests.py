@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from distributed import Client, LocalCluster, get_worker, wait
 
+from npp_ros.experiment import run_arm_seed, runs
 from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
 from npp_ros.experiment.evaluation import held_out_states
 from npp_ros.experiment.expert_requests import ExpertReturns, StoredReturnsError
@@ -179,3 +180,16 @@ def test_a_run_answers_the_chunks_no_worker_started_and_keeps_its_slot(tmp_path:
     np.testing.assert_array_equal(got["returns"], one_at_a_time(PENDULUM, PENDULUM_SETTINGS, states))
     assert got["workers"] == [got["worker"]] and got["progress"][-1] == 10
     assert second_started > got["ended"]  # the waiting run never gave its slot to the next one
+
+
+def test_a_run_that_ended_without_a_certificate_asks_for_no_held_out_returns(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """At its budget with no certificate, a resumed run has no held-out check to come: nothing is asked."""
+    settings = ExperimentSettings(max_episodes={"lqr_2_1": 3}, horizon=50, held_out=10, checkpoints=(3,))
+    first = run_arm_seed(ARM, 0, settings, tmp_path)
+    assert first.certified_episode is None
+    asked: list[Any] = []
+    monkeypatch.setattr(runs, "ExpertReturns", lambda *args, **kw: asked.append(args) or ExpertReturns(*args, **kw))
+    again = run_arm_seed(ARM, 0, settings, tmp_path)
+    assert asked == [] and again.certified_episode is None

@@ -86,7 +86,8 @@ def run_arm_seed(
     loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", observers=[progress])
     held_out_returns: ExpertReturns | None = None
     try:
-        if not (run_dir / "heldout.json").exists() and held_out_asks_expert(arm, config.spec.certify):
+        may_certify = loop.certificate is not None or loop.next_episode < budget  # else no held-out check follows
+        if may_certify and not (run_dir / "heldout.json").exists() and held_out_asks_expert(arm, config.spec.certify):
             # they do not depend on the certificate: on a Dask cluster, idle workers answer them while the run runs
             states = held_out_states(arm.task, seed, settings.held_out)
             held_out_returns = ExpertReturns(
