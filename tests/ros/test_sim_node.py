@@ -51,11 +51,21 @@ class SimHandle:
     client: RosClient
     reset: Client
     action_pub: Publisher
-    states: list[JointState]
+    received: list[JointState]  # every state as it arrived (see states)
     results: list[EpisodeResult]
     plant: PlantDescription
     seal: RunSeal  # the run's seal for the plant: the test plays this run's supervisor and policy
     episode: int = 0
+
+    @property
+    def states(self) -> list[JointState]:
+        """The states received, each once: reset_to repeats a reset whose first state is slow to come,
+        and the sim then sends that state again (same stamp, values and sealed context), maybe late."""
+        unique: list[JointState] = []
+        for msg in self.received:
+            if not (unique and same_state(unique[-1], msg)):
+                unique.append(msg)
+        return unique
 
     def reset_to(self, state: list[float], episode: int = 0) -> ResetEpisode.Response:
         """Reset and wait for the episode's first state (re-sent if our subscription matched late)."""
@@ -90,6 +100,12 @@ class SimHandle:
         deadline = time.monotonic() + QUIET_S
         self.client.wait_for(lambda: time.monotonic() > deadline, QUIET_S + 5)
         return len(self.states) == seen_states and (seen_results < 0 or len(self.results) == seen_results)
+
+
+def same_state(a: JointState, b: JointState) -> bool:
+    return (a.header.frame_id, ns(a.header.stamp), list(a.position), list(a.velocity)) == (
+        b.header.frame_id, ns(b.header.stamp), list(b.position), list(b.velocity)
+    )  # fmt: skip
 
 
 def as_state(msg: JointState) -> np.ndarray:
