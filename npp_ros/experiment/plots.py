@@ -10,6 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import FuncFormatter, SymmetricalLogLocator
 from scipy.stats import gaussian_kde
 
 from npp_ros.certificate.certifier import QUANTITY
@@ -27,6 +28,17 @@ def _pooled_by_checkpoint(records: Sequence[RunRecord], attr: str) -> tuple[np.n
         for c in checkpoints
     ]
     return np.array(checkpoints), pooled
+
+
+def label_gap_axis(ax: plt.Axes) -> None:
+    """Plain-number ticks on the symlog gap axis, at 1-2-3-5 steps where its decades alone leave fewer than 3.
+
+    Gaps within one decade (all between 130 and 900, say) would otherwise show no tick at all.
+    """
+    lo, hi = ax.get_ylim()
+    if sum(lo <= tick <= hi for tick in ax.get_yticks()) < 3:
+        ax.yaxis.set_major_locator(SymmetricalLogLocator(base=10, linthresh=1.0, subs=(1.0, 2.0, 3.0, 5.0)))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _pos: f"{value:g}"))
 
 
 def training_curves(records: Sequence[RunRecord], path: Path) -> Path:
@@ -59,6 +71,7 @@ def training_curves(records: Sequence[RunRecord], path: Path) -> Path:
     axes[2].set_title("oracle calls")
     axes[3].axhline(epsilon, color="k", ls=":", label=f"epsilon = {epsilon:g}")
     axes[3].set_yscale("symlog", linthresh=1.0)  # a negative gap (crossed bounds) proves L too small
+    label_gap_axis(axes[3])
     axes[3].set_title(f"checked gap {QUANTITY[arm.certify]} (dashed: certified)")
     for ax in axes[1:]:
         ax.set_xlabel("episode")
