@@ -30,7 +30,9 @@ create none), and it logs a callback's exception with its traceback before run_n
 from __future__ import annotations
 
 import itertools
+import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 
@@ -127,6 +129,26 @@ def release(executor: Executor | None, node: Node | None) -> None:
     if node is not None:
         node.destroy_node()
     rclpy.try_shutdown()
+
+
+def leave_if_teardown_hangs(program: str, seconds: float, code: int = 0) -> threading.Timer:
+    """For a viewer that holds no data (npp-monitor): exit with ``code`` after ``seconds`` if the ROS
+    teardown that follows has not returned by then, saying so on stderr.
+
+    On a loaded machine a DDS teardown was seen to take minutes while its peers were shutting down
+    too; a user who asked the viewer to exit must get the terminal back, and nothing is lost.
+    """
+
+    def leave() -> None:
+        sys.stdout.flush()
+        print(f"{program}: the ROS teardown did not finish within {seconds:g} s; leaving without it",
+              file=sys.stderr, flush=True)  # fmt: skip
+        os._exit(code)
+
+    timer = threading.Timer(seconds, leave)
+    timer.daemon = True
+    timer.start()
+    return timer
 
 
 def node_name(namespace: str, name: str) -> str:

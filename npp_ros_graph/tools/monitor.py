@@ -21,13 +21,14 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_lines
-from npp_ros_graph.runtime.node import release
+from npp_ros_graph.runtime.node import leave_if_teardown_hangs, release
 from npp_ros_graph.transport.seal import RunSeal
 from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
 
 TOPICS = {"gap": GAP, "episode": EPISODE, "health": DIAGNOSTICS.lstrip("/")}  # --topics; the certificate always
 FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
 NOTICE_EVERY_S = 30.0  # then once per this much further silence
+TEARDOWN_S = 20.0  # the ROS teardown's time after the loop ends; then the monitor leaves without it
 
 
 def gap_line(msg: GapReport) -> str:
@@ -181,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        leave_if_teardown_hangs("npp-monitor", TEARDOWN_S)
         release(executor, node)
     return 0
 

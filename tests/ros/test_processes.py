@@ -275,3 +275,14 @@ def test_a_stopped_node_is_named_within_seconds(tmp_path: Path, ros_domain: int)
         print(f"\nthe stopped supervisor was named {named_after:.1f} s after SIGSTOP")
         assert run.poll() is None
     assert f"(kill -CONT {supervisor} resumes it)" in out.read_text()
+
+
+def test_a_viewer_whose_ros_teardown_hangs_leaves_on_time_and_says_so() -> None:
+    """npp-monitor's guard: a teardown that never returns (here a sleep) does not keep the terminal."""
+    code = (
+        "import time; from npp_ros_graph.runtime.node import leave_if_teardown_hangs; "
+        "leave_if_teardown_hangs('npp-monitor', 0.5, 0); print('certificate shown', flush=True); time.sleep(600)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout == "certificate shown\n"
+    assert "npp-monitor: the ROS teardown did not finish within 0.5 s; leaving without it" in done.stderr
