@@ -28,7 +28,7 @@ from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_QO
 TOPICS = {"gap": GAP, "episode": EPISODE, "health": DIAGNOSTICS.lstrip("/")}  # --topics; the certificate always
 FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
 NOTICE_EVERY_S = 30.0  # then once per this much further silence
-TEARDOWN_S = 20.0  # the ROS teardown's time after the loop ends; then the monitor leaves without it
+TEARDOWN_S = 20.0  # from the exit's start (the certificate, or the loop's end) to leaving without the ROS teardown
 
 
 def gap_line(msg: GapReport) -> str:
@@ -97,7 +97,10 @@ class MonitorNode(Node):
             print(line, flush=True)
 
     def on_certificate(self, msg: Certificate) -> None:
+        first = not self.certified
         self.certified = self.show(certificate_line(msg), msg) or self.certified
+        if self.exit_on_certificate and self.certified and first:  # from here on, the exit is due
+            leave_if_teardown_hangs("npp-monitor", TEARDOWN_S)
 
     def notice_if_silent(self) -> None:
         """A silent monitor looks like a hung one: after a while say what it waits for, and where."""
@@ -182,7 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        leave_if_teardown_hangs("npp-monitor", TEARDOWN_S)
+        if not node.certified or not args.exit_on_certificate:  # else on_certificate started it
+            leave_if_teardown_hangs("npp-monitor", TEARDOWN_S)
         release(executor, node)
     return 0
 
