@@ -89,12 +89,7 @@ def test_nodes_die_with_npp_run(tmp_path: Path, ros_domain: int, signum: signal.
         os.kill(run.pid, signum)
         code = run.wait(60)
         start = time.monotonic()
-        try:
-            wait_until(lambda: not any(alive(pid) for pid in children.values()), GONE_TIMEOUT_S, "the nodes to end")
-        finally:
-            for pid in children.values():  # never leave one behind, even when the test fails
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
+        all_end(children, "the nodes to end")
         print(f"\n{signum.name}: npp-run exited {code}; its 4 nodes gone {time.monotonic() - start:.1f} s later")
     assert code == -signum if signum == signal.SIGKILL else code == 128 + signum
     if signum != signal.SIGKILL:
@@ -108,12 +103,7 @@ def test_sigint_stops_npp_run_started_with_sigint_ignored(tmp_path: Path, ros_do
         children = nodes_up(run_dir, run.pid)
         run.send_signal(signal.SIGINT)
         code = run.wait(120)
-        try:
-            wait_until(lambda: not any(alive(pid) for pid in children.values()), GONE_TIMEOUT_S, "the nodes to end")
-        finally:
-            for pid in children.values():
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
+        all_end(children, "the nodes to end")
     assert code == 130
     assert "interrupted; stopping the nodes" in out.read_text()
 
@@ -129,12 +119,17 @@ def test_recorder_and_dashboard_die_with_a_killed_npp_run(tmp_path: Path, ros_do
         os.kill(run.pid, signal.SIGKILL)
         run.wait(60)
         everyone = {**children, **extras}
-        try:
-            wait_until(lambda: not any(alive(pid) for pid in everyone.values()), GONE_TIMEOUT_S, "every child to end")
-        finally:
-            for pid in everyone.values():
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
+        all_end(everyone, "every child to end")
+
+
+def all_end(pids: dict[str, int], what: str) -> None:
+    """Waits until every process has ended; never leaves one behind, even when the wait fails."""
+    try:
+        wait_until(lambda: not any(alive(pid) for pid in pids.values()), GONE_TIMEOUT_S, what)
+    finally:
+        for pid in pids.values():
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
 
 
 def tool_children(parent: int) -> dict[str, int]:
