@@ -11,6 +11,7 @@ import argparse
 import math
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -70,6 +71,7 @@ class MonitorNode(Node):
         super().__init__("npp_monitor")
         self.exit_on_certificate = exit_on_certificate
         self.certified = False
+        self.leaving: threading.Timer | None = None
         self.topics = [TOPICS[name] for name in TOPICS if name in topics] + [CERTIFICATE]
         self.last_message = self.last_notice = time.monotonic()
         self.notices = 0
@@ -97,10 +99,14 @@ class MonitorNode(Node):
             print(line, flush=True)
 
     def on_certificate(self, msg: Certificate) -> None:
-        first = not self.certified
         self.certified = self.show(certificate_line(msg), msg) or self.certified
-        if self.exit_on_certificate and self.certified and first:  # from here on, the exit is due
-            leave_if_teardown_hangs("npp-monitor", TEARDOWN_S)
+        if self.exit_on_certificate and self.certified:  # from here on, the exit is due
+            self.start_leaving()
+
+    def start_leaving(self) -> None:
+        """The exit's countdown (see leave_if_teardown_hangs), started once."""
+        if self.leaving is None:
+            self.leaving = leave_if_teardown_hangs("npp-monitor", TEARDOWN_S)
 
     def notice_if_silent(self) -> None:
         """A silent monitor looks like a hung one: after a while say what it waits for, and where."""
@@ -185,8 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if not node.certified or not args.exit_on_certificate:  # else on_certificate started it
-            leave_if_teardown_hangs("npp-monitor", TEARDOWN_S)
+        node.start_leaving()
         release(executor, node)
     return 0
 
