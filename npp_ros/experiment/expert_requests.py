@@ -34,7 +34,7 @@ from distributed import Future, get_client, get_worker, wait
 from npp_ros.experiment.arms import Arm, ExperimentSettings, expert_options, make_expert
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.run.evaluation import budget_stops
-from npp_ros.tasks.registry import Expert, Plant, Task, get_task
+from npp_ros.tasks.registry import SPEED_ONLY_OPTIONS, Expert, Plant, Task, get_task
 
 CHUNK = 10  # s0 per chunk: seconds to a minute of expert work on the swing-up tasks
 HELD_OUT_FILE = "heldout-expert.jsonl"  # a run folder's expert returns from its held-out s0
@@ -139,8 +139,8 @@ class ExpertReturns:
             header = json.loads(lines[0]) if lines else None
         except json.JSONDecodeError:
             header = None
-        if isinstance(header, dict) and isinstance(header.get("expert"), dict):
-            header["expert"].pop("threads", None)  # written by versions that counted it (see answer_identity)
+        if isinstance(header, dict) and isinstance(header.get("expert"), dict):  # earlier versions wrote them
+            header["expert"] = {k: v for k, v in header["expert"].items() if k not in SPEED_ONLY_OPTIONS}
         if header != self._identity():
             found = "an unreadable first line" if header is None else f"expert returns of another run ({header})"
             raise StoredReturnsError(
@@ -242,15 +242,18 @@ class ExpertReturns:
         """
         client = get_client()
         pending = dict(self._futures)
+
+        def answer_here(lo: int, hi: int) -> None:
+            del pending[(lo, hi)]
+            kept(answer_on_worker(self.arm, self.seed, self.settings, lo, self.states[lo:hi]))
+
         while pending:
             for (lo, hi), future in list(pending.items()):
-                if future.status == "pending":
-                    continue
-                del pending[(lo, hi)]
                 if future.status in ("finished", "error"):  # an expert's error fails the run, as in process
+                    del pending[(lo, hi)]
                     kept(future.result())
-                else:  # cancelled or lost by the cluster
-                    kept(answer_on_worker(self.arm, self.seed, self.settings, lo, self.states[lo:hi]))
+                elif future.status != "pending":  # cancelled or lost by the cluster
+                    answer_here(lo, hi)
             if not pending:
                 break
             # The chunks workers are running now, from their heartbeats (about 1 s old): not those merely
@@ -264,8 +267,7 @@ class ExpertReturns:
             if idle:
                 (lo, hi), future = idle[0]
                 future.cancel()
-                del pending[(lo, hi)]
-                kept(answer_on_worker(self.arm, self.seed, self.settings, lo, self.states[lo:hi]))
+                answer_here(lo, hi)
             else:
                 with suppress(TimeoutError):
                     wait(list(pending.values()), timeout=1.0, return_when="FIRST_COMPLETED")

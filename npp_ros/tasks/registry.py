@@ -115,6 +115,9 @@ class StopsAtTimeBudget(Protocol):
     budget_stops: int  # requests so far that the budget stopped before convergence or the iteration cap
 
 
+SPEED_ONLY_OPTIONS = ("threads",)  # ExpertOptions that change how fast an expert answers, never what
+
+
 @dataclass(frozen=True)
 class ExpertOptions:
     """How to build a task's expert; None means the task's default. A task refuses what it cannot honour."""
@@ -130,10 +133,10 @@ class ExpertOptions:
     def answer_identity(self) -> dict[str, Any]:
         """The options that decide the expert's answers, for records that must match a run's own.
 
-        ``threads`` is left out: it sets how fast the answers come, never what they are, so a record
-        made at one thread count (or before the option existed) stays this run's at any other.
+        SPEED_ONLY_OPTIONS (``threads``) are left out: a record made at one thread count (or before the
+        option existed) stays this run's at any other.
         """
-        return {field.name: getattr(self, field.name) for field in fields(self) if field.name != "threads"}
+        return {field.name: getattr(self, field.name) for field in fields(self) if field.name not in SPEED_ONLY_OPTIONS}
 
 
 DEFAULT_OPTIONS = ExpertOptions()
