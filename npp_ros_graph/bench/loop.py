@@ -61,6 +61,7 @@ from npp_ros_graph.transport.topics import (
     CONTROL_QOS,
     DATASET_SERVICE,
     LATCHED_QOS,
+    LATCHED_READER_QOS,
     PLANT,
     POLICY_STATUS,
     SERVICE_QOS,
@@ -100,7 +101,7 @@ class Driver(Node):
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
         self.plant_pub = self.create_publisher(PlantDescription, PLANT, LATCHED_QOS)
         self.create_subscription(JointState, ACTION, self.on_action, CONTROL_QOS)
-        self.create_subscription(UInt32, POLICY_STATUS, self.on_status, LATCHED_QOS)
+        self.create_subscription(UInt32, POLICY_STATUS, self.on_status, LATCHED_READER_QOS)
         self.create_service(GetTrajectories, DATASET_SERVICE, self.on_dataset, qos_profile=SERVICE_QOS)
         run_seal = RunSeal.from_environment()
         self.run = new_run_id()  # the bench plays one run's supervisor and sim

@@ -39,7 +39,14 @@ from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import state_layout, trajectory_to_response
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
 from npp_ros_graph.transport.seal import RunSeal, SealError
-from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, LATCHED_QOS, NOT_READY, PLANT, SERVICE_QOS
+from npp_ros_graph.transport.topics import (
+    BUSY,
+    EXPERT_SERVICE,
+    LATCHED_READER_QOS,
+    NOT_READY,
+    PLANT,
+    SERVICE_QOS,
+)
 
 PARAMETERS = (
     Param("gamma", 1.0, "discount, in (0, 1]; 1 = undiscounted H-step values V* = H - J*", 0.0, 1.0),
@@ -119,7 +126,7 @@ class ExpertNode(Node):
         self.refusal: str | None = None  # set when the described plant cannot be modelled
         self.run_seal = RunSeal.from_environment()
         self.seal: RunSeal | None = None  # the run's seal for the modelled plant
-        self._plant_sub = self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
+        self._plant_sub = self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_READER_QOS)
         # Reentrant: the next request is taken while earlier ones await the worker (a mutually exclusive
         # group would hold every request back until the one before it is answered).
         self._service = self.create_service(

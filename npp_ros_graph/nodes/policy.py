@@ -44,6 +44,7 @@ from npp_ros_graph.transport.topics import (
     DATASET_SERVICE,
     DATASET_TOPIC,
     LATCHED_QOS,
+    LATCHED_READER_QOS,
     PLANT,
     POLICY_DROPPED,
     POLICY_STATUS,
@@ -108,7 +109,7 @@ class PolicyNode(Node):
         self.action_pub = self.create_publisher(JointState, ACTION, CONTROL_QOS)
         self.status_pub = self.create_publisher(UInt32, POLICY_STATUS, LATCHED_QOS)
         self.dropped_pub = self.create_publisher(UInt64, POLICY_DROPPED, REPORT_QOS)
-        self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
+        self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_READER_QOS)
         self.create_subscription(TrajectoryMsg, DATASET_TOPIC, self.on_trajectory, REPORT_QOS)
         self._state_sub = self.create_subscription(JointState, STATE, self.on_state, CONTROL_QOS)
         self.dataset_client = self.create_client(GetTrajectories, DATASET_SERVICE)

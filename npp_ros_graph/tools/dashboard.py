@@ -189,7 +189,7 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
     from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, LEVEL_NAMES, health_of
     from npp_ros_graph.runtime.node import release
     from npp_ros_graph.transport.seal import RunSeal
-    from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_HISTORY_QOS
+    from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_READER_QOS, PLANT, REPORT_HISTORY_QOS
 
     class DashboardNode(Node):
         """Feeds the hub: GapReports, the latched plant and certificate, the graph's node names and every
@@ -205,9 +205,9 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
                 Certificate,
                 CERTIFICATE,
                 lambda m: seal.shows(m) and hub.set("certificate", certificate_entry(m)),
-                LATCHED_QOS,
+                LATCHED_READER_QOS,
             )
-            self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
+            self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_READER_QOS)
             self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_diagnostics, DIAGNOSTICS_QOS)
             self.health: dict[str, dict[str, str]] = {}
             self.create_timer(1.0, self.look_at_nodes)

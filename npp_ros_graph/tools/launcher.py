@@ -51,7 +51,7 @@ from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
-from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, PLANT, REPORT_QOS
+from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_READER_QOS, PLANT, REPORT_QOS
 
 DISCOVERY_S = 2.0  # listened for before starting: discovery on one machine takes well under a second
 SECOND_GRAPH_WINDOW_S = 30.0  # a second graph seen this soon after the start stops this run
@@ -114,7 +114,7 @@ class Follower(Node):
         self.last: GapReport | None = None
         self.certificate: Certificate | None = None
         self.create_subscription(GapReport, GAP, self.on_gap, REPORT_QOS)
-        self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_QOS)
+        self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_READER_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_health, DIAGNOSTICS_QOS)
         self.tty = sys.stderr.isatty()
         self._printed = 0.0

@@ -24,7 +24,7 @@ from rclpy.node import Node
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_lines
 from npp_ros_graph.runtime.node import leave_if_teardown_hangs, release
 from npp_ros_graph.transport.seal import RunSeal
-from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_READER_QOS, REPORT_QOS
 
 TOPICS = {"gap": GAP, "episode": EPISODE, "health": DIAGNOSTICS.lstrip("/")}  # --topics; the certificate always
 FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
@@ -80,7 +80,7 @@ class MonitorNode(Node):
             self.create_subscription(GapReport, GAP, lambda m: self.show(gap_line(m), m), REPORT_QOS)
         if "episode" in topics:
             self.create_subscription(EpisodeResult, EPISODE, lambda m: self.show(episode_line(m), m), REPORT_QOS)
-        self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_QOS)
+        self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_READER_QOS)
         self._health_shown: dict[str, str] = {}  # each node's /diagnostics line, printed when it changes
         if "health" in topics:
             self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_diagnostics, DIAGNOSTICS_QOS)

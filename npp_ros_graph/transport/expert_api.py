@@ -24,10 +24,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal, SealError
-from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, LATCHED_QOS, NOT_READY, PLANT, SERVICE_QOS
+from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, LATCHED_READER_QOS, NOT_READY, PLANT, SERVICE_QOS
 
 PLANT_TOPIC = PLANT
-PLANT_QOS = LATCHED_QOS
+PLANT_QOS = LATCHED_READER_QOS  # a reader's: one description per publisher, so a stranger's cannot hide the run's
 __all__ = [
     "BUSY", "EXPERT_SERVICE", "KEY_ENV", "NOT_READY", "PLANT_QOS", "PLANT_TOPIC", "SERVICE_QOS", "AnswerSeal",
     "SealError", "answer_seal",

@@ -47,9 +47,19 @@ REPORT_HISTORY_QOS = QoSProfile(
 # Requests queue while one is served; rclpy's default service queue (KEEP_LAST 10) silently drops
 # the oldest when more than 10 clients' requests are pending, so services keep a deep one.
 SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
-# Latched: late joiners get the last value (both ends must use it).
+# Latched: late joiners get the last value (both ends must be transient local and reliable). A publisher
+# keeps its last sample (LATCHED_QOS); a reader keeps the last sample of every publisher, up to 100
+# (LATCHED_READER_QOS). A one-deep reader keeps only the sample that came last: with a stranger's sample on
+# the same topic (a second sim's plant description), the run's own could be overwritten before it was read,
+# and no publisher ever sends it again, so the node would wait for it forever.
 LATCHED_QOS = QoSProfile(
     depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+)
+LATCHED_READER_QOS = QoSProfile(
+    depth=100,
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
     history=HistoryPolicy.KEEP_LAST,

@@ -53,7 +53,7 @@ from npp_ros_graph.transport.topics import (
     CERTIFICATE,
     CONTROL_QOS,
     EXPERT_SERVICE,
-    LATCHED_QOS,
+    LATCHED_READER_QOS,
     PLANT,
     REPORT_QOS,
     RESET_SERVICE,
@@ -117,7 +117,7 @@ def graph(launch_module: Launcher, ros_client_module: Callable[..., RosClient], 
     run_dir = tmp_path_factory.mktemp("bad") / "run"
     client = ros_client_module("bad_input_client", namespace=ns)
     g = Graph(launch_module, client, run_dir)
-    certificates = client.collect(Certificate, CERTIFICATE, LATCHED_QOS)
+    certificates = client.collect(Certificate, CERTIFICATE, LATCHED_READER_QOS)
     # The paper's check and rule certify this short-horizon graph quickly; the inputs below are what is tested.
     params = graph_parameters(
         "lqr_2_1", 0, HORIZON, run_dir, supervisor={"max_episodes": 400, "certify": "surrogate", "rule": "paper"}
@@ -252,7 +252,7 @@ class SimAlone:
         self.proc = launch("npp-sim", {"task": "lqr_2_1", "seed": 0, "horizon": 100_000}, namespace="/bad_sim")
         self.client = client
         self.states = client.collect(JointState, STATE, CONTROL_QOS)
-        plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
+        plants = client.collect(PlantDescription, PLANT, LATCHED_READER_QOS)
         self.actions = client.node.create_publisher(JointState, ACTION, CONTROL_QOS)
         self.reset = client.client(ResetEpisode, RESET_SERVICE, TIMEOUT)
         client.wait_for(lambda: bool(plants), TIMEOUT, "the sim's plant")

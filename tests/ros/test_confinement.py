@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from domain_coordinator import domain_id
 from npp_interfaces.msg import PlantDescription
 
-from npp_ros_graph.transport.topics import LATCHED_QOS, PLANT
+from npp_ros_graph.transport.topics import LATCHED_READER_QOS, PLANT
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -35,7 +35,7 @@ def test_nodes_run_on_the_session_domain_with_localhost_discovery(launch: Launch
 
 def test_a_graph_on_another_domain_is_invisible(launch: Launcher, ros_client: Callable[..., RosClient]) -> None:
     client = ros_client("confinement_watcher", namespace="/confined")
-    plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
+    plants = client.collect(PlantDescription, PLANT, LATCHED_READER_QOS)
     with domain_id() as other:
         foreign = launch("npp-sim", {"seed": 7}, namespace="/confined", domain=int(other))
         client.wait_for(lambda: "ready" in launch.log(foreign), 60.0, "the foreign sim to publish its plant")

@@ -53,7 +53,7 @@ from npp_ros_graph.transport.topics import (
     DATASET_TOPIC,
     EXPERT_SERVICE,
     GAP,
-    LATCHED_QOS,
+    LATCHED_READER_QOS,
     POLICY_STATUS,
     REPORT_QOS,
     STATE,
@@ -85,7 +85,7 @@ class Intruder:
         self.states = node.create_publisher(JointState, STATE, CONTROL_QOS)
         self.trajectories = node.create_publisher(TrajectoryMsg, DATASET_TOPIC, REPORT_QOS)
         node.create_subscription(JointState, STATE, self.on_state, CONTROL_QOS)
-        node.create_subscription(UInt32, POLICY_STATUS, self.on_status, LATCHED_QOS)
+        node.create_subscription(UInt32, POLICY_STATUS, self.on_status, LATCHED_READER_QOS)
         self.sent = {"actions": 0, "states": 0, "trajectories": 0, "dataset answers": 0, "expert answers": 0}
 
     def start(self) -> None:
@@ -156,7 +156,7 @@ def test_nothing_from_outside_the_run_enters_it(
     key = {KEY_ENV: RunSeal.new_key()}
     client = ros_client("intruder")
     gaps = client.collect(GapReport, GAP, REPORT_QOS)
-    certificates = client.collect(Certificate, CERTIFICATE, LATCHED_QOS)
+    certificates = client.collect(Certificate, CERTIFICATE, LATCHED_READER_QOS)
     fingerprint = LQRPlant("lqr_2_1", 0).model_sha256()
     intruder = Intruder(client, fingerprint)
     params = graph_parameters("lqr_2_1", 0, HORIZON, run_dir, supervisor={"max_episodes": MAX_EPISODES, **ROLLOUT_FREE})

@@ -16,7 +16,7 @@ from npp_interfaces.msg import Certificate
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.lqr import LQRExpert
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
-from npp_ros_graph.transport.topics import CERTIFICATE, LATCHED_QOS
+from npp_ros_graph.transport.topics import CERTIFICATE, LATCHED_READER_QOS
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -36,7 +36,7 @@ def test_the_supervisor_certifies_a_run_served_by_an_external_expert(
     launch("npp-policy", extra_env=key)
     supervisor = launch("npp-supervisor", {"run_dir": str(run_dir), "max_episodes": 400}, extra_env=key)
     client = ros_client("certificate_watch")
-    certificates = client.collect(Certificate, CERTIFICATE, LATCHED_QOS)
+    certificates = client.collect(Certificate, CERTIFICATE, LATCHED_READER_QOS)
     client.wait_for(lambda: bool(certificates) or supervisor.poll() is not None, 900, "the certificate")
     launch.assert_alive(supervisor)
     launch.assert_alive(expert)

@@ -38,7 +38,7 @@ from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 from npp_ros.policy.dataset import Dataset
 from npp_ros.run.store import RunStore, trajectory_digest
 from npp_ros_graph.graph.description import ROLES
-from npp_ros_graph.transport.topics import CERTIFICATE, DATASET_TOPIC, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.transport.topics import CERTIFICATE, DATASET_TOPIC, GAP, LATCHED_READER_QOS, REPORT_QOS
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -206,7 +206,7 @@ def test_sigkill_any_node_mid_run_loses_nothing(
     watcher = ros_client(f"fault_watcher_{run}")
     gaps: list[GapReport] = watcher.collect(GapReport, GAP, REPORT_QOS)
     acked: list[TrajectoryMsg] = watcher.collect(TrajectoryMsg, DATASET_TOPIC, REPORT_QOS)
-    certificates: list[Certificate] = watcher.collect(Certificate, CERTIFICATE, LATCHED_QOS)
+    certificates: list[Certificate] = watcher.collect(Certificate, CERTIFICATE, LATCHED_READER_QOS)
     for name in NODES:
         graph.start(name)
 

@@ -26,6 +26,7 @@ from npp_ros_graph.transport.topics import (
     CONTROL_QOS,
     DATASET_SERVICE,
     LATCHED_QOS,
+    LATCHED_READER_QOS,
     PLANT,
     POLICY_STATUS,
     SERVICE_QOS,
@@ -71,7 +72,7 @@ def test_policy_node_refuses_a_huge_finite_state(launch: Launcher, ros_client: C
     )  # fmt: skip
     node.create_publisher(PlantDescription, PLANT, LATCHED_QOS).publish(RUN_SEAL.seal(plant))
     node.create_service(GetTrajectories, DATASET_SERVICE, serve_dataset, qos_profile=SERVICE_QOS)
-    held = client.collect(UInt32, POLICY_STATUS, LATCHED_QOS)
+    held = client.collect(UInt32, POLICY_STATUS, LATCHED_READER_QOS)
     actions = client.collect(JointState, ACTION, CONTROL_QOS)
     states = node.create_publisher(JointState, STATE, CONTROL_QOS)
     policy = launch("npp-policy", namespace="/huge")

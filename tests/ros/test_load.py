@@ -36,6 +36,7 @@ from npp_ros_graph.transport.topics import (
     DATASET_SERVICE,
     EXPERT_SERVICE,
     LATCHED_QOS,
+    LATCHED_READER_QOS,
     PLANT,
     POLICY_DROPPED,
     POLICY_STATUS,
@@ -144,7 +145,7 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
         return seal.seal(res, answering=req)
 
     node.create_service(GetTrajectories, DATASET_SERVICE, serve)
-    held = tester.collect(UInt32, POLICY_STATUS, LATCHED_QOS)
+    held = tester.collect(UInt32, POLICY_STATUS, LATCHED_READER_QOS)
     actions = tester.collect(JointState, ACTION, CONTROL_QOS)
     dropped = tester.collect(UInt64, POLICY_DROPPED, REPORT_QOS)
     state_pub = node.create_publisher(JointState, STATE, CONTROL_QOS)

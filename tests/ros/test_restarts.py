@@ -11,7 +11,7 @@ from npp_interfaces.msg import Certificate, GapReport
 from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
 from npp_ros.run.store import RunStore
-from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_QOS, REPORT_QOS
+from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_READER_QOS, REPORT_QOS
 
 SUPERVISOR = "npp-supervisor"
 
@@ -38,7 +38,7 @@ def test_killing_policy_then_supervisor_loses_no_expert_data(launch, ros_client,
     supervisor = launch(SUPERVISOR, supervisor_params)
     watcher = ros_client("restart_watcher")
     gaps: list[GapReport] = watcher.collect(GapReport, GAP, REPORT_QOS)
-    certificates: list[Certificate] = watcher.collect(Certificate, CERTIFICATE, LATCHED_QOS)
+    certificates: list[Certificate] = watcher.collect(Certificate, CERTIFICATE, LATCHED_READER_QOS)
 
     def oracle_calls() -> int:
         return gaps[-1].oracle_calls if gaps else 0

@@ -24,7 +24,7 @@ from npp_ros_graph.transport.seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
     CONTROL_QOS,
-    LATCHED_QOS,
+    LATCHED_READER_QOS,
     PLANT,
     REPORT_QOS,
     RESET_SERVICE,
@@ -122,7 +122,7 @@ def sim(launch_module: Launcher, ros_client_module: Callable[..., RosClient]) ->
     launch = launch_module
     proc = launch("npp-sim", {"task": "lqr_2_1", "seed": 0, "horizon": HORIZON})
     client = ros_client_module("sim_test_client")
-    plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
+    plants = client.collect(PlantDescription, PLANT, LATCHED_READER_QOS)
     states = client.collect(JointState, STATE, CONTROL_QOS)
     results = client.collect(EpisodeResult, ROLLOUT_DONE, REPORT_QOS)
     action_pub = client.node.create_publisher(JointState, ACTION, CONTROL_QOS)

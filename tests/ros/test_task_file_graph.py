@@ -16,7 +16,7 @@ from npp_interfaces.srv import ExpertTrajectory
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.task_file import HASH_MARK
-from npp_ros_graph.transport.topics import EXPERT_SERVICE, LATCHED_QOS, PLANT
+from npp_ros_graph.transport.topics import EXPERT_SERVICE, LATCHED_READER_QOS, PLANT
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -55,7 +55,7 @@ def test_the_expert_refuses_a_task_file_that_changed_under_the_sim(
     task_file = tmp_path / "task.toml"
     launch("npp-sim", {"task": str(task_file), "horizon": 50})
     client = ros_client("task_file_client")
-    plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
+    plants = client.collect(PlantDescription, PLANT, LATCHED_READER_QOS)
     client.wait_for(lambda: bool(plants), TIMEOUT, "the sim's plant description")
     published = plants[0].task
     assert published == get_task(str(task_file)).name

@@ -10,7 +10,7 @@ from expert_checks import TIMEOUT
 from npp_interfaces.msg import PlantDescription
 from plugin_env import with_plugin_path
 
-from npp_ros_graph.transport.topics import LATCHED_QOS, PLANT
+from npp_ros_graph.transport.topics import LATCHED_READER_QOS, PLANT
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -20,7 +20,7 @@ def test_the_sim_runs_a_plugin_task(launch: Launcher, ros_client: Callable[..., 
     env = {"PYTHONPATH": with_plugin_path(demo_plugin)["PYTHONPATH"]}
     sim = launch("npp-sim", {"task": "demo_pendulum", "horizon": 20}, extra_env=env)
     client = ros_client("plugin_client")
-    plants = client.collect(PlantDescription, PLANT, LATCHED_QOS)
+    plants = client.collect(PlantDescription, PLANT, LATCHED_READER_QOS)
     client.wait_for(lambda: bool(plants) or sim.poll() is not None, TIMEOUT, "the sim's plant description")
     launch.assert_alive(sim)
     assert (plants[0].task, plants[0].state_dim, plants[0].action_dim) == ("demo_pendulum", 2, 1)

@@ -64,6 +64,7 @@ from npp_ros_graph.transport.topics import (
     EXPERT_SERVICE,
     GAP,
     LATCHED_QOS,
+    LATCHED_READER_QOS,
     PLANT,
     POLICY_STATUS,
     REPORT_HISTORY_QOS,
@@ -177,9 +178,9 @@ class SupervisorNode(Node):
         self.trajectory_pub = self.create_publisher(TrajectoryMsg, DATASET_TOPIC, REPORT_QOS)
         self.expert = self.create_client(ExpertTrajectory, EXPERT_SERVICE)
         self.reset = self.create_client(ResetEpisode, RESET_SERVICE)
-        self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_QOS)
+        self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_READER_QOS)
         self.create_subscription(EpisodeResult, ROLLOUT_DONE, self.on_rollout, REPORT_QOS)
-        self.create_subscription(UInt32, POLICY_STATUS, self.handshake.on_policy_status, LATCHED_QOS)
+        self.create_subscription(UInt32, POLICY_STATUS, self.handshake.on_policy_status, LATCHED_READER_QOS)
         self.create_service(GetTrajectories, DATASET_SERVICE, self.serve_dataset, qos_profile=SERVICE_QOS)
         self.exit_code = 0
         self.worker = threading.Thread(target=self.run_algorithm, name="npp-algorithm-1", daemon=True)
