@@ -71,7 +71,7 @@ def test_file_is_plain_sqlite_with_named_columns(tmp_path: Path) -> None:
     rows = conn.execute("SELECT s_0, s_3, a_0, q FROM points WHERE trajectory = 0 ORDER BY step").fetchall()
     np.testing.assert_array_equal(np.array(rows), np.column_stack([traj.states[:, [0, 3]], traj.actions, traj.values]))
     meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
-    assert meta["format"] == "npp_ros.run" and meta["format_version"] == "2" and meta["task"] == '"lqr_2_1"'
+    assert meta["format"] == "npp_ros.run" and meta["format_version"] == "3" and meta["task"] == '"lqr_2_1"'
 
 
 def test_resume_requires_the_same_run(tmp_path: Path) -> None:
@@ -110,7 +110,7 @@ def test_wrong_version_is_refused(tmp_path: Path) -> None:
     conn.execute("UPDATE meta SET value = '1' WHERE key = 'format_version'")
     conn.commit()
     conn.close()
-    with pytest.raises(RunFileError, match="format version 1, this npp_ros reads version 2"):
+    with pytest.raises(RunFileError, match="format version 1, this npp_ros reads versions 2, 3"):
         RunStore.open(path)
 
 

@@ -67,7 +67,8 @@ def is_proven(spec: CertificationSpec, basis: ValueBasis | None) -> bool:
     if spec.certify != "oracle" and no_lipschitz_bound(basis):
         return False  # the claim rests on an L that cannot exist for these values
     if spec.certify == "surrogate":
-        return bool(basis is not None and basis.theorem_34_holds)
+        # Theorem 3.4's argument (and the condition the basis checks) is about stored actions replayed open loop.
+        return bool(basis is not None and basis.theorem_34_holds and spec.policy == "open-loop")
     return True
 
 
@@ -90,6 +91,12 @@ def assumptions(spec: CertificationSpec, basis: ValueBasis | None) -> tuple[str,
     elif spec.certify == "oracle":
         items = ["the expert's reported return at s0 is the return of the trajectory it gives", *common,
                  "no Lipschitz constant is needed; the claim is relative to the expert's own return"]  # fmt: skip
+    elif spec.policy == "feedback":
+        items = [lipschitz, "Theorem 3.4 (V_lb <= V^pi) for the feedback policy, so that the surrogate gap bounds "
+                 "the true gap: NOT checked; its argument holds for stored actions replayed open loop, and for a "
+                 "feedback law it would need L (1 - gamma L_g) >= L_rg, with L_g and L_rg the slopes in the state of "
+                 "the closed-loop step and reward at every data point",
+                 "initial states are independent draws from rho"]  # fmt: skip
     else:
         items = [lipschitz, "Theorem 3.4 (V_lb <= V^pi), so that the surrogate gap bounds the true gap",
                  basis.theorem_34 if basis is not None and basis.theorem_34 else

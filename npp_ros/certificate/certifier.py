@@ -40,6 +40,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
+from npp_ros.policy.feedback import PAPER_POLICY, POLICY_KINDS, PolicyKind
 from npp_ros.policy.lipschitz import LipschitzConstant
 
 Condition = Literal["i", "ii"]
@@ -63,7 +64,11 @@ QUANTITY = {
 
 @dataclass(frozen=True)
 class CertificationSpec:
-    """What the run must certify, and the L it rests on. ``diameter`` is diam(S0), needed by condition (ii) only."""
+    """What the run must certify, about which policy, and the L it rests on.
+
+    ``diameter`` is diam(S0), needed by condition (ii) only. ``policy`` is how the certified policy acts at its
+    chosen data point (npp_ros.policy.feedback): the paper's open-loop action, or the expert's feedback law.
+    """
 
     condition: Condition
     epsilon: float
@@ -73,8 +78,11 @@ class CertificationSpec:
     diameter: float | None = None
     certify: CheckedQuantity = "rollout"
     rule: StoppingRule = "sequential"
+    policy: PolicyKind = PAPER_POLICY
 
     def __post_init__(self) -> None:
+        if self.policy not in POLICY_KINDS:
+            raise ValueError(f"policy must be one of {', '.join(POLICY_KINDS)}, got {self.policy!r}")
         if self.condition not in CONDITIONS:
             raise ValueError(f"condition must be 'i' or 'ii', got {self.condition!r}")
         if self.certify not in CERTIFY_MODES:
@@ -128,7 +136,8 @@ class CertificationSpec:
         log_mixture: float | None = None,
     ) -> str:  # fmt: skip
         """The claim in words: about which value, for which policy, at which confidence."""
-        policy = f"the greedy policy over the first {policy_trajectories} expert trajectories"
+        acts = "its stored actions, open loop" if self.policy == "open-loop" else "its experts' feedback gains"
+        policy = f"the greedy policy over the first {policy_trajectories} expert trajectories, acting with {acts}"
         gap = "V^E(s0) - R^pi(s0)" if self.certify == "oracle" else "V(s0) - R^pi(s0)"
         confidence = f"With probability at least {1 - self.delta:.4g}"
         how = f"test {test} of a sequentially valid rule" if self.rule == "sequential" else "the paper's one-shot rule"

@@ -3,8 +3,10 @@
 V_lb(s) = max_i Q_i - L|s - s_i|        (1)    V_ub(s) = min_j Q_j + L|s - s_j|        (3)
 Q_lb(s, a) = max_i Q_i - L(|s - s_i| + |a - a_i|)   (2), Q_ub mirrored (4).
 
-The policy is pi(s) = a_{i*} with i* the maximiser of (1); ties go to the smallest index
-(Remark 3.2), which is what ``np.argmax`` returns. Distances are accumulated coordinate by
+The policy chooses i*, the maximiser of (1); ties go to the smallest index (Remark 3.2), which is
+what ``np.argmax`` returns. It acts with a_{i*} (the paper's open-loop policy) or, given the task's
+:class:`~npp_ros.policy.feedback.ControlSpace`, with the expert's feedback law at i*
+(npp_ros.policy.feedback). Distances are accumulated coordinate by
 coordinate in a fixed order, so a single query and the same state inside a batch give the same
 floating-point numbers, bit for bit.
 
@@ -22,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from npp_ros.policy.dataset import Dataset, DatasetError, FloatArray
+from npp_ros.policy.feedback import ControlSpace, PolicyKind, feedback_actions
 from npp_ros.policy.kdtree import BoundIndex
 from npp_ros.policy.vectors import bounded
 
@@ -56,15 +59,34 @@ class NonparametricPolicy:
 
     ``index`` (default on) answers V_lb / V_ub with the kd-tree index; ``compress`` (default on)
     lets that index skip points that can never attain a bound (the dataset keeps them). Both
-    return exactly what the brute force returns.
+    return exactly what the brute force returns. ``control`` None acts open loop (the paper's
+    policy); a task's ControlSpace makes it act with the expert's feedback gain at the chosen point.
     """
 
-    def __init__(self, dataset: Dataset, lipschitz: float, *, index: bool = True, compress: bool = True) -> None:
+    def __init__(
+        self,
+        dataset: Dataset,
+        lipschitz: float,
+        *,
+        index: bool = True,
+        compress: bool = True,
+        control: ControlSpace | None = None,
+    ) -> None:
         if not np.isfinite(lipschitz) or lipschitz <= 0:
             raise ValueError(f"the Lipschitz constant must be finite and > 0, got {lipschitz!r}")
+        if control is not None and control.state_dim != dataset.state_dim:
+            raise ValueError(f"the control space is of {control.state_dim}-D states, the data of {dataset.state_dim}-D")
+        if control is not None and len(control.action_low) != dataset.action_dim:
+            actuators = len(control.action_low)
+            raise ValueError(f"the control space has {actuators} actuators, the data {dataset.action_dim}")
         self.dataset = dataset
         self.lipschitz = float(lipschitz)
+        self.control = control
         self.index = BoundIndex(dataset, self.lipschitz, compress=compress) if index else None
+
+    @property
+    def kind(self) -> PolicyKind:
+        return "open-loop" if self.control is None else "feedback"
 
     # ----------------------------------------------------------------- validation
     def _states(self, states: ArrayLike) -> tuple[FloatArray, bool]:
@@ -165,12 +187,20 @@ class NonparametricPolicy:
 
     def greedy_index(self, states: ArrayLike) -> int | NDArray[np.int64]:
         batch, single = self._states(states)
-        if len(self.dataset) == 0:
-            raise EmptyDatasetError("the dataset is empty: the policy has no action to give")
-        index = self._search(batch, None, lower=True).index
+        index = self._greedy(batch)
         return int(index[0]) if single else index
 
+    def _greedy(self, batch: FloatArray) -> NDArray[np.int64]:
+        if len(self.dataset) == 0:
+            raise EmptyDatasetError("the dataset is empty: the policy has no action to give")
+        return self._search(batch, None, lower=True).index
+
     def act(self, states: ArrayLike) -> FloatArray:
-        """pi(s) = a_{i*}: always an action from the dataset (Remark 3.2)."""
-        index = self.greedy_index(states)
-        return self.dataset.actions[index].copy()
+        """pi(s): a_{i*} (open loop, always an action from the dataset, Remark 3.2), or the feedback law at i*."""
+        batch, single = self._states(states)
+        index = self._greedy(batch)
+        if self.control is None:
+            actions = self.dataset.actions[index]
+        else:
+            actions = feedback_actions(self.dataset, index, batch, self.control)
+        return actions[0].copy() if single else actions.copy()

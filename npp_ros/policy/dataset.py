@@ -2,6 +2,11 @@
 
 Trajectory boundaries matter: Definition 3.3 (consistency) needs every stored state's successor
 to be in D too, which holds trajectory-wise, and the store persists whole trajectories.
+
+Each point may also carry its expert's local feedback gain K (action_dim x state_dim): the expert's
+own policy near its trajectory is u = a_t + K_t (s - s_t) (iLQR's backward pass, the LQR gain). The
+bounds never read it; the feedback policy (npp_ros.policy.feedback) acts with it. A trajectory whose
+expert gave none stores zero gains, so the feedback policy replays its actions open loop.
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ class Trajectory:
     # The trajectory's own return over its T steps under the task's reward, when the expert says
     # (V^E(s_0) of the oracle certification mode). Not part of the dataset: stored values are Q.
     expert_return: float | None = None
+    # The expert's feedback gain at each step, (T, action_dim, state_dim); None when the expert gives none.
+    gains: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.values.shape[0])
@@ -42,8 +49,9 @@ class Trajectory:
         state_dim: int | None = None,
         action_dim: int | None = None,
         label: str = "trajectory",
+        gains: ArrayLike | None = None,
     ) -> Trajectory:
-        """Check shapes, finiteness and dimensions; return float64 copies."""
+        """Check shapes, finiteness and dimensions; return float64 copies (gains: None, or one per step)."""
         s = _as_float_array(states, f"{label}: states")
         a = _as_float_array(actions, f"{label}: actions")
         q = _as_float_array(values, f"{label}: values")
@@ -70,7 +78,22 @@ class Trajectory:
             raise DatasetError(f"{label}: actions has {a.shape[1]} columns, the dataset's action_dim is {action_dim}")
         for name, arr in (("states", s), ("actions", a), ("values", q)):
             _require_finite(arr, f"{label}: {name}")
-        return cls(s, a, q)
+        return cls(s, a, q, gains=None if gains is None else _checked_gains(gains, s, a, label))
+
+
+def _checked_gains(gains: ArrayLike, states: FloatArray, actions: FloatArray, label: str) -> FloatArray:
+    """Gains of shape (steps, action_dim, state_dim), finite; a flat row-major array of that size is reshaped."""
+    k = _as_float_array(gains, f"{label}: gains")
+    steps, n, m = states.shape[0], states.shape[1], actions.shape[1]
+    if k.ndim == 1 and k.size == steps * m * n:
+        k = k.reshape(steps, m, n)
+    if k.shape != (steps, m, n):
+        raise DatasetError(
+            f"{label}: gains must hold one {m} x {n} matrix (action_dim x state_dim) per step, {steps * m * n} "
+            f"numbers in all; got shape {k.shape}"
+        )
+    _require_finite(k, f"{label}: gains")
+    return k
 
 
 def _as_float_array(data: ArrayLike, what: str) -> FloatArray:
@@ -105,8 +128,10 @@ class Dataset:
         self._states = np.empty((capacity, self.state_dim))
         self._actions = np.empty((capacity, self.action_dim))
         self._values = np.empty(capacity)
+        self._gains: FloatArray | None = None  # allocated with the first trajectory that has gains
         self._size = 0
         self._offsets: list[int] = [0]
+        self._with_gains: list[bool] = []  # per trajectory: did its expert give gains
         self.version = 0
 
     def __len__(self) -> int:
@@ -129,6 +154,24 @@ class Dataset:
         return self._values[: self._size]
 
     @property
+    def gains(self) -> FloatArray:
+        """The feedback gain of every point, (N, action_dim, state_dim); zero where the expert gave none."""
+        if self._gains is None:
+            return np.zeros((self._size, self.action_dim, self.state_dim))
+        return self._gains[: self._size]
+
+    def gains_at(self, index: ArrayLike) -> FloatArray:
+        """The gains of the points ``index`` (zeros without allocating all of them when no expert gave any)."""
+        rows = np.asarray(index)
+        if self._gains is None:
+            return np.zeros((*rows.shape, self.action_dim, self.state_dim))
+        return self._gains[: self._size][rows]
+
+    @property
+    def trajectories_with_gains(self) -> int:
+        return sum(self._with_gains)
+
+    @property
     def trajectory_offsets(self) -> tuple[int, ...]:
         """Start index of each trajectory, then the total size."""
         return tuple(self._offsets)
@@ -138,7 +181,8 @@ class Dataset:
             raise IndexError(f"trajectory {index} out of range; the dataset holds {self.num_trajectories}")
         index %= self.num_trajectories
         lo, hi = self._offsets[index], self._offsets[index + 1]
-        return Trajectory(self.states[lo:hi].copy(), self.actions[lo:hi].copy(), self.values[lo:hi].copy())
+        gains = self.gains[lo:hi].copy() if self._with_gains[index] else None
+        return Trajectory(self.states[lo:hi].copy(), self.actions[lo:hi].copy(), self.values[lo:hi].copy(), gains=gains)
 
     def prefix(self, trajectories: int) -> Dataset:
         """A copy holding the first ``trajectories`` trajectories: the data as it was after that many calls."""
@@ -149,7 +193,9 @@ class Dataset:
             out.append(self.trajectory(index))
         return out
 
-    def validate(self, states: ArrayLike, actions: ArrayLike, values: ArrayLike) -> Trajectory:
+    def validate(
+        self, states: ArrayLike, actions: ArrayLike, values: ArrayLike, gains: ArrayLike | None = None
+    ) -> Trajectory:
         """Validate a would-be trajectory against this dataset without appending it."""
         return Trajectory.validated(
             states,
@@ -158,19 +204,27 @@ class Dataset:
             state_dim=self.state_dim,
             action_dim=self.action_dim,
             label=f"trajectory {self.num_trajectories}",
+            gains=gains,
         )
 
     def append(self, trajectory: Trajectory) -> int:
         """Append a whole trajectory after validating it; return its trajectory index."""
-        checked = self.validate(trajectory.states, trajectory.actions, trajectory.values)
+        checked = self.validate(trajectory.states, trajectory.actions, trajectory.values, trajectory.gains)
         steps = len(checked)
         self._reserve(self._size + steps)
         lo, hi = self._size, self._size + steps
         self._states[lo:hi] = checked.states
         self._actions[lo:hi] = checked.actions
         self._values[lo:hi] = checked.values
+        if checked.gains is not None:
+            if self._gains is None:
+                self._gains = np.zeros((self._states.shape[0], self.action_dim, self.state_dim))
+            self._gains[lo:hi] = checked.gains
+        elif self._gains is not None:
+            self._gains[lo:hi] = 0.0
         self._size = hi
         self._offsets.append(hi)
+        self._with_gains.append(checked.gains is not None)
         self.version += 1
         return self.num_trajectories - 1
 
@@ -183,8 +237,10 @@ class Dataset:
             return
         while capacity < needed:
             capacity *= 2
-        for name in ("_states", "_actions", "_values"):
+        for name in ("_states", "_actions", "_values", "_gains"):
             old = getattr(self, name)
+            if old is None:
+                continue
             new = np.empty((capacity, *old.shape[1:]))
             new[: self._size] = old[: self._size]
             setattr(self, name, new)

@@ -38,6 +38,7 @@ from npp_ros.certificate.mixture import MixtureCertifier, certifier_for
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
+from npp_ros.policy.feedback import ControlSpace
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, state_tuple
 from npp_ros.run.store import RunStore
 
@@ -109,6 +110,14 @@ class RunResult:
         return self.certificate is not None
 
 
+def make_policy(data: Dataset, spec: CertificationSpec, control: ControlSpace | None) -> NonparametricPolicy:
+    """The policy a run's spec names over ``data``: the greedy choice on V_lb with the spec's L, acting open loop
+    or with the expert's feedback in the task's control space. Every place that acts for a run builds it here."""
+    if spec.policy == "feedback" and control is None:
+        raise ValueError("the feedback policy needs the task's control space (its angles and actuator range)")
+    return NonparametricPolicy(data, spec.lipschitz.value, control=control if spec.policy == "feedback" else None)
+
+
 class NPPLoop:
     """Algorithm 1 over pluggable parts; resumes from a run store if it holds episodes.
 
@@ -127,6 +136,7 @@ class NPPLoop:
         observers: Sequence[Observer] = (),
         expert_value: Callable[[FloatArray], float] | None = None,
         basis: ValueBasis | None = None,
+        control: ControlSpace | None = None,
     ) -> None:
         self.config = config
         self.spec = config.spec
@@ -143,6 +153,7 @@ class NPPLoop:
         self.observers = list(observers)
         self.expert_value = expert_value
         self.basis = basis
+        self.control = control if self.spec.policy == "feedback" else None
         self.certifier = certifier_for(self.spec)
         self.rows: list[EpisodeRow] = []
         self.certificate: Certificate | None = None
@@ -150,7 +161,7 @@ class NPPLoop:
         self.policy_data = self.dataset  # the prefix the policy acts on (shorter only while checks hold data back)
         if store is not None:
             self._resume(store)
-        self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
+        self.policy = self._new_policy()
 
     # ------------------------------------------------------------------ state
     @property
@@ -208,6 +219,9 @@ class NPPLoop:
         else:
             self._set_policy_prefix(joined)
 
+    def _new_policy(self) -> NonparametricPolicy:
+        return make_policy(self.policy_data, self.spec, self.control)
+
     def _set_policy_prefix(self, count: int) -> None:
         self.policy_data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
 
@@ -220,7 +234,7 @@ class NPPLoop:
 
     def _ask_oracle(self, s0: FloatArray) -> Trajectory:
         answer = self.oracle.trajectory(s0)
-        trajectory = self.dataset.validate(answer.states, answer.actions, answer.values)
+        trajectory = self.dataset.validate(answer.states, answer.actions, answer.values, answer.gains)
         if self.spec.certify == "oracle":
             ret = answer.expert_return
             if ret is None or not math.isfinite(ret):
@@ -325,7 +339,7 @@ class NPPLoop:
         """The first held trajectory splits the policy's data from the stored data."""
         if self.policy_data is self.dataset:
             self._set_policy_prefix(self.dataset.num_trajectories - 1)
-            self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
+            self.policy = self._new_policy()
 
     def _joined(self, index: int | None) -> None:
         if index is None:
@@ -337,7 +351,7 @@ class NPPLoop:
         """The streak ended: held trajectories join the policy, in stored order."""
         first = self.policy_data.num_trajectories
         self.policy_data = self.dataset
-        self.policy = NonparametricPolicy(self.policy_data, self.spec.lipschitz.value)
+        self.policy = self._new_policy()
         for index in range(first, self.dataset.num_trajectories):
             self._joined(index)
 

@@ -12,6 +12,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
+from typing import ClassVar
 
 import numpy as np
 
@@ -34,11 +35,15 @@ class RunMetadata(SimpleNamespace):
 
     PROVENANCE = ("lipschitz_detail",)
     RECORDED_SINCE = ("plant_fingerprint",)  # absent from older files: the first resume records them
+    # Absent from files made before the choice existed, which all made this one: read as it.
+    BEFORE_RECORDED: ClassVar[dict[str, object]] = {"policy": "open-loop"}
 
     def __getattr__(self, name: str) -> object:
         """Only called for a key the meta table lacks (a hand-edited or damaged file): say which."""
         if name.startswith("__"):
             raise AttributeError(name)
+        if name in self.BEFORE_RECORDED:
+            return self.BEFORE_RECORDED[name]
         raise MissingMetadata(f"the run file's metadata has no {name!r} (hand-edited or damaged?)")
 
     def mismatches(self, asked: RunMetadata) -> list[str]:

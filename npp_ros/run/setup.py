@@ -20,11 +20,12 @@ import numpy as np
 from npp_ros.certificate.certifier import DEFAULT_RULES, CertificationSpec, CheckedQuantity, Condition, StoppingRule
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
-from npp_ros.policy.dataset import FloatArray
+from npp_ros.policy.dataset import Dataset, FloatArray
+from npp_ros.policy.feedback import DEFAULT_POLICY, ControlSpace, PolicyKind, check_policy_kind
 from npp_ros.policy.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
-from npp_ros.run.loop import NPPLoop, Observer, RunConfig
+from npp_ros.run.loop import NPPLoop, Observer, RunConfig, make_policy
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, get_task
+from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, control_space, get_task
 from npp_ros.tasks.rollout import rollout
 
 
@@ -46,9 +47,10 @@ def build_config(
     gamma: float = 1.0,
     certify: CheckedQuantity | None = None,
     rule: StoppingRule | None = None,
+    policy: PolicyKind = DEFAULT_POLICY,
 ) -> RunConfig:
     """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
-    ``rule`` None the default rule of that checked quantity (DEFAULT_RULES).
+    ``rule`` None the default rule of that checked quantity (DEFAULT_RULES), ``policy`` how the policy acts.
 
     Refuses a bad combination (ValueError) when the run is defined, not episodes later.
     """
@@ -56,7 +58,7 @@ def build_config(
     certify = certify or definition.default_certify
     spec = CertificationSpec(
         condition, epsilon, p, delta, lipschitz, definition.initial_state_diameter,
-        certify=certify, rule=rule or DEFAULT_RULES[certify],
+        certify=certify, rule=rule or DEFAULT_RULES[certify], policy=check_policy_kind(policy),
     )  # fmt: skip
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,
@@ -68,6 +70,19 @@ def build_config(
 def plant_fingerprint(task: str, seed: int) -> str:
     """The fingerprint of the task's plant for this seed: what a run file records of its data's plant."""
     return get_task(task).make_plant(seed).model_sha256()
+
+
+@functools.lru_cache(maxsize=64)
+def task_control_space(task: str, seed: int) -> ControlSpace:
+    """How the task's states differ and how far its actuators reach, for this seed's plant (the feedback policy)."""
+    return control_space(get_task(task).make_plant(seed))
+
+
+def policy_for(data: Dataset, spec: CertificationSpec, task: str, seed: int) -> NonparametricPolicy:
+    """The policy ``spec`` names over ``data`` for this task's plant: what a run's checks, its evaluations and a
+    robot act with."""
+    control = task_control_space(task, seed) if spec.policy == "feedback" else None
+    return make_policy(data, spec, control)
 
 
 def initial_state_fn(task: str, seed: int) -> Callable[[int], FloatArray]:
@@ -111,6 +126,7 @@ def build_loop(
         observers=observers,
         expert_value=task.expert_value(expert),
         basis=value_basis(expert, config.spec.lipschitz.value),
+        control=task_control_space(config.task, config.seed) if config.spec.policy == "feedback" else None,
     )
 
 

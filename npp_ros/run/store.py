@@ -9,8 +9,10 @@ R or any language; no pickle. Tables (see README, "Run file format"):
   task, seed, dims, horizon, gamma, the plant's model fingerprint, what it certifies, L with its source), and the
   certificate (JSON) once issued. A resumed run must ask for the same values; a file from before the
   fingerprint was recorded records its resuming run's;
-- ``trajectories(id, episode, steps, sha256)``: one row per expert trajectory, ids from 0;
-- ``points(trajectory, step, s_0.., a_0.., q)``: the (s, a, Q) triplets, one row per step;
+- ``trajectories(id, episode, steps, sha256, created, feedback)``: one row per expert trajectory, ids from 0;
+  ``feedback`` is 1 when its expert gave feedback gains;
+- ``points(trajectory, step, s_0.., a_0.., q, k_0_0..)``: the (s, a, Q) triplets, one row per step, with the
+  expert's feedback gain K (action_dim x state_dim; ``k_i_j`` is row i, column j; zero without gains);
 - ``episodes(episode, ...)``: Algorithm 1's decision per episode, and the policy's return.
 
 Each trajectory is committed in one transaction together with the episode that asked for it.
@@ -35,8 +37,12 @@ out (disk full, folder not writable) and where; the rollback never hides the cau
 
 Loading reads everything inside one read transaction (one snapshot), so a commit by a live
 writer between two reads is never mistaken for damage. Loading verifies the format version,
-the dimensions, every trajectory's row count and its SHA-256, so a damaged or foreign file is
-refused with a clear error instead of loading partially.
+the dimensions, every trajectory's row count and its SHA-256 (over its gains too, where it has them), so
+a damaged or foreign file is refused with a clear error instead of loading partially.
+
+Files of version 2 (before gains were stored) open unchanged for reading, their trajectories without
+gains (``gains_note`` says so); the first write upgrades them in place to version 3, in one transaction
+that adds the gain columns as zeros.
 """
 
 from __future__ import annotations
@@ -65,7 +71,8 @@ from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
 from npp_ros.run.records import EPISODE_COLUMNS, EpisodeRow, RunFileError, RunMetadata
 
 FORMAT_NAME = "npp_ros.run"
-FORMAT_VERSION = 2  # 2: certification mode, stopping rule, checked gap and test per episode
+FORMAT_VERSION = 3  # 2: certification mode, stopping rule, checked gap and test per episode; 3: feedback gains
+READABLE_VERSIONS = (2, 3)
 # Meta keys that are not the run's metadata (RunConfig.metadata()): the file's own, and what the run adds.
 _FILE_KEYS = ("format", "format_version", "created", "certificate", "run_id")
 
@@ -78,10 +85,17 @@ _SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_READONLY, _SQLITE_IOERR, _SQLITE_FULL = 5,
 
 
 def trajectory_digest(trajectory: Trajectory) -> str:
+    """SHA-256 of the trajectory's numbers; a trajectory without gains has the digest older files recorded."""
     h = hashlib.sha256()
-    for arr in (trajectory.states, trajectory.actions, trajectory.values):
+    arrays = (trajectory.states, trajectory.actions, trajectory.values)
+    for arr in arrays if trajectory.gains is None else (*arrays, trajectory.gains):
         h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
     return h.hexdigest()
+
+
+def gain_columns(state_dim: int, action_dim: int) -> list[str]:
+    """k_i_j: row i (actuator), column j (state entry) of each point's gain, row-major."""
+    return [f"k_{i}_{j}" for i in range(action_dim) for j in range(state_dim)]
 
 
 class RunStore:
@@ -99,6 +113,7 @@ class RunStore:
         self.metadata = metadata
         self._lock = lock
         self._wal = False
+        self.format_version = FORMAT_VERSION
 
     # ---------------------------------------------------------------- opening
     @staticmethod
@@ -155,15 +170,19 @@ class RunStore:
     def _write_schema(conn: sqlite3.Connection, metadata: RunMetadata, path: Path) -> None:
         s_cols = ", ".join(f"s_{k} REAL NOT NULL" for k in range(metadata.state_dim))
         a_cols = ", ".join(f"a_{k} REAL NOT NULL" for k in range(metadata.action_dim))
+        k_cols = ", ".join(
+            f"{k} REAL NOT NULL DEFAULT 0" for k in gain_columns(metadata.state_dim, metadata.action_dim)
+        )
         with _transaction(conn, path):
             conn.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
             conn.execute(
                 "CREATE TABLE trajectories (id INTEGER PRIMARY KEY, episode INTEGER, "
-                "steps INTEGER NOT NULL, sha256 TEXT NOT NULL, created REAL NOT NULL)"
+                "steps INTEGER NOT NULL, sha256 TEXT NOT NULL, created REAL NOT NULL, "
+                "feedback INTEGER NOT NULL DEFAULT 0)"
             )
             conn.execute(
                 f"CREATE TABLE points (trajectory INTEGER NOT NULL REFERENCES trajectories(id), "
-                f"step INTEGER NOT NULL, {s_cols}, {a_cols}, q REAL NOT NULL, "
+                f"step INTEGER NOT NULL, {s_cols}, {a_cols}, q REAL NOT NULL, {k_cols}, "
                 "PRIMARY KEY (trajectory, step))"
             )
             conn.execute(
@@ -197,10 +216,10 @@ class RunStore:
             raise RunFileError(f"{path} is not a readable npp_ros run file: {exc}") from exc
         if meta.get("format") != FORMAT_NAME:
             raise RunFileError(f"{path} is not an npp_ros run file (format {meta.get('format')!r})")
-        if meta.get("format_version") != str(FORMAT_VERSION):
+        if meta.get("format_version") not in [str(v) for v in READABLE_VERSIONS]:
             raise RunFileError(
-                f"{path} has format version {meta.get('format_version')}, this npp_ros reads version "
-                f"{FORMAT_VERSION}; convert it or use the npp_ros that wrote it"
+                f"{path} has format version {meta.get('format_version')}, this npp_ros reads versions "
+                f"{', '.join(map(str, READABLE_VERSIONS))}; convert it or use the npp_ros that wrote it"
             )
         try:
             metadata = RunMetadata(**{k: json.loads(v) for k, v in meta.items() if k not in _FILE_KEYS})
@@ -209,7 +228,9 @@ class RunStore:
         missing = {"state_dim", "action_dim"} - vars(metadata).keys()  # the tables' shape
         if missing:
             raise RunFileError(f"{path} has incomplete metadata: no {' or '.join(sorted(missing))}")
-        return cls(path, conn, metadata)
+        store = cls(path, conn, metadata)
+        store.format_version = int(meta["format_version"])
+        return store
 
     @classmethod
     def open_or_create(cls, path: str | Path, metadata: RunMetadata) -> RunStore:
@@ -230,6 +251,7 @@ class RunStore:
                 raise RunFileError(f"{path} belongs to another run and was left untouched:\n  " + "\n  ".join(problems))
             store._lock = lock
             store._use_wal()
+            store._upgrade()
             store._record_meta(store.metadata.unrecorded(metadata))
             if store._meta_value("run_id") is None:  # a file from before runs had an identity gets one now
                 with _transaction(store._conn, store.path):
@@ -246,10 +268,33 @@ class RunStore:
             self._lock = WriterLock.acquire(self.path)
             try:
                 self._use_wal()
+                self._upgrade()
             except BaseException:
                 self._lock.release()
                 self._lock = None
                 raise
+
+    def _upgrade(self) -> None:
+        """A version-2 file gets the gain columns (zeros) and becomes version 3, in one transaction."""
+        if self.format_version == FORMAT_VERSION:
+            return
+        meta = self.metadata
+        with _transaction(self._conn, self.path):
+            self._conn.execute("ALTER TABLE trajectories ADD COLUMN feedback INTEGER NOT NULL DEFAULT 0")
+            for column in gain_columns(meta.state_dim, meta.action_dim):
+                self._conn.execute(f"ALTER TABLE points ADD COLUMN {column} REAL NOT NULL DEFAULT 0")
+            self._conn.execute("UPDATE meta SET value = ? WHERE key = 'format_version'", (str(FORMAT_VERSION),))
+        self.format_version = FORMAT_VERSION
+
+    @property
+    def gains_note(self) -> str:
+        """What a reader should know of the stored gains: "" when the file records them."""
+        if self.format_version >= 3:
+            return ""
+        return (
+            f"{self.path} was made before run files stored feedback gains (format version {self.format_version}): "
+            "its trajectories carry none, so a feedback policy acts on them open loop"
+        )
 
     def _use_wal(self) -> None:
         """WAL while writing: readers then never make a commit wait (see the module docstring)."""
@@ -301,17 +346,24 @@ class RunStore:
         meta = self.metadata
         Trajectory.validated(
             trajectory.states, trajectory.actions, trajectory.values,
-            state_dim=meta.state_dim, action_dim=meta.action_dim, label=f"trajectory {index}",
+            state_dim=meta.state_dim, action_dim=meta.action_dim, label=f"trajectory {index}", gains=trajectory.gains,
         )  # fmt: skip
         expected = self._conn.execute("SELECT COUNT(*) FROM trajectories").fetchone()[0]
         if index != expected:
             raise RunFileError(f"trajectory index {index} out of order: the file holds {expected}")
         self._conn.execute(
-            "INSERT INTO trajectories VALUES (?, ?, ?, ?, ?)",
-            (index, episode, len(trajectory), trajectory_digest(trajectory), time.time()),
+            "INSERT INTO trajectories VALUES (?, ?, ?, ?, ?, ?)",
+            (index, episode, len(trajectory), trajectory_digest(trajectory), time.time(), trajectory.gains is not None),
         )
         steps = np.arange(len(trajectory), dtype=np.float64)[:, None]
-        block = np.hstack([steps, trajectory.states, trajectory.actions, trajectory.values[:, None]])
+        gains = (
+            np.zeros((len(trajectory), meta.action_dim, meta.state_dim))
+            if trajectory.gains is None
+            else trajectory.gains
+        )
+        block = np.hstack([
+            steps, trajectory.states, trajectory.actions, trajectory.values[:, None], gains.reshape(len(trajectory), -1)
+        ])  # fmt: skip
         marks = ", ".join("?" * (block.shape[1] + 1))
         self._conn.executemany(
             f"INSERT INTO points VALUES ({marks})",
@@ -382,29 +434,36 @@ class RunStore:
         """All trajectories, verified row count and SHA-256 each; any damage raises."""
         meta = self.metadata
         n, m = meta.state_dim, meta.action_dim
+        with_gains = self.format_version >= 3
+        feedback = "feedback" if with_gains else "0"
         try:
             with self.snapshot():  # a commit between the two reads would look like damage
-                table = self._conn.execute("SELECT id, steps, sha256 FROM trajectories ORDER BY id").fetchall()
+                table = self._conn.execute(
+                    f"SELECT id, steps, sha256, {feedback} FROM trajectories ORDER BY id"
+                ).fetchall()
                 cols = [f"s_{k}" for k in range(n)] + [f"a_{k}" for k in range(m)] + ["q"]
+                cols += gain_columns(n, m) if with_gains else []
                 points = self._conn.execute(
                     f"SELECT trajectory, step, {', '.join(cols)} FROM points ORDER BY trajectory, step"
                 ).fetchall()
         except sqlite3.DatabaseError as exc:
             raise RunFileError(f"{self.path}: cannot read the dataset: {exc}") from exc
-        total = sum(steps for _, steps, _ in table)
+        total = sum(row[1] for row in table)
         dataset = Dataset(n, m, capacity=max(total, 1))
         if len(points) != total:
             raise RunFileError(f"{self.path} is damaged: {len(points)} points stored, trajectories declare {total}")
-        arr = np.asarray(points, dtype=np.float64).reshape(len(points), 2 + n + m + 1)
+        arr = np.asarray(points, dtype=np.float64).reshape(len(points), 2 + len(cols))
         lo = 0
-        for expected_id, (traj_id, steps, digest) in enumerate(table):
+        q = 2 + n + m  # the column of Q; the gains follow it
+        for expected_id, (traj_id, steps, digest, has_gains) in enumerate(table):
             block = arr[lo : lo + steps]
             lo += steps
             if traj_id != expected_id:
                 raise RunFileError(f"{self.path} is damaged: trajectory {expected_id} is missing")
             if not (np.all(block[:, 0] == traj_id) and np.array_equal(block[:, 1], np.arange(steps))):
                 raise RunFileError(f"{self.path} is damaged: trajectory {traj_id} has missing or extra steps")
-            traj = Trajectory(block[:, 2 : 2 + n].copy(), block[:, 2 + n : 2 + n + m].copy(), block[:, -1].copy())
+            gains = block[:, q + 1 :].reshape(steps, m, n).copy() if has_gains else None
+            traj = Trajectory(block[:, 2 : 2 + n].copy(), block[:, 2 + n : q].copy(), block[:, q].copy(), gains=gains)
             if trajectory_digest(traj) != digest:
                 raise RunFileError(f"{self.path} is damaged: trajectory {traj_id} fails its SHA-256 check")
             try:

@@ -27,8 +27,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
-from npp_ros.tasks.suite_plant import SuitePlant, wrap_angle
+from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.trajopt.ilqr import (
     ILQR,
     MujocoDynamics,
@@ -66,6 +67,7 @@ class AcrobotPlant(SuitePlant):
         "body_pos", "actuator_gear", "actuator_ctrlrange", "site_pos", "site_size",
     )  # fmt: skip
     represent = staticmethod(represent)
+    angles = (0, 1)  # the state entries represent() wraps
 
 
 @dataclass(frozen=True)

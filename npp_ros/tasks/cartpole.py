@@ -26,8 +26,9 @@ from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are
 
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
-from npp_ros.tasks.suite_plant import SuitePlant, wrap_angle
+from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, MujocoDynamics, OptimizingExpert
 
 TASK = "cartpole_swingup"
@@ -58,6 +59,7 @@ class CartpolePlant(SuitePlant):
         "body_inertia", "body_ipos", "body_pos", "actuator_gear", "actuator_ctrlrange",
     )  # fmt: skip
     represent = staticmethod(represent)
+    angles = (1,)  # the state entries represent() wraps
 
 
 _LN10 = math.log(10.0)

@@ -85,6 +85,9 @@ class LQRPlant:
         self.joint_names = [model.id2name(i, "joint") for i in range(model.njnt)]
         self.actuated_joint_names = [model.id2name(int(model.actuator_trnid[i, 0]), "joint") for i in range(model.nu)]
         self.control_cost_coef = float(self._task.control_cost_coef)
+        self.angles: tuple[int, ...] = ()  # positions of linear springs: nothing wraps
+        self.action_low = np.full(self.action_dim, -np.inf)  # the lqr actuators are not ctrllimited
+        self.action_high = np.full(self.action_dim, np.inf)
 
     # -------------------------------------------------------------- description
     @property
@@ -199,7 +202,8 @@ class LQRExpert:
         steps = self.horizon if horizon is None or horizon == 0 else check_horizon(horizon)
         run = rollout(self.plant, self.action, x0, steps)
         values = np.asarray(self.value(run.states), dtype=np.float64)
-        return Trajectory(run.states, run.actions, values, expert_return=run.total_return)
+        gains = np.broadcast_to(-self.K, (len(values), *self.K.shape)).copy()  # u = -K x: its own feedback law
+        return Trajectory(run.states, run.actions, values, expert_return=run.total_return, gains=gains)
 
     def finite_horizon_cost(self, steps: int) -> FloatArray:
         """P_H with J_H(x) = 0.5 x'P_H x the optimal cost of ``steps`` steps (no terminal cost).

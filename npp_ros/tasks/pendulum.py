@@ -31,8 +31,9 @@ from numpy.typing import ArrayLike
 from scipy.linalg import solve_discrete_are
 
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
-from npp_ros.tasks.suite_plant import SuitePlant, wrap_angle
+from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
 TASK = "pendulum_swingup"
@@ -73,6 +74,7 @@ class PendulumPlant(SuitePlant):
         "body_ipos", "body_pos", "actuator_gear", "actuator_ctrlrange",
     )  # fmt: skip
     represent = staticmethod(represent)
+    angles = (0,)  # the state entries represent() wraps
 
 
 # ----------------------------------------------------------------------------- surrogate and warm start

@@ -28,6 +28,7 @@ from npp_ros.certificate.certifier import CheckedQuantity
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.dataset import FloatArray, Trajectory
+from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
@@ -62,7 +63,11 @@ def episode_rng(seed: int, episode: int) -> np.random.Generator:
 
 
 class Plant(Protocol):
-    """A dm_control task stepped one control step at a time; ``state()`` is what the dataset stores."""
+    """A dm_control task stepped one control step at a time; ``state()`` is what the dataset stores.
+
+    ``angles`` (the state entries stored wrapped to (-pi, pi]) and ``action_low``/``action_high`` (the
+    actuator range) are what the feedback policy needs; a plant without them has no angles and no limits.
+    """
 
     task: str
     seed: int
@@ -298,6 +303,13 @@ class OptimizerTask(Task):
     def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
         assert self.sampler is not None
         return self.sampler(rng)
+
+
+def control_space(plant: Plant) -> ControlSpace:
+    """How the plant's states differ and how far its actuators reach (npp_ros.policy.feedback)."""
+    low = getattr(plant, "action_low", np.full(plant.action_dim, -np.inf))
+    high = getattr(plant, "action_high", np.full(plant.action_dim, np.inf))
+    return ControlSpace.of(plant.state_dim, getattr(plant, "angles", ()), low, high)
 
 
 def get_task(name: str) -> Task:

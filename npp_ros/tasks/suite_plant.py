@@ -22,12 +22,6 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.vectors import finite_vector
 
 
-def wrap_angle(angle: ArrayLike) -> FloatArray:
-    """Map angles to (-pi, pi] (pi stays pi, -pi becomes pi)."""
-    a = np.asarray(angle, dtype=np.float64)
-    return np.pi - np.mod(np.pi - a, 2 * np.pi)
-
-
 class SuitePlant:
     """One dm_control suite task driven step by step; subclasses fill in the class attributes."""
 
@@ -35,6 +29,7 @@ class SuitePlant:
     suite: ClassVar[tuple[str, str]]  # (domain, task) for dm_control's suite.load
     state_entries: ClassVar[str]  # what the state's entries are, in order (named in refusals)
     fingerprint_fields: ClassVar[tuple[str, ...]]  # model attributes (dotted) that define its dynamics
+    angles: tuple[int, ...] = ()  # the state entries that represent() wraps to (-pi, pi]
 
     def __init__(self, seed: int = 0) -> None:
         os.environ.setdefault("MUJOCO_GL", "disable")

@@ -67,8 +67,9 @@ from numpy.typing import ArrayLike
 
 from npp_ros.certificate.certifier import CERTIFY_MODES
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import DEFAULT_OPTIONS, Expert, ExpertOptions, OptimizerTask, check_horizon
-from npp_ros.tasks.suite_plant import SuitePlant, wrap_angle
+from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.trajopt.ilqr import VALUE_MODES, OptimizingExpert, check_time_budget
 
 HASH_MARK = "#sha256="
@@ -514,6 +515,7 @@ class FilePlant(SuitePlant):
         self.state_entries = definition.stored_state()
         self.fingerprint_fields = FINGERPRINT_FIELDS
         self.represent = definition.represent  # type: ignore[method-assign]  # the file's wrapping, per instance
+        self.angles = tuple(definition.wrapped)
         self.seed = int(seed)
         self.physics = dm_mujoco.Physics.from_xml_path(str(definition.model_path))
         self._task = definition.reward

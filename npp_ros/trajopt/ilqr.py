@@ -314,6 +314,9 @@ class TrajOptResult:
     cost_history: tuple[float, ...]
     timings: dict[str, float] = field(default_factory=dict)
     max_transition_norm: float = math.nan  # max_t |A_t|_2 along the returned trajectory (L_f seen)
+    # K_t of the last successful backward pass at the returned trajectory, (T, m, n): the optimizer's local
+    # feedback law u = u_t + K_t (x - x_t) (zero on clamped controls); None when no pass succeeded there.
+    gains: FloatArray | None = None
 
     @property
     def timed_out(self) -> bool:
@@ -501,6 +504,7 @@ class ILQR:
         last_decrease = math.inf
         need_derivatives = True
         pass_time = search_time = 0.0
+        feedback: FloatArray | None = None  # the gains of a successful pass at the current trajectory
 
         while True:
             # Derivatives and backward pass at the current trajectory (whose W_x is returned).
@@ -527,6 +531,7 @@ class ILQR:
             if failed >= 0:
                 stop_reason = "regularisation limit"
                 break
+            feedback = gains
             k_prev = k
             step_size = float(np.mean(np.max(np.abs(k) / (np.abs(actions) + 1.0), axis=1)))
             if step_size < 1e-6 or last_decrease < tolerance:
@@ -552,6 +557,7 @@ class ILQR:
                 states, actions, cost = new_states, new_actions, new_cost
                 history.append(cost)
                 need_derivatives = True
+                feedback = None  # the pass was at the trajectory just left
                 delta = min(0.5, delta / 2.0)
                 mu = mu * delta if mu * delta > MU_MIN else 0.0
             else:
@@ -574,6 +580,7 @@ class ILQR:
             cost_history=tuple(history),
             timings=timings,
             max_transition_norm=float(np.max(np.linalg.norm(a, 2, axis=(1, 2)))),
+            gains=None if feedback is None else np.array(feedback, dtype=np.float64),
         )
 
 
@@ -758,7 +765,9 @@ class OptimizingExpert:
         self.requests += 1
         self.budget_stops += stopped_by_budget
         # Q_0 is the replayed H-step return in both value modes: the expert's own return at s0 (oracle mode).
-        trajectory = Trajectory(self.represent(raw), result.actions.copy(), values, expert_return=float(values[0]))
+        trajectory = Trajectory(
+            self.represent(raw), result.actions.copy(), values, expert_return=float(values[0]), gains=result.gains
+        )
         return ExpertSolution(trajectory, result, raw, kept_warm_start)
 
     def warm_actions(self, x0: FloatArray, steps: int) -> FloatArray:

@@ -1,0 +1,92 @@
+"""Which action the policy takes at its chosen data point: the stored one, or the expert's feedback law there.
+
+Both policies choose the data point i* exactly as the paper does (the maximiser of V_lb, npp_ros.policy.bounds).
+They differ only in the action at i*:
+
+- ``open-loop`` (the paper): a = a_i*, the stored action, replayed whatever the state;
+- ``feedback``: a = clamp(a_i* + K_i* (s - s_i*)), the expert's own local policy around its trajectory (iLQR's
+  backward-pass gain, the LQR gain), as LQR-trees and trajectory libraries act. The difference s - s_i* is the
+  task's own: entries that are angles are wrapped to (-pi, pi], so a state just across the +-pi seam is near,
+  not 2 pi away. The action is clamped to the actuator range, as the plant would clamp it.
+
+On an unstable plant a state a little off the stored path needs a correction that a stored action does not hold:
+the feedback policy carries it. A point whose expert gave no gain has K = 0 and acts open loop.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from npp_ros.policy.dataset import Dataset, FloatArray
+
+PolicyKind = Literal["open-loop", "feedback"]
+POLICY_KINDS: tuple[str, ...] = get_args(PolicyKind)
+PAPER_POLICY: PolicyKind = "open-loop"
+DEFAULT_POLICY: PolicyKind = "open-loop"  # what a run uses unless it names one
+
+
+def wrap_angle(angle: ArrayLike) -> FloatArray:
+    """Map angles to (-pi, pi] (pi stays pi, -pi becomes pi)."""
+    a = np.asarray(angle, dtype=np.float64)
+    return np.pi - np.mod(np.pi - a, 2 * np.pi)
+
+
+def check_policy_kind(kind: str) -> PolicyKind:
+    if kind not in POLICY_KINDS:
+        raise ValueError(f"the policy must be one of {', '.join(POLICY_KINDS)}, got {kind!r}")
+    return kind  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class ControlSpace:
+    """How a task's states differ and how far its actuators reach: what the feedback law needs of the plant.
+
+    ``angles`` are the state entries stored wrapped to (-pi, pi]; ``action_low`` and ``action_high`` the
+    actuator range (infinite where an actuator has no limit).
+    """
+
+    state_dim: int
+    angles: tuple[int, ...]
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if any(not 0 <= i < self.state_dim for i in self.angles):
+            raise ValueError(f"angle entries {self.angles} must lie in [0, {self.state_dim})")
+        if len(self.action_low) != len(self.action_high):
+            raise ValueError("action_low and action_high must have one entry per actuator")
+        low, high = np.asarray(self.action_low), np.asarray(self.action_high)
+        if np.any(np.isnan(low)) or np.any(np.isnan(high)) or np.any(low > high):
+            raise ValueError(f"the action range [{self.action_low}, {self.action_high}] is not a range")
+
+    @classmethod
+    def of(cls, state_dim: int, angles: Sequence[int], low: ArrayLike, high: ArrayLike) -> ControlSpace:
+        return cls(
+            int(state_dim),
+            tuple(int(i) for i in angles),
+            tuple(float(x) for x in np.ravel(low)),
+            tuple(float(x) for x in np.ravel(high)),
+        )
+
+    def difference(self, states: FloatArray, references: FloatArray) -> FloatArray:
+        """s - s_ref with the angle entries wrapped (rows of equal shape)."""
+        diff = states - references
+        if self.angles:
+            index = list(self.angles)
+            diff[..., index] = wrap_angle(diff[..., index])
+        return diff
+
+    def clamp(self, actions: FloatArray) -> FloatArray:
+        return np.clip(actions, self.action_low, self.action_high)
+
+
+def feedback_actions(dataset: Dataset, index: NDArray[np.int64], states: FloatArray, space: ControlSpace) -> FloatArray:
+    """clamp(a_i + K_i (s - s_i)) for each row of ``states`` (B, n) and its chosen point ``index`` (B,)."""
+    diff = space.difference(states, dataset.states[index])
+    correction = np.matmul(dataset.gains_at(index), diff[:, :, None])[:, :, 0]
+    return space.clamp(dataset.actions[index] + correction)
