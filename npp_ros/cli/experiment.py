@@ -47,6 +47,7 @@ from npp_ros.experiment import (
     write_results,
 )
 from npp_ros.experiment.arms import HELD_OUT
+from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.tasks.lqr import TASKS
 from npp_ros.tasks.registry import by_task
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
@@ -99,6 +100,13 @@ def parser() -> argparse.ArgumentParser:
         "rule, to reproduce it) or a mode under a sequentially valid rule (--rules): rollout (V_ub + tail - the "
         "policy's return), oracle (the expert's return - the policy's), surrogate; default: paper for the lqr "
         "tasks, the task's own sound mode (oracle) for tasks with a suboptimal optimizer expert",
+    )
+    ap.add_argument(
+        "--policies",
+        nargs="+",
+        choices=POLICY_KINDS,
+        default=[DEFAULT_POLICY],
+        help="how the policy acts, side by side as arms of one run (same seeds, same s0 streams): " + POLICY_HELP,
     )
     ap.add_argument(
         "--rules",
@@ -283,7 +291,7 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
     )
     for task in args.tasks:
         settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
-    return settings, default_arms(args.tasks, args.lipschitz, args.experts, args.certify, args.rules)
+    return settings, default_arms(args.tasks, args.lipschitz, args.experts, args.certify, args.rules, args.policies)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,12 +19,12 @@ import numpy as np
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
 from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int, task_name
-from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzWarning
 from npp_ros.run.evaluation import check_policy
 from npp_ros.run.progress import Counter, StatusLine
 from npp_ros.run.records import RunFileError, write_episode_log
-from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, resolve_lipschitz
+from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, policy_for, resolve_lipschitz
 from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads
@@ -71,6 +71,7 @@ def parser() -> argparse.ArgumentParser:
         "paper (the one-shot test of Theorem 4.1, to reproduce the paper); default: the checked quantity's "
         f"({', '.join(f'{mode} {rule}' for mode, rule in DEFAULT_RULES.items())})",
     )
+    ap.add_argument("--policy", choices=POLICY_KINDS, default=DEFAULT_POLICY, help=POLICY_HELP)
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
     ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         config = build_config(
             args.task, args.seed, lipschitz, epsilon,
             condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
-            certify=args.certify, rule=args.rule,
+            certify=args.certify, rule=args.rule, policy=args.policy,
         )  # fmt: skip
         status = StatusLine(epsilon, args.condition)
         loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", rollouts=args.rollouts, observers=[status])
@@ -150,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
         certificate = result.certificate
         policy = loop.policy
         if certificate is not None and certificate.policy_trajectories != loop.policy_data.num_trajectories:
-            policy = NonparametricPolicy(loop.dataset.prefix(certificate.policy_trajectories), lipschitz.value)
+            policy = policy_for(loop.dataset.prefix(certificate.policy_trajectories), config.spec, args.task, args.seed)
         evaluation = check_policy(
             policy, task, task.make_plant(args.seed), expert, states, args.horizon,
             epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.spec.certify == "oracle",

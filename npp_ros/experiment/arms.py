@@ -10,6 +10,7 @@ import numpy as np
 
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.policy.feedback import PAPER_POLICY, check_policy_kind
 from npp_ros.tasks.registry import Expert, ExpertOptions, OptimizerTask, get_task
 from npp_ros.tasks.sources import short_name
 
@@ -32,8 +33,10 @@ class Arm:
     lipschitz: str  # "paper", "analytic" or a number
     certify: str = "surrogate"  # the paper's checked quantity ...
     rule: str = "paper"  # ... and its stopping rule, unless the arm says otherwise
+    policy: str = PAPER_POLICY  # how the policy acts at its chosen point (npp_ros.policy.feedback)
 
     def __post_init__(self) -> None:
+        check_policy_kind(self.policy)
         if self.certify not in CERTIFY_MODES:
             raise ValueError(f"unknown certification mode {self.certify!r}; known: {', '.join(CERTIFY_MODES)}")
         if self.rule not in STOPPING_RULES:
@@ -57,13 +60,15 @@ class Arm:
     @property
     def name(self) -> str:
         base = f"{short_name(self.task)}-{self.expert}-L{self.lipschitz}"  # a task file's path is no folder name
-        return base if self.paper_certification else f"{base}-{self.certify}-{self.rule}"
+        base = base if self.paper_certification else f"{base}-{self.certify}-{self.rule}"
+        return base if self.policy == PAPER_POLICY else f"{base}-{self.policy}"
 
     @property
     def label(self) -> str:
         expert = f"{self.expert} expert"
         how = "" if self.paper_certification else f", certify={self.certify} ({self.rule})"
-        return f"{self.task}, {expert}, {self.lipschitz} L{how}"
+        acts = "" if self.policy == PAPER_POLICY else f", {self.policy} policy"
+        return f"{self.task}, {expert}, {self.lipschitz} L{how}{acts}"
 
 
 @dataclass(frozen=True)
@@ -95,6 +100,7 @@ def default_arms(
     experts: Sequence[str] | None,
     certify: Sequence[str] | None = ("paper",),
     rules: Sequence[str] | None = None,
+    policies: Sequence[str] = (PAPER_POLICY,),
 ) -> list[Arm]:
     """Each task with the experts, L settings and modes it offers among those asked for.
 
@@ -104,6 +110,7 @@ def default_arms(
     one-shot rule) and sound modes (rollout, oracle, surrogate) under the sequential rule; None is
     "paper" for a task whose expert is optimal and the task's default mode otherwise. ``rules``
     lists the rules the sound modes run under, side by side; None is each mode's default rule.
+    ``policies`` lists how the policy acts, side by side (same seeds, same s0 streams).
     """
     arms = []
     for task in tasks:
@@ -116,10 +123,12 @@ def default_arms(
                 if expert == "detuned" and setting == "paper":
                     continue
                 for mode in modes:
-                    if mode == "paper":
-                        arms.append(Arm(task, expert, setting))
-                    else:
-                        arms += [Arm(task, expert, setting, mode, rule) for rule in rules or (DEFAULT_RULES[mode],)]
+                    for policy in policies:
+                        if mode == "paper":
+                            arms.append(Arm(task, expert, setting, policy=policy))
+                        else:
+                            chosen = rules or (DEFAULT_RULES[mode],)
+                            arms += [Arm(task, expert, setting, mode, rule, policy) for rule in chosen]
     return arms
 
 

@@ -23,12 +23,11 @@ from npp_ros.experiment.evaluation import (
     read_held_out,
 )
 from npp_ros.experiment.expert_requests import EVALUATION_FILE, HELD_OUT_FILE, LATER, ExpertReturns
-from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.loop import NPPLoop, Observer
 from npp_ros.run.progress import status_text
 from npp_ros.run.records import EpisodeRow
-from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
+from npp_ros.run.setup import build_config, build_loop, policy_for, resolve_lipschitz
 from npp_ros.tasks.registry import Expert, get_task
 
 
@@ -79,7 +78,7 @@ def run_arm_seed(
     epsilon = settings.epsilon_for(arm.task)
     config = build_config(
         arm.task, seed, lipschitz, epsilon, p=settings.p, delta=settings.delta, horizon=settings.horizon,
-        certify=arm.certify, rule=arm.rule,  # type: ignore[arg-type]  # Arm checks both
+        certify=arm.certify, rule=arm.rule, policy=arm.policy,  # type: ignore[arg-type]  # Arm checks them
     )  # fmt: skip
     budget = settings.max_episodes[arm.task]
     progress = _EpisodeProgress(report, key, budget, epsilon, config.spec.condition)
@@ -109,7 +108,7 @@ def run_arm_seed(
             if calls == loop.policy_data.num_trajectories:
                 policy = loop.policy  # its search index is already built
             else:  # resumed past an unevaluated checkpoint: rebuild the data as it was there
-                policy = NonparametricPolicy(loop.dataset.prefix(calls), lipschitz.value)
+                policy = policy_for(loop.dataset.prefix(calls), config.spec, arm.task, seed)
             if evaluator is None:
                 asked = lambda k, n: report(f"{key}: the expert from evaluation s0 {k}/{n}")  # noqa: E731
                 evaluator = Evaluator(arm, seed, settings, expert, asked, store=run_dir / EVALUATION_FILE)

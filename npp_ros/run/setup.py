@@ -23,7 +23,7 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.policy.feedback import DEFAULT_POLICY, ControlSpace, PolicyKind, check_policy_kind
 from npp_ros.policy.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
-from npp_ros.run.loop import NPPLoop, Observer, RunConfig, make_policy
+from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, control_space, get_task
 from npp_ros.tasks.rollout import rollout
@@ -109,17 +109,28 @@ def build_loop(
     expert: Expert,
     *,
     store_path: Path | None = None,
+    store: RunStore | None = None,
     rollouts: bool = False,
     observers: Sequence[Observer] = (),
+    oracle: Oracle | None = None,
+    driver: EpisodeDriver | None = None,
 ) -> NPPLoop:
-    """The loop for ``config`` with this expert; the sound modes always let the policy drive."""
-    store = RunStore.open_or_create(store_path, config.metadata()) if store_path is not None else None
-    drive = rollouts or config.spec.certify != "surrogate"
+    """The loop for ``config`` with this expert: every front end builds its run here, so a loop option is added once.
+
+    In one process (npp-learn, npp-experiment) the expert answers directly and the policy drives a local copy of
+    the plant (the sound modes always let it drive; ``rollouts`` in surrogate mode too). The supervisor node gives
+    its own ``oracle`` (the expert service) and ``driver`` (the sim, or None when it does not let the policy
+    drive) and the ``store`` it opened; the expert is then still the task's, for L, V(s0) and the value basis.
+    """
+    if store is None and store_path is not None:
+        store = RunStore.open_or_create(store_path, config.metadata())
     task = get_task(config.task)
-    driver = PolicyRollouts(task.make_plant(config.seed), config.horizon) if drive else None
+    if oracle is None:
+        drive = rollouts or config.spec.certify != "surrogate"
+        driver = PolicyRollouts(task.make_plant(config.seed), config.horizon) if drive else None
     return NPPLoop(
         config,
-        expert,
+        oracle or expert,
         initial_state_fn(config.task, config.seed),
         store=store,
         driver=driver,

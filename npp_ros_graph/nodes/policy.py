@@ -32,10 +32,16 @@ from std_msgs.msg import UInt32, UInt64
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, DatasetError
+from npp_ros.policy.feedback import check_policy_kind
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
-from npp_ros_graph.transport.convert import refill_action, state_from_joint_state, trajectory_from_msg
+from npp_ros_graph.transport.convert import (
+    control_space_from,
+    refill_action,
+    state_from_joint_state,
+    trajectory_from_msg,
+)
 from npp_ros_graph.transport.parameters import declare_settings
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
@@ -219,10 +225,20 @@ class PolicyNode(Node):
                 self._catch_up_needed = True  # this answer paged from the old run's count: ask from the start
                 return
         if self.policy is None:
-            assert self.dataset is not None
+            assert self.dataset is not None and self.plant is not None
+            try:
+                kind = check_policy_kind(response.policy)
+                control = control_space_from(self.plant) if kind == "feedback" else None
+                policy = NonparametricPolicy(self.dataset, response.lipschitz, control=control)
+            except ValueError as exc:
+                self._catch_up_needed = True
+                self._warn("policy", f"cannot act as the supervisor asks: {exc}")
+                return
             with self._data_lock:
-                self.policy = NonparametricPolicy(self.dataset, response.lipschitz)
-            self.get_logger().info(f"acting greedily with L = {response.lipschitz:g} ({response.lipschitz_source})")
+                self.policy = policy
+            self.get_logger().info(
+                f"acting greedily with L = {response.lipschitz:g} ({response.lipschitz_source}), {kind} policy"
+            )
         for msg in response.trajectories:
             if msg.index == self.dataset.num_trajectories and not self._append(msg):
                 break

@@ -24,10 +24,11 @@ from sensor_msgs.msg import JointState
 
 from npp_ros.certificate.certifier import Certificate
 from npp_ros.policy.dataset import DatasetError, FloatArray, Trajectory
+from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.vectors import finite_vector
 from npp_ros.run.loop import RunConfig
 from npp_ros.run.records import EpisodeRow
-from npp_ros.tasks.registry import Plant
+from npp_ros.tasks.registry import Plant, control_space
 
 NS_PER_S = 1_000_000_000
 
@@ -54,8 +55,8 @@ def stamp_ns(time: Time) -> int:
 
 # ----------------------------------------------------------------------------- trajectories
 def _trajectory(states: Sequence[float], actions: Sequence[float], values: Sequence[float],
-                state_dim: int, action_dim: int) -> Trajectory:  # fmt: skip
-    """Row-major message arrays -> a validated core Trajectory (raises DatasetError)."""
+                state_dim: int, action_dim: int, gains: Sequence[float] = ()) -> Trajectory:  # fmt: skip
+    """Row-major message arrays -> a validated core Trajectory (raises DatasetError); empty gains: none."""
     steps = len(values)
     s = np.asarray(states, dtype=np.float64)
     a = np.asarray(actions, dtype=np.float64)
@@ -64,7 +65,12 @@ def _trajectory(states: Sequence[float], actions: Sequence[float], values: Seque
             f"trajectory arrays do not fit: {steps} values, {s.size} state entries (state_dim {state_dim}), "
             f"{a.size} action entries (action_dim {action_dim})"
         )
-    return Trajectory.validated(s.reshape(steps, state_dim), a.reshape(steps, action_dim), values)
+    k = np.asarray(gains, dtype=np.float64) if len(gains) else None
+    return Trajectory.validated(s.reshape(steps, state_dim), a.reshape(steps, action_dim), values, gains=k)
+
+
+def _gains(trajectory: Trajectory) -> array[float]:
+    return float64_array(() if trajectory.gains is None else trajectory.gains.ravel())
 
 
 def trajectory_to_msg(index: int, trajectory: Trajectory, run: str = "") -> TrajectoryMsg:
@@ -77,12 +83,13 @@ def trajectory_to_msg(index: int, trajectory: Trajectory, run: str = "") -> Traj
         states=float64_array(trajectory.states.ravel()),
         actions=float64_array(trajectory.actions.ravel()),
         values=float64_array(trajectory.values),
+        gains=_gains(trajectory),
     )
 
 
 def trajectory_from_msg(msg: TrajectoryMsg) -> tuple[int, Trajectory]:
     """(index, trajectory); raises DatasetError when the arrays do not fit the dimensions or are not finite."""
-    return int(msg.index), _trajectory(msg.states, msg.actions, msg.values, msg.state_dim, msg.action_dim)
+    return int(msg.index), _trajectory(msg.states, msg.actions, msg.values, msg.state_dim, msg.action_dim, msg.gains)
 
 
 def trajectory_to_response(trajectory: Trajectory, response: ExpertTrajectory.Response) -> ExpertTrajectory.Response:
@@ -93,11 +100,14 @@ def trajectory_to_response(trajectory: Trajectory, response: ExpertTrajectory.Re
     response.states = float64_array(trajectory.states.ravel())
     response.actions = float64_array(trajectory.actions.ravel())
     response.values = float64_array(trajectory.values)
+    response.gains = _gains(trajectory)
     return response
 
 
 def trajectory_from_response(response: ExpertTrajectory.Response) -> Trajectory:
-    traj = _trajectory(response.states, response.actions, response.values, response.state_dim, response.action_dim)
+    traj = _trajectory(
+        response.states, response.actions, response.values, response.state_dim, response.action_dim, response.gains
+    )
     known = math.isfinite(response.expert_return)
     return replace(traj, expert_return=float(response.expert_return) if known else None)
 
@@ -153,6 +163,7 @@ def action_from_joint_state(msg: JointState, actuated_joint_names: Sequence[str]
 
 # ----------------------------------------------------------------------------- plant
 def plant_description(plant: Plant, seed: int, horizon: int) -> PlantDescription:
+    space = control_space(plant)
     return PlantDescription(
         task=plant.task,
         seed=seed,
@@ -163,7 +174,15 @@ def plant_description(plant: Plant, seed: int, horizon: int) -> PlantDescription
         joint_names=list(plant.joint_names),
         actuated_joint_names=list(plant.actuated_joint_names),
         model_sha256=plant.model_sha256(),
+        angle_entries=list(space.angles),
+        action_low=float64_array(space.action_low),
+        action_high=float64_array(space.action_high),
     )
+
+
+def control_space_from(msg: PlantDescription) -> ControlSpace:
+    """The plant's control space as its sim describes it (raises ValueError on a description that is no range)."""
+    return ControlSpace.of(msg.state_dim, list(msg.angle_entries), list(msg.action_low), list(msg.action_high))
 
 
 def state_layout(plant: PlantDescription) -> str:

@@ -19,7 +19,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import rclpy
 from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
@@ -39,10 +38,11 @@ from npp_ros.certificate.certifier import (
 )
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
 from npp_ros.policy.dataset import FloatArray, Trajectory
+from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.answer_check import AnswerCheck
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
-from npp_ros.run.setup import build_config, initial_state_fn, resolve_lipschitz, value_basis
+from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros_graph.nodes.supervisor.expert import RosExpert
@@ -50,7 +50,7 @@ from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
 from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollouts
 from npp_ros_graph.runtime.diagnostics import WARN, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
-from npp_ros_graph.runtime.node import publishers_of, run_node
+from npp_ros_graph.runtime.node import publishers_of, request_stop, run_node
 from npp_ros_graph.transport.convert import (
     trajectory_to_msg,
 )
@@ -85,6 +85,7 @@ PARAMETERS = (
           "else paper",
           choices=(TASK_DEFAULT, *LIPSCHITZ_CHOICES, "a number > 0")),
     Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
+    Param("policy", DEFAULT_POLICY, POLICY_HELP, choices=POLICY_KINDS),
     Param("certify", TASK_DEFAULT, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
           "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
           choices=(TASK_DEFAULT, *CERTIFY_MODES)),
@@ -121,6 +122,7 @@ class SupervisorSettings:
     condition: Condition
     certify: CheckedQuantity | str
     rule: StoppingRule | str
+    policy: str
     p: float
     delta: float
     max_episodes: int
@@ -256,6 +258,7 @@ class SupervisorNode(Node):
         response.total = total
         response.lipschitz = loop.spec.lipschitz.value
         response.lipschitz_source = loop.spec.lipschitz.source
+        response.policy = loop.spec.policy
         response.trajectories = [
             self.trajectory_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
         ]
@@ -275,9 +278,9 @@ class SupervisorNode(Node):
             if self.stop.is_set():  # the node is closing: what failed was cut off by it
                 self.get_logger().info(f"stopped while {exc}")
                 return
-            self.get_logger().fatal(f"Algorithm 1 stopped: {exc}")
+            self.get_logger().error(f"Algorithm 1 stopped: {exc}")
             self.exit_code = 1
-            rclpy.try_shutdown()
+            request_stop()  # run_node tears the node down in order; the context goes last
 
     def _run_algorithm(self) -> None:
         assert self.plant is not None
@@ -298,6 +301,7 @@ class SupervisorNode(Node):
         config = build_config(
             task, plant.seed, lipschitz, epsilon,
             condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=rule,  # type: ignore[arg-type]
+            policy=s.policy,  # type: ignore[arg-type]  # the parameter's choices are the kinds
         )  # fmt: skip
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -325,16 +329,10 @@ class SupervisorNode(Node):
                 self.reset, self.seal, self.run_id, self.handshake, self.publish_trajectories,
                 stop=self.stop, logger=log, timeout=s.rollout_timeout,
             )  # fmt: skip
-            self.loop = loop = NPPLoop(
-                config,
-                oracle,
-                initial_state_fn(task, plant.seed),
-                store=store,
-                driver=rollouts if s.rollouts else None,
+            self.loop = loop = build_loop(
+                config, expert, store=store, oracle=oracle, driver=rollouts if s.rollouts else None,
                 observers=[reporter],
-                expert_value=spec.expert_value(expert),
-                basis=value_basis(expert, lipschitz.value),
-            )
+            )  # fmt: skip
             self.get_logger().info(
                 f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
                 f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
