@@ -1,5 +1,5 @@
 # Two entry points, each doing its own set-up on a fresh machine:
-#   make run    the main job (the ROS graph runs Algorithm 1 on lqr_2_1 to a certificate)
+#   make run    the main job (the ROS graph runs Algorithm 1 on lqr_2_1 to a certificate, with the paper's open-loop policy)
 #   make test   the test suite (what CI runs), on two pytest-xdist workers, one module each at a time
 #   make test-quick  the core's fast tests, no ROS graph (under a minute)
 #   make docs   the documentation site, built strictly into site/ (a broken link or reference fails it)
@@ -15,7 +15,7 @@ $(STAMP): requirements.lock pyproject.toml scripts/setup.sh $(INTERFACES)
 	bash scripts/setup.sh $(VENV)
 
 run: $(STAMP)
-	$(VENV)/bin/npp-run --task lqr_2_1 --seed 0
+	$(VENV)/bin/npp-run --task lqr_2_1 --seed 0 --policy open-loop
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile

@@ -27,7 +27,7 @@ from npp_ros.policy.dataset import Dataset, FloatArray
 PolicyKind = Literal["open-loop", "feedback"]
 POLICY_KINDS: tuple[str, ...] = get_args(PolicyKind)
 PAPER_POLICY: PolicyKind = "open-loop"
-DEFAULT_POLICY: PolicyKind = "open-loop"  # what a run uses unless it names one
+DEFAULT_POLICY: PolicyKind = "feedback"  # what a run uses unless it names one: the better measured (docs/results.md)
 POLICY_HELP = (
     "how the policy acts at the data point it chooses on V_lb: open-loop (the paper's: the stored action) or "
     f"feedback (the stored action plus the expert's feedback gain times the state difference); default {DEFAULT_POLICY}"
