@@ -1,5 +1,5 @@
 """npp-deploy's core (npp_ros/deploy.py), without ROS: the gate on real run folders, the robot's joints, the
-command limits, coverage and the watchdog."""
+command limits, coverage, the watchdog, and the robot's model from its MJCF (npp_ros/run/robot_model.py)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import pytest
 from deploy_runs import FINGERPRINT, HORIZON, SEED, TASK, altered_copy, bad_folders, edited_certificate, make_run
 
 from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.vectors import MAX_MAGNITUDE
 from npp_ros.run.deploy import (
     Acceptance,
     CommandLimits,
@@ -28,8 +29,9 @@ from npp_ros.run.deploy import (
     safe_command,
     stored_state,
 )
+from npp_ros.run.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint, model_mjcf
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.registry import TASK_NAMES, get_task
 from npp_ros.tasks.rollout import rollout
 
 ACCEPT = Acceptance(model_fingerprint=FINGERPRINT)
@@ -68,6 +70,16 @@ def test_the_gate_refuses_each_bad_folder_with_its_reason(runs, case: str) -> No
     folder, reason = bad[case]
     with pytest.raises(GateRefusal, match=reason):
         load_deployment(folder, ACCEPT)
+
+
+def test_a_run_file_without_a_certificate_is_not_said_to_be_never_certified(runs) -> None:
+    """The file cannot tell a run that never certified from a certificate removed afterwards: both are named."""
+    _, bad = runs
+    for case in ("deleted certificate", "uncertified"):
+        with pytest.raises(GateRefusal) as refusal:
+            load_deployment(bad[case][0], ACCEPT)
+        assert "the run file holds no certificate" in str(refusal.value)
+        assert "never certified, or its certificate was removed" in str(refusal.value)
 
 
 def test_an_edit_of_both_the_run_and_its_certificate_does_not_follow_from_the_episode_log(runs, tmp_path) -> None:
@@ -164,6 +176,33 @@ def test_bad_joint_states_are_refused_with_the_joints_at_fault() -> None:
     with pytest.raises(RobotStateError, match=r"\(it names: none\)"):
         layout.state([], [], [])
     np.testing.assert_array_equal(layout.state(["joint_1", "joint_0"], [2.0, 1.0], [4.0, 3.0]), [1, 2, 3, 4])
+
+
+@pytest.mark.parametrize("task", ["pendulum_swingup", "lqr_2_1"])
+def test_a_first_joint_state_naming_no_joint_is_refused_like_any_other(task: str) -> None:
+    """The layout caches where the task's joints are in the last message's names; before any message that cache
+    is empty, and a first message naming no joints must not match it (it was taken as a valid, empty state)."""
+    plant = get_task(task).make_plant(0)
+    layout = JointLayout.of_plant(plant)
+    for _ in range(2):  # the first one and the same again
+        with pytest.raises(RobotStateError, match=r"lacks the task's joints .*\(it names: none\)"):
+            layout.state([], [], [])
+    partial = plant.joint_names[:-1]
+    if partial:
+        with pytest.raises(RobotStateError, match=f"lacks the task's joints {plant.joint_names[-1]}"):
+            layout.state(partial, [0.0] * len(partial), [0.0] * len(partial))
+    count = len(plant.joint_names)
+    np.testing.assert_array_equal(layout.state(plant.joint_names, [0.5] * count, [0.25] * count),
+                                  [0.5] * count + [0.25] * count)  # fmt: skip
+    with pytest.raises(RobotStateError, match=r"\(it names: none\)"):
+        layout.state([], [], [])
+
+
+def test_a_joint_state_too_large_to_compare_with_the_data_is_refused_naming_the_joint() -> None:
+    layout = JointLayout.of_plant(get_task("lqr_2_1").make_plant(0))
+    with pytest.raises(RobotStateError, match=r"too large .*: joint_0 position = 1e\+200 \(entries must be within"):
+        layout.state(["joint_0", "joint_1"], [1e200, 0.0], [0.0, 0.0])
+    layout.state(["joint_0", "joint_1"], [MAX_MAGNITUDE, 0.0], [0.0, 0.0])  # the largest the policy compares
 
 
 def test_command_joints_must_be_the_actuated_ones() -> None:
@@ -282,6 +321,87 @@ def test_a_fed_watchdog_does_not_fire() -> None:
         assert fired == []
     finally:
         watchdog.close()
+
+
+def test_no_safe_command_follows_a_fresh_one_that_came_while_the_watchdog_was_sending_it() -> None:
+    """The expiry decision and the safe command are one step against fresh commands: a fresh command sent while
+    the watchdog is deciding and sending waits for it, and goes out after the safe one, never before it."""
+    sent: list[str] = []
+    deciding, go_on = threading.Event(), threading.Event()
+    outcome: list[str] = []
+
+    def send_safe(age: float) -> None:
+        deciding.set()
+        go_on.wait(10.0)  # the safe command leaves late, as on a busy machine
+        sent.append("safe")
+
+    watchdog = Watchdog(0.05, send_safe)
+    try:
+        watchdog.arm()
+        assert deciding.wait(10.0)
+        fresh = threading.Thread(target=lambda: outcome.append(watchdog.send_fresh(lambda: sent.append("fresh"))))
+        fresh.start()
+        fresh.join(0.2)  # had the watchdog decided outside its lock, the fresh command would have gone out now
+        go_on.set()
+        fresh.join(10.0)
+        assert sent == ["safe", "fresh"] and outcome == ["resumed"]
+        assert not watchdog.expired
+    finally:
+        go_on.set()
+        watchdog.close()
+
+
+def test_no_fresh_command_follows_the_safe_one_sent_when_the_watchdog_is_disarmed() -> None:
+    sent: list[str] = []
+    after: list[float] = []
+    watchdog = Watchdog(60.0, lambda age: sent.append("expired"), after.append)
+    try:
+        assert watchdog.send_fresh(lambda: sent.append("before arming")) == "disarmed"
+        watchdog.arm()
+        assert watchdog.send_fresh(lambda: sent.append("fresh")) == "sent"
+        assert watchdog.disarm(lambda: sent.append("safe") or "safe sent") == "safe sent"
+        assert watchdog.send_fresh(lambda: sent.append("late")) == "disarmed"
+        assert sent == ["fresh", "safe"] and not watchdog.armed and after == []
+    finally:
+        watchdog.close()
+
+
+def test_the_watchdog_reports_after_its_safe_command_outside_its_step() -> None:
+    order: list[str] = []
+    reported = threading.Event()
+    watchdog = Watchdog(0.05, lambda age: order.append("safe"), lambda age: (order.append("report"), reported.set()))
+    try:
+        watchdog.arm()
+        assert reported.wait(10.0)
+        assert order == ["safe", "report"] and watchdog.fired == 1
+    finally:
+        watchdog.close()
+
+
+# ----------------------------------------------------------------------------- the robot's model as MJCF
+@pytest.mark.parametrize("task", [*TASK_NAMES, "examples/two_link_arm/task.toml"])
+def test_a_plants_mjcf_compiles_alone_to_its_own_fingerprint(task: str) -> None:
+    """What npp-robot publishes on /robot_description gives, compiled by npp-deploy, the plant's fingerprint."""
+    path = Path(__file__).resolve().parents[1] / task
+    plant = get_task(str(path) if path.is_file() else task).make_plant(0)
+    mjcf = model_mjcf(plant)
+    assert mjcf is not None and "<include" not in mjcf
+    assert mjcf_fingerprint(plant, mjcf) == plant.model_sha256()
+
+
+def test_another_models_mjcf_gives_another_fingerprint_and_garbage_does_not_compile(runs) -> None:
+    good, _ = runs
+    plant = get_task(TASK).make_plant(SEED)
+    other = model_mjcf(get_task(TASK).make_plant(SEED + 1))  # lqr's stiffness is drawn from the seed
+    assert other is not None
+    assert mjcf_fingerprint(plant, other) == get_task(TASK).make_plant(SEED + 1).model_sha256() != FINGERPRINT
+    own = model_mjcf(plant)
+    assert own is not None and described_fingerprint(good, own) == FINGERPRINT  # the run's task, by its plant
+    assert described_fingerprint(good / "run.sqlite", other) != FINGERPRINT
+    assert described_fingerprint(good.parent / "nothing-here", own) is None  # the gate says why, not this
+    for text in ("<robot name='arm'><link name='base'/>", "not xml at all", ""):
+        with pytest.raises(DescriptionError, match="does not compile as a MuJoCo model"):
+            mjcf_fingerprint(plant, text)
 
 
 def test_run_files_record_what_the_gate_reads(runs) -> None:

@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -37,6 +37,7 @@ from npp_ros.certificate.mixture import certifier_for
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.policy.vectors import MAX_MAGNITUDE
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import Plant, Task, UnknownTaskError, get_task
@@ -47,6 +48,7 @@ COMMAND_INTERFACES: tuple[str, ...] = ("effort", "position")
 _SPEC_FIELDS = ("condition", "epsilon", "p", "delta", "certify", "rule", "lipschitz", "lipschitz_source")
 _MJ_JOINT_SLIDE, _MJ_JOINT_HINGE = 2, 3  # MuJoCo joint types with one position and one velocity
 _MJ_BIAS_NONE = 0  # a motor: the control is a force or torque
+T = TypeVar("T")
 
 
 class GateRefusal(ValueError):
@@ -192,7 +194,10 @@ def _certificate_reasons(
 ) -> list[str]:
     """Why a certificate (consistent with its run) may not be deployed: absent, not proven, too weak."""
     if certificate is None:
-        return [f"the run holds no certificate ({episodes} episodes, {stored} trajectories): it was never certified"]
+        return [
+            f"the run file holds no certificate ({episodes} episodes, {stored} trajectories): the run was never "
+            "certified, or its certificate was removed"
+        ]
     reasons = []
     if not certificate["proven"]:
         failing = [text for text in certificate.get("assumptions", ()) if "NOT" in text or "not sequentially" in text]
@@ -297,10 +302,14 @@ class JointLayout:
     state_joints: tuple[str, ...]
     actuated: tuple[str, ...]
     command_joints: tuple[str, ...]
-    _names: tuple[str, ...] = field(default=(), init=False, repr=False)
+    # The last message's names and where the task's joints are in them; None until the first message, so
+    # that a first message naming no joints is checked like any other (an empty cache would match it).
+    _names: tuple[str, ...] | None = field(default=None, init=False, repr=False)
     _where: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.intp), init=False, repr=False)
 
     def __post_init__(self) -> None:
+        if not self.state_joints:
+            raise ValueError("a joint layout needs the task's joints; this one names none")
         if sorted(self.command_joints) != sorted(self.actuated):
             raise ValueError(
                 f"the command joints {list(self.command_joints)} must be the task's actuated joints "
@@ -319,7 +328,8 @@ class JointLayout:
         return cls(tuple(plant.joint_names), actuated, tuple(command_joints) or actuated)
 
     def state(self, names: Sequence[str], positions: Sequence[float], velocities: Sequence[float]) -> FloatArray:
-        """[positions, velocities] of the task's joints, whatever order and extra joints the message has."""
+        """[positions, velocities] of the task's joints, whatever order and extra joints the message has; a
+        RobotStateError naming what is wrong for a state the policy cannot act on."""
         names = tuple(names)
         if names != self._names:
             self._where = self._index(names)
@@ -332,14 +342,24 @@ class JointLayout:
         where = self._where
         position, velocity = np.asarray(positions, dtype=np.float64), np.asarray(velocities, dtype=np.float64)
         raw = np.concatenate([position[where], velocity[where]])
-        if not np.isfinite(raw).all():
-            count = len(self.state_joints)
-            bad = [
-                f"{self.state_joints[i % count]} {'position' if i < count else 'velocity'} = {raw[i]}"
-                for i in np.flatnonzero(~np.isfinite(raw))
-            ]
-            raise NonFiniteState(f"joint state has non-finite values: {', '.join(bad)}")
+        finite = np.isfinite(raw)
+        if not finite.all():
+            raise NonFiniteState(f"joint state has non-finite values: {self._entries(~finite, raw)}")
+        huge = np.abs(raw) > MAX_MAGNITUDE
+        if huge.any():
+            raise RobotStateError(
+                f"joint state has values too large to compare with the certified data: {self._entries(huge, raw)} "
+                f"(entries must be within +-{MAX_MAGNITUDE:g})"
+            )
         return raw
+
+    def _entries(self, which: np.ndarray, raw: FloatArray) -> str:
+        """The flagged entries of a state, by joint: "joint_1 velocity = nan"."""
+        count = len(self.state_joints)
+        return ", ".join(
+            f"{self.state_joints[i % count]} {'position' if i < count else 'velocity'} = {raw[i]:g}"
+            for i in np.flatnonzero(which)
+        )
 
     def _index(self, names: tuple[str, ...]) -> np.ndarray:
         if len(set(names)) != len(names):
@@ -473,36 +493,69 @@ def stored_state(plant: Plant, raw: FloatArray) -> FloatArray:
 
 
 # ----------------------------------------------------------------------------- watchdog
-class Watchdog:
-    """Calls ``on_expire(age_s)`` once when no state was fed for ``timeout`` seconds while armed.
+Fresh = Literal["sent", "resumed", "disarmed"]
 
-    Its own thread waits until the deadline, so the safe command goes out on time whatever the
-    executor is doing; feeding is one assignment, so the control path pays nothing for it.
+
+class Watchdog:
+    """Sends the safe command once when no fresh command went out for ``timeout`` seconds while armed.
+
+    Its own thread waits until the deadline, so the safe command goes out on time whatever the executor
+    is doing. Deciding that the deadline passed and sending the safe command (``on_expire(age_s)``) are
+    one step under the lock that :meth:`send_fresh` holds while it sends a fresh command and restarts
+    the clock: a safe command never goes out after a fresh one that beat its deadline, and no fresh
+    command goes out after :meth:`disarm` sent the safe one. ``after_expire(age_s)`` (logging, reporting)
+    runs after the lock is released, so it never delays a fresh command.
     """
 
-    def __init__(self, timeout: float, on_expire: Callable[[float], None]) -> None:
+    def __init__(
+        self,
+        timeout: float,
+        on_expire: Callable[[float], None],
+        after_expire: Callable[[float], None] | None = None,
+    ) -> None:
         if not timeout > 0:
             raise ValueError(f"the watchdog timeout must be > 0, got {timeout!r}")
         self.timeout = float(timeout)
         self._on_expire = on_expire
+        self._after_expire = after_expire
         self._last = time.monotonic()
         self._armed = False
         self.expired = False
         self.fired = 0
-        self._wake = threading.Condition()
+        self._wake = threading.Condition()  # its lock is re-entrant: on_expire may read the watchdog
         self._closed = False
         self._thread = threading.Thread(target=self._watch, name="npp-watchdog", daemon=True)
         self._thread.start()
 
+    @property
+    def armed(self) -> bool:
+        return self._armed
+
+    def send_fresh(self, send: Callable[[], None]) -> Fresh:
+        """Send a fresh command and restart the clock, as one step against the watchdog's own decision.
+
+        "sent"; "resumed" when it ends an expiry (states flow again); "disarmed" when the watchdog is
+        not armed, and then nothing is sent (commanding has stopped)."""
+        with self._wake:
+            if not self._armed:
+                return "disarmed"
+            send()
+            self._last = time.monotonic()
+            if not self.expired:
+                return "sent"
+            self.expired = False
+            self._wake.notify()  # it sleeps without a deadline while expired
+            return "resumed"
+
     def feed(self) -> bool:
-        """A fresh state arrived; True when it ends an expiry (states flow again)."""
-        self._last = time.monotonic()
-        if self.expired:  # rare: wake the thread, which sleeps without a deadline while expired
-            with self._wake:
-                self.expired = False
-                self._wake.notify()
+        """Restart the clock without sending anything; True when it ends an expiry."""
+        with self._wake:
+            self._last = time.monotonic()
+            if not self.expired:
+                return False
+            self.expired = False
+            self._wake.notify()
             return True
-        return False
 
     def arm(self) -> None:
         """Start watching now, as if a state had just arrived."""
@@ -511,10 +564,12 @@ class Watchdog:
             self._armed, self.expired = True, False
             self._wake.notify()
 
-    def disarm(self) -> None:
+    def disarm(self, send: Callable[[], T] | None = None) -> T | None:
+        """Stop watching; ``send`` (the safe command) runs in the same step, so no fresh command follows it."""
         with self._wake:
             self._armed = False
             self._wake.notify()
+            return None if send is None else send()
 
     def close(self) -> None:
         with self._wake:
@@ -535,11 +590,13 @@ class Watchdog:
                 self.expired = True
                 self.fired += 1
                 age = time.monotonic() - self._last
-                self._wake.release()
-                try:
-                    self._on_expire(age)
-                finally:
-                    self._wake.acquire()
+                self._on_expire(age)  # under the lock: the decision and the safe command are one step
+                if self._after_expire is not None:
+                    self._wake.release()
+                    try:
+                        self._after_expire(age)
+                    finally:
+                        self._wake.acquire()
 
 
 def percentiles(samples: Sequence[float], quantiles: Sequence[float] = (50, 99)) -> list[float]:
