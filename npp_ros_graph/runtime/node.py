@@ -25,21 +25,40 @@ EventsExecutor is experimental in Jazzy, so run_node keeps to what it does well:
 spin_once and a timeout (its spin() busy-waits and misses shutdown in rclpy 7.1.6), and falls back
 to the SingleThreadedExecutor where rclpy has none. It serves no guard conditions (the two nodes
 create none), and it logs a callback's exception with its traceback before run_node reports it.
+
+Stopping, the same in every node: SIGINT and SIGTERM only ask run_node to stop (``request_stop``),
+and a node that must stop itself (a refusal) asks the same way; nothing shuts the context down from
+a signal handler or a worker thread. rclpy's own handlers are not installed: they shut the context
+down at once, from a signal handler, while a callback or a worker thread may be publishing (which
+then fails with "publisher's context is invalid"), and they raise KeyboardInterrupt inside whatever
+callback runs, which the EventsExecutor logs as FATAL. The EventsExecutor's own handler (it takes
+SIGINT and SIGTERM when it is made) is replaced the same way. The spin loop then ends within
+SPIN_ONCE_S, and ``release`` tears down in the one order in which nothing publishes into a context
+that is gone: timers cancelled, the executor let go, the node destroyed (each node's destroy_node
+stops its worker thread before its publishers go), and only then the context shut down. Further
+signals during the teardown are ignored (a terminal's Ctrl-C reaches the node and npp-run, which
+then sends its own SIGINT), except one more than FORCE_AFTER_S after the first, which ends a
+teardown that hangs.
 """
 
 from __future__ import annotations
 
 import itertools
 import os
+import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from contextlib import suppress
+from types import FrameType
 
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from npp_ros_graph.transport.parameters import StartupError
@@ -64,7 +83,7 @@ def _init(args: list[str]) -> None:
     if empty is not None:
         raise StartupError(f"parameter {empty} has no value; give one (-p {empty}:=VALUE) or leave it out")
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)  # run_node takes the signals
     except RCLError as exc:
         raise StartupError(f"cannot read the ROS arguments: {str(exc).splitlines()[0]}") from None
     stray = remove_ros_args(args)[1:]
@@ -75,7 +94,53 @@ def _init(args: list[str]) -> None:
         )
 
 
-SPIN_ONCE_S = 1.0  # the EventsExecutor's longest wait for an event before run_node checks for shutdown
+SPIN_ONCE_S = 1.0  # the longest wait for an event before run_node checks for a stop
+FORCE_AFTER_S = 20.0  # a signal this long after the first ends a teardown that hangs (the waits in it are shorter)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class _Stop:
+    """The node process's one stop request: a signal, or the node itself (``request_stop``)."""
+
+    def __init__(self) -> None:
+        self.requested = threading.Event()
+        self.first_signal_at: float | None = None
+        self.executor: Executor | None = None  # the spinning executor, woken by a request from another thread
+
+
+_stop = _Stop()
+
+
+def request_stop() -> None:
+    """Ask run_node to stop this node process in order (see the module's docstring); from any thread.
+
+    What a node calls instead of rclpy.shutdown when it must stop (a refusal): the context stays
+    valid until the node's timers, worker and publishers are gone.
+    """
+    _stop.requested.set()
+    executor = _stop.executor
+    if executor is not None:
+        executor.wake()
+
+
+def _on_signal(signum: int, _frame: FrameType | None) -> None:
+    """SIGINT and SIGTERM: a stop request, never an exception inside whatever callback runs now."""
+    now = time.monotonic()
+    if _stop.first_signal_at is None:
+        _stop.first_signal_at = now
+    elif now - _stop.first_signal_at > FORCE_AFTER_S:
+        name, program = signal.Signals(signum).name, os.path.basename(sys.argv[0])
+        print(f"{program}: {name} again, {FORCE_AFTER_S:g} s into a teardown that has not ended; leaving without it",
+              file=sys.stderr, flush=True)  # fmt: skip
+        os._exit(128 + signum)
+    _stop.requested.set()
+
+
+def take_stop_signals() -> None:
+    """SIGINT and SIGTERM become stop requests. Called after the executor is made: the EventsExecutor takes
+    both signals for itself when it is made (its handler shuts the context down), and this takes them back."""
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, _on_signal)
 
 
 def run_node(
@@ -84,7 +149,8 @@ def run_node(
     usage: str | Callable[[], str] = "",
     events: bool = False,
 ) -> int:
-    """The Jazzy idiom: init, spin, and on Ctrl-C or external shutdown destroy and try_shutdown.
+    """The Jazzy idiom: init, spin until a stop is requested (Ctrl-C, SIGTERM, the node itself) or the
+    context ends, then release: timers, executor, node, and the context last.
 
     ``usage`` may be a function: --help then builds it (a listing that reads installed packages).
     ``events``: spin on rclpy's EventsExecutor where rclpy has one (see the module's docstring).
@@ -95,35 +161,44 @@ def run_node(
         return 0
     node: Node | None = None
     executor: Executor | None = None
+    _stop.requested.clear()
+    _stop.first_signal_at = None
     try:
         _init(args)
         executor = EventsExecutor() if events and EventsExecutor is not None else SingleThreadedExecutor()
+        take_stop_signals()
+        _stop.executor = executor
         node = factory()
         executor.add_node(node)
-        if isinstance(executor, SingleThreadedExecutor):
-            executor.spin()
-        else:
-            while rclpy.ok():
-                executor.spin_once(timeout_sec=SPIN_ONCE_S)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        while rclpy.ok() and not _stop.requested.is_set():
+            executor.spin_once(timeout_sec=SPIN_ONCE_S)
+    except (KeyboardInterrupt, ExternalShutdownException):  # a signal before take_stop_signals; a shutdown
         pass
     except StartupError as exc:
         print(f"{args[0]}: {exc}", file=sys.stderr)
         return 2
     finally:
+        _stop.executor = None
         try:
             release(executor, node)
-        except KeyboardInterrupt:  # a second Ctrl-C while shutting down
+        except KeyboardInterrupt:  # a Ctrl-C while shutting down, before take_stop_signals
             pass
     return int(getattr(node, "exit_code", 0))
 
 
 def release(executor: Executor | None, node: Node | None) -> None:
-    """Every entry point's teardown, in the one order that cannot hang.
+    """Every entry point's teardown, in the one order in which nothing publishes into a shut-down context
+    and nothing hangs.
 
-    The executor lets go of the node first: destroy_node waits until nothing holds the node's
-    entities, and a node still added to an executor could keep its process spinning there.
+    The node's timers are cancelled first, so none fires during the teardown. The executor lets go of
+    the node next: destroy_node waits until nothing holds the node's entities, and a node still added
+    to an executor could keep its process spinning there. The node's destroy_node stops its worker
+    thread before its publishers go; the context is shut down last.
     """
+    if node is not None and node.context.ok():
+        for timer in list(node.timers):
+            with suppress(InvalidHandle, RCLError):  # already destroyed, or the context went meanwhile
+                timer.cancel()
     if executor is not None:
         executor.shutdown(timeout_sec=SPIN_ONCE_S)
     if node is not None:
