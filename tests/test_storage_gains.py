@@ -57,6 +57,7 @@ def make_version_2(path: Path) -> None:
     for column in gain_columns(META.state_dim, META.action_dim):
         conn.execute(f"ALTER TABLE points DROP COLUMN {column}")
     conn.execute("ALTER TABLE trajectories DROP COLUMN feedback")
+    conn.execute("ALTER TABLE episodes DROP COLUMN explored")
     conn.execute("UPDATE meta SET value = '2' WHERE key = 'format_version'")
     conn.commit()
     conn.close()
@@ -70,6 +71,7 @@ def test_a_file_from_before_gains_opens_without_them_and_upgrades_at_its_first_w
     make_version_2(path)
     with RunStore.open(path) as store:
         data = store.load_dataset()
+        assert [row.explored for row in store.episodes()] == [0]
         assert "before run files stored feedback gains" in store.gains_note
     assert data.trajectories_with_gains == 0
     np.testing.assert_array_equal(data.states, first.states)

@@ -48,6 +48,7 @@ from npp_ros.experiment import (
 )
 from npp_ros.experiment.arms import HELD_OUT
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
+from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.tasks.lqr import TASKS
 from npp_ros.tasks.registry import by_task
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
@@ -108,6 +109,10 @@ def parser() -> argparse.ArgumentParser:
         default=[DEFAULT_POLICY],
         help="how the policy acts, side by side as arms of one run (same seeds, same s0 streams): " + POLICY_HELP,
     )
+    ap.add_argument(
+        "--explore", nargs="+", type=float, default=[0.0], metavar="RADIUS",
+        help="exploration radii, side by side as arms: " + EXPLORE_HELP,
+    )  # fmt: skip
     ap.add_argument(
         "--rules",
         nargs="+",
@@ -291,7 +296,9 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
     )
     for task in args.tasks:
         settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
-    return settings, default_arms(args.tasks, args.lipschitz, args.experts, args.certify, args.rules, args.policies)
+    return settings, default_arms(
+        args.tasks, args.lipschitz, args.experts, args.certify, args.rules, args.policies, args.explore
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,6 +22,7 @@ from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzWarning
 from npp_ros.run.evaluation import check_policy
+from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.progress import Counter, StatusLine
 from npp_ros.run.records import RunFileError, write_episode_log
 from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, policy_for, resolve_lipschitz
@@ -72,6 +73,7 @@ def parser() -> argparse.ArgumentParser:
         f"({', '.join(f'{mode} {rule}' for mode, rule in DEFAULT_RULES.items())})",
     )
     ap.add_argument("--policy", choices=POLICY_KINDS, default=DEFAULT_POLICY, help=POLICY_HELP)
+    ap.add_argument("--explore", type=float, default=0.0, metavar="RADIUS", help=EXPLORE_HELP)
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
     ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
@@ -118,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         config = build_config(
             args.task, args.seed, lipschitz, epsilon,
             condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
-            certify=args.certify, rule=args.rule, policy=args.policy,
+            certify=args.certify, rule=args.rule, policy=args.policy, explore=args.explore,
         )  # fmt: skip
         status = StatusLine(epsilon, args.condition)
         loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", rollouts=args.rollouts, observers=[status])

@@ -34,6 +34,7 @@ class Arm:
     certify: str = "surrogate"  # the paper's checked quantity ...
     rule: str = "paper"  # ... and its stopping rule, unless the arm says otherwise
     policy: str = PAPER_POLICY  # how the policy acts at its chosen point (npp_ros.policy.feedback)
+    explore: float = 0.0  # > 0: a failed check also asks where the policy went (npp_ros.run.explore)
 
     def __post_init__(self) -> None:
         check_policy_kind(self.policy)
@@ -61,13 +62,15 @@ class Arm:
     def name(self) -> str:
         base = f"{short_name(self.task)}-{self.expert}-L{self.lipschitz}"  # a task file's path is no folder name
         base = base if self.paper_certification else f"{base}-{self.certify}-{self.rule}"
-        return base if self.policy == PAPER_POLICY else f"{base}-{self.policy}"
+        base = base if self.policy == PAPER_POLICY else f"{base}-{self.policy}"
+        return base if not self.explore else f"{base}-explore{self.explore:g}"
 
     @property
     def label(self) -> str:
         expert = f"{self.expert} expert"
         how = "" if self.paper_certification else f", certify={self.certify} ({self.rule})"
         acts = "" if self.policy == PAPER_POLICY else f", {self.policy} policy"
+        acts += f", exploring beyond {self.explore:g}" if self.explore else ""
         return f"{self.task}, {expert}, {self.lipschitz} L{how}{acts}"
 
 
@@ -101,6 +104,7 @@ def default_arms(
     certify: Sequence[str] | None = ("paper",),
     rules: Sequence[str] | None = None,
     policies: Sequence[str] = (PAPER_POLICY,),
+    explore: Sequence[float] = (0.0,),
 ) -> list[Arm]:
     """Each task with the experts, L settings and modes it offers among those asked for.
 
@@ -110,7 +114,8 @@ def default_arms(
     one-shot rule) and sound modes (rollout, oracle, surrogate) under the sequential rule; None is
     "paper" for a task whose expert is optimal and the task's default mode otherwise. ``rules``
     lists the rules the sound modes run under, side by side; None is each mode's default rule.
-    ``policies`` lists how the policy acts, side by side (same seeds, same s0 streams).
+    ``policies`` lists how the policy acts, and ``explore`` the exploration radii, side by side (same seeds, same
+    s0 streams).
     """
     arms = []
     for task in tasks:
@@ -124,11 +129,12 @@ def default_arms(
                     continue
                 for mode in modes:
                     for policy in policies:
-                        if mode == "paper":
-                            arms.append(Arm(task, expert, setting, policy=policy))
-                        else:
+                        for radius in explore:
+                            if mode == "paper":
+                                arms.append(Arm(task, expert, setting, policy=policy, explore=radius))
+                                continue
                             chosen = rules or (DEFAULT_RULES[mode],)
-                            arms += [Arm(task, expert, setting, mode, rule, policy) for rule in chosen]
+                            arms += [Arm(task, expert, setting, mode, rule, policy, radius) for rule in chosen]
     return arms
 
 

@@ -78,7 +78,7 @@ def run_arm_seed(
     epsilon = settings.epsilon_for(arm.task)
     config = build_config(
         arm.task, seed, lipschitz, epsilon, p=settings.p, delta=settings.delta, horizon=settings.horizon,
-        certify=arm.certify, rule=arm.rule, policy=arm.policy,  # type: ignore[arg-type]  # Arm checks them
+        certify=arm.certify, rule=arm.rule, policy=arm.policy, explore=arm.explore,  # type: ignore[arg-type]
     )  # fmt: skip
     budget = settings.max_episodes[arm.task]
     progress = _EpisodeProgress(report, key, budget, epsilon, config.spec.condition)

@@ -49,6 +49,12 @@ class Oracle(Protocol):
     def trajectory(self, initial_state: FloatArray) -> Trajectory: ...
 
 
+class Explorer(Protocol):
+    """Where to ask the expert besides s0 after a failed check (npp_ros.run.explore), or None."""
+
+    def state_to_ask(self, initial_state: FloatArray, policy: NonparametricPolicy) -> FloatArray | None: ...
+
+
 class EpisodeInterrupted(RuntimeError):
     """The run is stopping while an episode is under way: nothing of the episode is recorded, and a
     resumed run plays it again from the same s0 (a pause or a restart never decides a check)."""
@@ -90,6 +96,7 @@ class RunConfig:
     horizon: int = 1000
     gamma: float = 1.0
     plant_fingerprint: str = ""  # the compiled model's SHA-256 (Plant.model_sha256): which plant the data are of
+    explore: float = 0.0  # > 0: after a failed check, also ask where the policy's rollout leaves the data this far
 
     def metadata(self) -> RunMetadata:
         """What the run file records of this config: its own fields, the spec's record, where L came from."""
@@ -137,12 +144,15 @@ class NPPLoop:
         expert_value: Callable[[FloatArray], float] | None = None,
         basis: ValueBasis | None = None,
         control: ControlSpace | None = None,
+        explorer: Explorer | None = None,
     ) -> None:
         self.config = config
         self.spec = config.spec
         certify = self.spec.certify
         if certify != "surrogate" and driver is None:
             raise ValueError(f"certify={certify} checks the policy's own return: it needs the policy's rollouts")
+        if config.explore > 0 and explorer is None:
+            raise ValueError("explore > 0 needs an explorer (npp_ros.run.explore.RolloutExplorer)")
         if certify == "rollout" and (basis is None or basis.tail is None):
             detail = basis.tail_detail if basis is not None else "the expert states no value basis"
             raise ValueError(f"certify=rollout needs an upper bound on the H-step value at s0 ({detail}); use oracle")
@@ -154,6 +164,7 @@ class NPPLoop:
         self.expert_value = expert_value
         self.basis = basis
         self.control = control if self.spec.policy == "feedback" else None
+        self.explorer = explorer if config.explore > 0 else None
         self.certifier = certifier_for(self.spec)
         self.rows: list[EpisodeRow] = []
         self.certificate: Certificate | None = None
@@ -184,14 +195,14 @@ class NPPLoop:
         """Trajectories stored among the first ``episodes`` episodes but not yet part of the policy
         then (held while its test ran); replays the rule's decisions."""
         rows = self.rows[:episodes]
-        return sum(row.oracle_called for row in rows) - self._replay(rows)[1]
+        return sum(row.trajectories_stored for row in rows) - self._replay(rows)[1]
 
     def _replay(self, rows: Sequence[EpisodeRow]) -> tuple[Certifier | MixtureCertifier, int]:
         """A fresh certifier fed ``rows``, and how many stored trajectories the policy held after them."""
         certifier = certifier_for(self.spec)
         stored = joined = 0
         for row in rows:
-            stored += int(row.oracle_called)
+            stored += row.trajectories_stored
             if not certifier.observe(row.checked_gap, not self._passed(row)).frozen:
                 joined = stored
         return certifier, joined
@@ -207,10 +218,10 @@ class NPPLoop:
             if row.episode != expected:
                 raise RunFileError(f"{store.path} is damaged: episode {expected} is missing from its log")
         self.certifier, joined = self._replay(self.rows)
-        called = sum(row.oracle_called for row in self.rows)
+        called = sum(row.trajectories_stored for row in self.rows)
         if called != self.dataset.num_trajectories:
             raise RunFileError(
-                f"{store.path} is inconsistent: {called} episodes called the oracle, "
+                f"{store.path} is inconsistent: its episodes asked the oracle for {called} trajectories, "
                 f"{self.dataset.num_trajectories} trajectories are stored"
             )
         stored = store.certificate()
@@ -274,9 +285,11 @@ class NPPLoop:
             if checked > epsilon and trajectory is None:
                 trajectory = self._ask_oracle(s0)
         failed = not checked <= epsilon
+        explored = self._explore(s0) if failed and trajectory is not None and policy_return is not None else []
         index = self.dataset.num_trajectories if trajectory is not None else None
         status = self.certifier.preview(checked, failed)
-        joins = 0 if status.frozen or trajectory is None else len(trajectory)  # this episode's data, joining now
+        new = [] if trajectory is None else [trajectory, *explored]
+        joins = 0 if status.frozen else sum(len(t) for t in new)  # this episode's data, joining now
         expert_value = self.expert_value(s0) if self.expert_value is not None else None
         if expert_value is None and trajectory is not None:
             expert_value = float(trajectory.values[0])
@@ -289,7 +302,7 @@ class NPPLoop:
             oracle_called=trajectory is not None,
             trajectory=index,
             dataset_size=len(self.policy_data) if status.frozen else len(self.dataset) + joins,
-            oracle_calls=self.oracle_calls + int(trajectory is not None),
+            oracle_calls=self.oracle_calls + len(new),
             quiet_episodes=status.quiet_episodes,
             window=status.window,
             required=status.required,
@@ -300,16 +313,20 @@ class NPPLoop:
             checked_gap=checked,
             test=status.test,
             test_delta=status.test_delta,
+            explored=len(explored),
         )
         # Persist before anything else can fail: expert data is the expensive part.
         if self.store is not None:
-            self.store.record_episode(row, trajectory)
-        if trajectory is not None:
-            self.dataset.append(trajectory)
+            self.store.record_episode(row, trajectory, explored)
+        if new:
+            first = self.dataset.num_trajectories
+            for item in new:
+                self.dataset.append(item)
             if status.frozen:  # the policy under test stays as it is until its test ends
-                self._hold_back()
+                self._hold_back(len(new))
             elif self.policy_data is self.dataset:
-                self._joined(index)
+                for joined in range(first, self.dataset.num_trajectories):
+                    self._joined(joined)
             else:
                 self._release_held()
         elif not status.frozen and self.held_back:  # a verification ended on a check without a trajectory
@@ -335,10 +352,17 @@ class NPPLoop:
                 self._release_held()
         return row
 
-    def _hold_back(self) -> None:
-        """The first held trajectory splits the policy's data from the stored data."""
+    def _explore(self, s0: FloatArray) -> list[Trajectory]:
+        """After a failed check: the expert's trajectory from where the checked policy's rollout left the data."""
+        if self.explorer is None:
+            return []
+        state = self.explorer.state_to_ask(s0, self.policy)
+        return [] if state is None else [self._ask_oracle(state)]
+
+    def _hold_back(self, count: int = 1) -> None:
+        """The first held trajectories split the policy's data from the stored data."""
         if self.policy_data is self.dataset:
-            self._set_policy_prefix(self.dataset.num_trajectories - 1)
+            self._set_policy_prefix(self.dataset.num_trajectories - count)
             self.policy = self._new_policy()
 
     def _joined(self, index: int | None) -> None:

@@ -36,7 +36,7 @@ class RunMetadata(SimpleNamespace):
     PROVENANCE = ("lipschitz_detail",)
     RECORDED_SINCE = ("plant_fingerprint",)  # absent from older files: the first resume records them
     # Absent from files made before the choice existed, which all made this one: read as it.
-    BEFORE_RECORDED: ClassVar[dict[str, object]] = {"policy": "open-loop"}
+    BEFORE_RECORDED: ClassVar[dict[str, object]] = {"policy": "open-loop", "explore": 0.0}
 
     def __getattr__(self, name: str) -> object:
         """Only called for a key the meta table lacks (a hand-edited or damaged file): say which."""
@@ -84,6 +84,12 @@ class EpisodeRow:
     checked_gap: float = math.inf  # the quantity the certification checked (see npp_ros.certificate)
     test: int = 0  # the test this episode belongs to (0: no policy yet; the mixture rule: no verification runs)
     test_delta: float = 0.0  # the confidence that test may spend
+    explored: int = 0  # more trajectories asked from where the policy's rollout left the data (npp_ros.run.explore)
+
+    @property
+    def trajectories_stored(self) -> int:
+        """The expert trajectories this episode stored: the one from s0 and those asked where the policy went."""
+        return int(self.oracle_called) + self.explored
 
 
 EPISODE_COLUMNS = tuple(EpisodeRow.__dataclass_fields__)

@@ -23,6 +23,7 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.policy.feedback import DEFAULT_POLICY, ControlSpace, PolicyKind, check_policy_kind
 from npp_ros.policy.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
+from npp_ros.run.explore import RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, control_space, get_task
@@ -48,9 +49,11 @@ def build_config(
     certify: CheckedQuantity | None = None,
     rule: StoppingRule | None = None,
     policy: PolicyKind = DEFAULT_POLICY,
+    explore: float = 0.0,
 ) -> RunConfig:
     """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
-    ``rule`` None the default rule of that checked quantity (DEFAULT_RULES), ``policy`` how the policy acts.
+    ``rule`` None the default rule of that checked quantity (DEFAULT_RULES), ``policy`` how the policy acts,
+    ``explore`` > 0 the radius beyond which a failed check also asks where the policy went (npp_ros.run.explore).
 
     Refuses a bad combination (ValueError) when the run is defined, not episodes later.
     """
@@ -62,7 +65,7 @@ def build_config(
     )  # fmt: skip
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,
-        horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed),
+        horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed), explore=check_radius(explore),
     )  # fmt: skip
 
 
@@ -138,6 +141,9 @@ def build_loop(
         expert_value=task.expert_value(expert),
         basis=value_basis(expert, config.spec.lipschitz.value),
         control=task_control_space(config.task, config.seed) if config.spec.policy == "feedback" else None,
+        explorer=RolloutExplorer(task.make_plant(config.seed), config.horizon, config.explore)
+        if config.explore
+        else None,
     )
 
 

@@ -60,7 +60,7 @@ import shutil
 import sqlite3
 import sys
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
@@ -191,7 +191,8 @@ class RunStore:
                 "dataset_size INTEGER NOT NULL, oracle_calls INTEGER NOT NULL, "
                 "quiet_episodes INTEGER NOT NULL, window INTEGER NOT NULL, required INTEGER NOT NULL, "
                 "certified INTEGER NOT NULL, expert_value REAL, policy_return REAL, wall_time REAL, "
-                "checked_gap REAL, test INTEGER NOT NULL, test_delta REAL NOT NULL)"
+                "checked_gap REAL, test INTEGER NOT NULL, test_delta REAL NOT NULL, "
+                "explored INTEGER NOT NULL DEFAULT 0)"
             )
             rows = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "created": str(time.time()),
                     "run_id": new_run_id()}  # fmt: skip
@@ -281,6 +282,7 @@ class RunStore:
         meta = self.metadata
         with _transaction(self._conn, self.path):
             self._conn.execute("ALTER TABLE trajectories ADD COLUMN feedback INTEGER NOT NULL DEFAULT 0")
+            self._conn.execute("ALTER TABLE episodes ADD COLUMN explored INTEGER NOT NULL DEFAULT 0")
             for column in gain_columns(meta.state_dim, meta.action_dim):
                 self._conn.execute(f"ALTER TABLE points ADD COLUMN {column} REAL NOT NULL DEFAULT 0")
             self._conn.execute("UPDATE meta SET value = ? WHERE key = 'format_version'", (str(FORMAT_VERSION),))
@@ -330,14 +332,21 @@ class RunStore:
         self.close()
 
     # ---------------------------------------------------------------- writing
-    def record_episode(self, row: EpisodeRow, trajectory: Trajectory | None = None) -> None:
-        """Store an episode, and the trajectory it asked for, atomically."""
+    def record_episode(
+        self, row: EpisodeRow, trajectory: Trajectory | None = None, explored: Sequence[Trajectory] = ()
+    ) -> None:
+        """Store an episode, the trajectory it asked for from s0 and those asked where the policy went, atomically."""
         if (trajectory is None) != (row.trajectory is None):
             raise ValueError("an episode row names a trajectory if and only if one is given")
+        if len(explored) != row.explored or (explored and trajectory is None):
+            raise ValueError("an episode row counts the trajectories it explored, after the one from s0")
         self._writable()
         with _transaction(self._conn, self.path):
             if trajectory is not None:
                 self._insert_trajectory(row.trajectory, row.episode, trajectory)
+            for k, extra in enumerate(explored, start=1):
+                assert row.trajectory is not None
+                self._insert_trajectory(row.trajectory + k, row.episode, extra)
             values = [_encode(getattr(row, name)) for name in EPISODE_COLUMNS]
             marks = ", ".join("?" * len(values))
             self._conn.execute(f"INSERT INTO episodes ({', '.join(EPISODE_COLUMNS)}) VALUES ({marks})", values)
@@ -417,10 +426,11 @@ class RunStore:
         return None if value is None else json.loads(value)
 
     def episodes(self) -> list[EpisodeRow]:
-        cur = self._conn.execute(f"SELECT {', '.join(EPISODE_COLUMNS)} FROM episodes ORDER BY episode")
+        columns = EPISODE_COLUMNS if self.format_version >= 3 else [c for c in EPISODE_COLUMNS if c != "explored"]
+        cur = self._conn.execute(f"SELECT {', '.join(columns)} FROM episodes ORDER BY episode")
         rows = []
         for raw in cur:
-            item = dict(zip(EPISODE_COLUMNS, raw, strict=True))
+            item = dict(zip(columns, raw, strict=True))
             item["initial_state"] = tuple(json.loads(item["initial_state"]))
             for flag in ("oracle_called", "certified"):
                 item[flag] = bool(item[flag])

@@ -40,6 +40,7 @@ from rclpy.signals import SignalHandlerOptions
 from npp_ros.certificate.certifier import STOPPING_RULES
 from npp_ros.cli.args import TASK_HELP, ListTasks, task_name
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
+from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.records import RunFileError
 from npp_ros.run.store import WriterLock
 from npp_ros.tasks.registry import by_task, get_task
@@ -96,6 +97,7 @@ def parser() -> argparse.ArgumentParser:
         "the paper's one-shot rule; mode: the checked quantity's default (sequential in every mode)",
     )  # fmt: skip
     ap.add_argument("--policy", choices=POLICY_KINDS, default=DEFAULT_POLICY, help=POLICY_HELP)
+    ap.add_argument("--explore", type=float, default=0.0, metavar="RADIUS", help=EXPLORE_HELP)
     ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
     ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")
@@ -352,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         args.task, args.seed, get_task(args.task).default_horizon if args.horizon is None else args.horizon, run_dir,
         expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},
         supervisor={"epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
-                    "rule": args.rule, "policy": args.policy,
+                    "rule": args.rule, "policy": args.policy, "explore": float(args.explore),
                     "max_episodes": args.max_episodes, "rollouts": not args.no_rollouts},
     )  # fmt: skip
     for signum in (signal.SIGHUP, signal.SIGTERM):

@@ -34,6 +34,7 @@ EPSILON = 30.0
 EPISODES = 12
 BUDGET = 120.0  # seconds per request: never reached, so iterations decide (deterministic)
 ITERATIONS = 10
+EXPLORE = 0.3  # failed checks also ask where the policy left the data: the supervisor does it as npp-learn does
 
 
 def test_pendulum_graph_gives_the_in_process_dataset_and_decisions(tmp_path: Path, ros_domain: int) -> None:
@@ -41,7 +42,7 @@ def test_pendulum_graph_gives_the_in_process_dataset_and_decisions(tmp_path: Pat
     command = [
         sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--horizon", str(HORIZON),
         "--epsilon", str(EPSILON), "--max-episodes", str(EPISODES), "--run-dir", str(run_dir),
-        "--time-budget", str(BUDGET), "--max-iterations", str(ITERATIONS),
+        "--time-budget", str(BUDGET), "--max-iterations", str(ITERATIONS), "--explore", str(EXPLORE),
     ]  # fmt: skip
     run = subprocess.run(command, capture_output=True, text=True, timeout=900)
     logs = "\n".join(f"== {p.name}\n{p.read_text()[-3000:]}" for p in sorted((run_dir / "logs").glob("*.log")))
@@ -53,13 +54,16 @@ def test_pendulum_graph_gives_the_in_process_dataset_and_decisions(tmp_path: Pat
     assert len(graph_rows) == EPISODES, logs
     assert (metadata.certify, metadata.lipschitz_source, metadata.lipschitz) == ("oracle", "paper", 4300.0)
     assert all(row.oracle_called for row in graph_rows)  # oracle mode asks the expert every episode
+    assert metadata.explore == EXPLORE and graph_data.num_trajectories == sum(r.trajectories_stored for r in graph_rows)
 
     task = get_task(TASK)
     expert = task.make_expert(0, HORIZON, ExpertOptions(time_budget=BUDGET, max_iterations=ITERATIONS))
     lipschitz = resolve_lipschitz(TASK, "paper", expert)
-    loop = build_loop(build_config(TASK, 0, lipschitz, EPSILON, horizon=HORIZON), expert)
+    loop = build_loop(build_config(TASK, 0, lipschitz, EPSILON, horizon=HORIZON, explore=EXPLORE), expert)
     local = loop.run(max_episodes=EPISODES)
     assert decisions(graph_rows) == decisions(local.rows)
+    assert [r.explored for r in graph_rows] == [r.explored for r in local.rows]
+    assert any(r.explored for r in local.rows), "no check asked where the policy went: the test shows nothing"
     assert [(r.checked_gap, r.policy_return) for r in graph_rows] == [
         (r.checked_gap, r.policy_return) for r in local.rows
     ]

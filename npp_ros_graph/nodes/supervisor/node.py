@@ -41,6 +41,7 @@ from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.answer_check import AnswerCheck
+from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
 from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
 from npp_ros.run.store import RunStore
@@ -86,6 +87,7 @@ PARAMETERS = (
           choices=(TASK_DEFAULT, *LIPSCHITZ_CHOICES, "a number > 0")),
     Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
     Param("policy", DEFAULT_POLICY, POLICY_HELP, choices=POLICY_KINDS),
+    Param("explore", 0.0, EXPLORE_HELP, 0.0),
     Param("certify", TASK_DEFAULT, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
           "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
           choices=(TASK_DEFAULT, *CERTIFY_MODES)),
@@ -123,6 +125,7 @@ class SupervisorSettings:
     certify: CheckedQuantity | str
     rule: StoppingRule | str
     policy: str
+    explore: float
     p: float
     delta: float
     max_episodes: int
@@ -301,7 +304,7 @@ class SupervisorNode(Node):
         config = build_config(
             task, plant.seed, lipschitz, epsilon,
             condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=rule,  # type: ignore[arg-type]
-            policy=s.policy,  # type: ignore[arg-type]  # the parameter's choices are the kinds
+            policy=s.policy, explore=s.explore,  # type: ignore[arg-type]  # the parameter's choices are the kinds
         )  # fmt: skip
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
