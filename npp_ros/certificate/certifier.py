@@ -106,6 +106,10 @@ class CertificationSpec:
                 "use condition (i), or certify=surrogate (range 2 L diam(S0))"
             )
 
+    def passes(self, checked: float | None) -> bool:
+        """Whether one check passed: the checked quantity is known and at most epsilon (inf and NaN fail)."""
+        return checked is not None and checked <= self.epsilon
+
     # ------------------------------------------------------------------ the tests' budgets
     def test_delta(self, test: int) -> float:
         """The confidence test ``test`` (1-based) may spend."""

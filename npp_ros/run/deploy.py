@@ -257,7 +257,7 @@ def _inconsistencies(
     stored = joined = 0
     status = None
     for row in rows[:episodes]:
-        passed = row.checked_gap is not None and row.checked_gap <= spec.epsilon
+        passed = spec.passes(row.checked_gap)
         stored += int(row.oracle_called)
         status = certifier.observe(math.inf if row.checked_gap is None else row.checked_gap, not passed)
         if not status.frozen:

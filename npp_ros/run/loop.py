@@ -189,7 +189,7 @@ class NPPLoop:
         return self.dataset.num_trajectories - self.policy_data.num_trajectories
 
     def _passed(self, row: EpisodeRow) -> bool:
-        return row.checked_gap is not None and row.checked_gap <= self.spec.epsilon
+        return self.spec.passes(row.checked_gap)
 
     def held_back_after(self, episodes: int) -> int:
         """Trajectories stored among the first ``episodes`` episodes but not yet part of the policy
@@ -270,21 +270,21 @@ class NPPLoop:
         s0 = np.asarray(self.initial_state(episode), dtype=np.float64)
         v_lb, v_ub = float(self.policy.lower(s0).value[0]), float(self.policy.upper(s0).value[0])
         gap = v_ub - v_lb if len(self.policy_data) else math.inf
-        mode, epsilon = self.spec.certify, self.spec.epsilon
+        mode = self.spec.certify
         trajectory: Trajectory | None = None
         policy_return: float | None = None
         if mode == "surrogate":
             checked = gap
-            if checked > epsilon:
+            if not self.spec.passes(checked):
                 trajectory = self._ask_oracle(s0)
         else:
             policy_return = self._drive(episode, s0)
             if mode == "oracle":
                 trajectory = self._ask_oracle(s0)
             checked = self._check(s0, v_ub, policy_return, trajectory)
-            if checked > epsilon and trajectory is None:
+            if not self.spec.passes(checked) and trajectory is None:
                 trajectory = self._ask_oracle(s0)
-        failed = not checked <= epsilon
+        failed = not self.spec.passes(checked)
         explored = self._explore(s0) if failed and trajectory is not None and policy_return is not None else []
         index = self.dataset.num_trajectories if trajectory is not None else None
         status = self.certifier.preview(checked, failed)
