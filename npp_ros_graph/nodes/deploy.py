@@ -5,24 +5,34 @@ certificate, what the operator accepts, the robot's model) and builds exactly th
 certificate names; `activate` starts commanding; `deactivate` sends the safe command and stops;
 `cleanup` lets the run go. A refused transition returns failure, logs the reason and shows it on
 /diagnostics. The robot's messages come from outside any run, so they carry no seal: they are
-checked by shape (joint names, counts, finite values) instead.
+checked by shape (joint names, counts, finite values) instead. The robot's model fingerprint is
+computed from the MJCF the robot publishes on /robot_description (latched, as robot_state_publisher
+publishes its URDF), unless the operator gives one.
 
 Every new joint state is answered in its callback: the task's state assembled by joint name, the
-greedy action, clamped to the actuator limits, in the controller's joint order. A watchdog thread
-sends the safe command when no new joint state arrived for `state_timeout` seconds, and commanding
-resumes when states flow again.
+greedy action, clamped to the actuator limits, in the controller's joint order. A state the policy
+cannot act on is refused with its reason and does not count as fresh. A watchdog thread sends the
+safe command when no fresh command went out for `state_timeout` seconds, and commanding resumes when
+usable states flow again; its decision and the fresh commands are serialized, so a safe command never
+follows a fresh answer.
+
+/diagnostics says what is true now: OK while states flow and commands go out (or while the robot has
+not published yet), WARN while states are stale or refused, ERROR for a refused configure; the last
+event (a watchdog expiry, a stop, a refusal) is named with its time among the values.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+import re
 import signal
 import sys
 import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -31,7 +41,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from npp_ros.run.deploy import (
@@ -52,22 +62,32 @@ from npp_ros.run.deploy import (
     safe_command,
     stored_state,
 )
+from npp_ros.run.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, WARN, DiagnosticsReporter, Health
-from npp_ros_graph.runtime.node import ThrottledWarnings, run_node
+from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, request_stop, run_node
 from npp_ros_graph.transport.convert import float64_array
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
-from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES
+from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, LATCHED_QOS
 
 STOP_SERVICE = "~/stop"
-LATENCY_WINDOW = 1000  # the diagnostics' latency percentiles are over this many latest answers
+ROBOT_DESCRIPTION = "/robot_description"  # robot_state_publisher's topic (std_msgs/String, transient local)
+LATENCY_WINDOW = 1000  # the diagnostics' latency and state-period percentiles are over this many latest ones
+RECENT_S = 1.0  # a refusal this recent makes an active node's status WARN
+NUMBERS = re.compile(r"[-+]?\d+(?:\.\d*)?(?:e[-+]?\d+)?")
+# Why the node stopped by itself: shown (WARN) while it is inactive, until the next configure or activate.
+STOPPED_OUTSIDE = "stopped outside the certificate's coverage (stop_outside_coverage)"
+MODEL_CHANGED = "the robot's model changed"
 
 # Read at configure, so an operator may change them while the node is unconfigured.
 Changeable = functools.partial(Param, read_only=False)
 
 PARAMETERS = (
     Changeable("run_dir", "", "the run folder to deploy (holds run.sqlite)"),
-    Changeable("robot_model_fingerprint", "", "the robot's model fingerprint (npp-robot logs it); must be the "
-               "certified plant's"),
+    Changeable("robot_model_fingerprint", "", "the robot's model fingerprint, which must be the certified plant's; "
+               "empty = computed from the MJCF the robot publishes on robot_description_topic; given, it overrides "
+               "that (a robot that publishes no MJCF, e.g. a URDF; npp-robot logs its fingerprint)"),
+    Param("robot_description_topic", ROBOT_DESCRIPTION, "where the robot publishes its model as MJCF "
+          "(std_msgs/String, transient local, as robot_state_publisher does)"),
     Changeable("max_epsilon", math.inf, "largest certified epsilon this deployment accepts", 0.0),
     Changeable("min_p", 0.0, "smallest certified p (share of s0 ~ rho within epsilon) accepted", 0.0, 1.0),
     Changeable("max_delta", 1.0, "largest certified delta (the claim's failure probability) accepted", 0.0, 1.0),
@@ -81,7 +101,9 @@ PARAMETERS = (
                "the present position held", choices=COMMAND_INTERFACES),
     Changeable("effort_limit", 0.0, "largest |command| on top of the model's actuator limits; 0 = the model's only",
                0.0),
-    Changeable("state_timeout", 0.1, "seconds without a new joint state before the safe command is sent", 1e-3),
+    Changeable("state_timeout", 0.1, "seconds without a fresh answer to a usable joint state before the safe "
+               "command is sent; a multiple of the robot's state period above its worst jitter (see "
+               "'state period' on /diagnostics)", 1e-3),
     Changeable("coverage_radius", 0.0, "distance from the policy's data beyond which a state is reported as outside "
                "the certificate's coverage; 0 = the farthest a checked s0 of the run lay from it", 0.0),
     Changeable("stop_outside_coverage", False, "deactivate at the first state outside the coverage (or non-finite)"),
@@ -94,6 +116,7 @@ class DeploySettings:
 
     run_dir: str
     robot_model_fingerprint: str
+    robot_description_topic: str
     max_epsilon: float
     min_p: float
     max_delta: float
@@ -109,13 +132,12 @@ class DeploySettings:
 
     def __post_init__(self) -> None:
         self.acceptance()
-        if not self.joint_states_topic.strip() or not self.command_topic.strip():
-            raise ValueError("joint_states_topic and command_topic must name topics")
+        if not all(t.strip() for t in (self.joint_states_topic, self.command_topic, self.robot_description_topic)):
+            raise ValueError("joint_states_topic, command_topic and robot_description_topic must name topics")
 
-    def acceptance(self) -> Acceptance:
-        return Acceptance(
-            self.max_epsilon, self.min_p, self.max_delta, self.robot_model_fingerprint, self.override_gate
-        )
+    def acceptance(self, model_fingerprint: str | None = None) -> Acceptance:
+        fingerprint = self.robot_model_fingerprint if model_fingerprint is None else model_fingerprint
+        return Acceptance(self.max_epsilon, self.min_p, self.max_delta, fingerprint, self.override_gate)
 
 
 USAGE = f"""npp-deploy: one certified run's policy drives a robot over ros2_control topics (lifecycle node
@@ -128,14 +150,30 @@ certificate, the operator's limits, the robot's model fingerprint) and fails wit
 starts commanding; deactivate sends the safe command and stops.
 
 subscribes  joint_states_topic (sensor_msgs/JointState: names in any order, extra joints ignored)
+            robot_description_topic (std_msgs/String, transient local: the robot's MJCF, for its fingerprint)
 publishes   command_topic (std_msgs/Float64MultiArray, one entry per command joint, in their order)
-            /diagnostics (diagnostic_msgs/DiagnosticArray: lifecycle state, gate, watchdog, clamps,
-            coverage, latency)
+            /diagnostics (diagnostic_msgs/DiagnosticArray: lifecycle state, gate, what it does now, the last
+            event and its time, refusals, watchdog, clamps, coverage, answer time, state period)
 serves      /<node>/stop (std_srvs/Trigger): deactivate at once
             /<node>/change_state, get_state, ... (lifecycle_msgs)
 
 {parameter_help(PARAMETERS)}
 """
+
+
+def wall_time(at: float | None = None) -> str:
+    """A wall-clock time as /diagnostics shows it: 2026-11-25 14:03:22.512 UTC."""
+    at = time.time() if at is None else at
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(at)) + f".{int(at % 1 * 1000):03d} UTC"
+
+
+@dataclass(frozen=True)
+class Description:
+    """The robot's latest MJCF on robot_description_topic: its text, who published it and when."""
+
+    text: str
+    publishers: str
+    at: str
 
 
 class DeployNode(LifecycleNode):
@@ -148,12 +186,27 @@ class DeployNode(LifecycleNode):
         self.limits: CommandLimits | None = None
         self.coverage: Coverage | None = None
         self.refusal = ""  # the gate's last reason, shown until a configure passes
-        self.last_error = ""
         self.active = False
+        self.description: Description | None = None
+        self.fingerprint = ""  # the robot model fingerprint configure checked, and where it came from
+        self.fingerprint_source = ""
         self._raw: np.ndarray | None = None  # the last joint state taken, [positions, velocities]
         self._last_answered: tuple[int, int] | None = None  # the stamp of the last state answered
         self._command = Float64MultiArray()
         self._latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self._periods: deque[float] = deque(maxlen=LATENCY_WINDOW)  # between joint states, as taken here
+        self._last_arrival: float | None = None
+        self._answered_at: float | None = None  # when the last fresh command went out, since activation
+        self._arrived_since_activation = 0
+        self._since_fresh = {"refused": 0, "repeated": 0}  # states since the last fresh command, not answered
+        self._refused_at = -math.inf
+        self._refused_reason = ""
+        self._stale = ""  # while the watchdog has expired: what it found
+        self._event: tuple[str, str] | None = None  # the last event: (what, when)
+        self._stopped_because = ""  # why the node last stopped commanding, and when: shown while inactive
+        self._stopped_for = ""  # the same, the reason alone
+        self._stopping_for = ""  # the reason a deactivate now in progress was asked for
+        self.stopped_by = ""  # the signal that stops the process (SIGINT, SIGTERM)
         self.counts = dict.fromkeys(
             ("answered", "refused states", "overtaken states", "repeated stamps", "clamped entries",
              "outside coverage", "watchdog expiries"), 0,
@@ -162,10 +215,74 @@ class DeployNode(LifecycleNode):
         self._state_sub = None
         self.command_pub: Publisher | None = None  # created at configure, on the configured topic
         self.create_service(Trigger, STOP_SERVICE, self.on_stop)
+        # From the start, not at configure: the description is latched, and configure must find it there.
+        self.create_subscription(String, self.settings.robot_description_topic, self.on_description, LATCHED_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.watchdog = Watchdog(self.settings.state_timeout, self.on_states_stopped)
+        self.watchdog = Watchdog(self.settings.state_timeout, self.on_states_stopped, self.after_states_stopped)
         self.diagnostics = DiagnosticsReporter(self, self.health)
         self.get_logger().info(f"unconfigured; run_dir {self.settings.run_dir or '(none given)'}")
+
+    def event(self, what: str) -> None:
+        """Remember ``what`` happened now: /diagnostics names the last event with its time."""
+        self._event = (what, wall_time())
+
+    # ---------------------------------------------------------------- the robot's model
+    def on_description(self, msg: String) -> None:
+        """The robot's MJCF: read at configure; a different model while configured stops the deployment."""
+        topic = self.settings.robot_description_topic
+        self.description = Description(msg.data, publishers_of(self, topic), wall_time())
+        self.get_logger().info(
+            f"robot description received on {topic} ({len(msg.data)} characters, from {self.description.publishers})"
+        )
+        deployment = self.deployment
+        if deployment is None or self.fingerprint_source != self._described_source():
+            return
+        try:
+            fingerprint = mjcf_fingerprint(deployment.plant, msg.data)
+        except DescriptionError as exc:
+            fingerprint = f"none ({exc})"
+        if fingerprint == self.fingerprint:
+            return
+        problem = (
+            f"the robot published a different model on {topic} (fingerprint {fingerprint[:12]}...) than the one "
+            f"configure checked ({self.fingerprint[:12]}...)"
+        )
+        self.refusal = f"robot model changed: {problem}"  # until configure checks the model again
+        self.event(self.refusal)
+        if self.active:
+            self.get_logger().error(f"{problem}: deactivating")
+            self._stopping_for = MODEL_CHANGED
+            self.trigger_deactivate()
+        else:
+            self.get_logger().error(f"{problem}: configure again (cleanup, configure) before activating")
+            self.diagnostics.publish()
+
+    def _described_source(self) -> str:
+        return f"the MJCF the robot published on {self.settings.robot_description_topic}"
+
+    def _robot_fingerprint(self, settings: DeploySettings) -> tuple[str, str]:
+        """The fingerprint the gate checks and where it came from: the operator's parameter if given, else the
+        robot's own description; ("", why) when there is neither (the gate then refuses)."""
+        topic, description = settings.robot_description_topic, self.description
+        described = ""
+        if description is not None:
+            try:
+                described = described_fingerprint(settings.run_dir, description.text) or ""
+            except DescriptionError as exc:
+                if not settings.robot_model_fingerprint.strip():
+                    raise DescriptionError(f"the robot's description on {topic}: {exc}") from None
+                self.get_logger().warning(f"the robot's description on {topic} is not used: {exc}")
+        explicit = settings.robot_model_fingerprint.strip()
+        if explicit:
+            if described and described != explicit:
+                self.get_logger().warning(
+                    f"robot_model_fingerprint {explicit[:12]}... overrides the fingerprint of the robot's own "
+                    f"description on {topic} ({described[:12]}...)"
+                )
+            return explicit, "the robot_model_fingerprint parameter"
+        if description is None:
+            return "", f"nowhere: no robot description was received on {topic} and robot_model_fingerprint is empty"
+        return described, self._described_source()
 
     # ---------------------------------------------------------------- lifecycle
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
@@ -179,32 +296,38 @@ class DeployNode(LifecycleNode):
         return DeploySettings(**{param.name: self.get_parameter(param.name).value for param in PARAMETERS})
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        source = ""
         try:
             self.settings = settings = self._read_settings()
-            deployment = load_deployment(settings.run_dir, settings.acceptance())
+            fingerprint, source = self._robot_fingerprint(settings)
+            deployment = load_deployment(settings.run_dir, settings.acceptance(fingerprint))
             plant = deployment.plant
             check_command_interface(plant, settings.command_interface)
             layout = JointLayout.of_plant(plant, parse_names(settings.command_joints))
             coverage = Coverage.of_deployment(deployment, settings.coverage_radius)
         except (GateRefusal, ValueError) as exc:
-            return self._refuse("configure", str(exc))
+            reason = str(exc)
+            if source and "fingerprint" in reason:
+                reason += f" (the robot's fingerprint came from {source})"
+            return self._refuse("configure", reason)
         except Exception as exc:  # whatever it is, configure fails with its reason, never silently
             return self._refuse("configure", f"{type(exc).__name__}: {exc}")
         for reason in deployment.overridden:
             self.get_logger().error(f"GATE OVERRIDDEN (override_gate is true): {reason}")
         self.deployment, self.layout, self.coverage = deployment, layout, coverage
+        self.fingerprint, self.fingerprint_source = fingerprint, source
         self.limits = CommandLimits.of_plant(plant, settings.effort_limit)
-        self.refusal = ""
+        self.refusal = self._stopped_because = self._stopped_for = ""
         self.watchdog.timeout = settings.state_timeout
         self.command_pub = self.create_publisher(Float64MultiArray, settings.command_topic, CONTROL_QOS)
         self._state_sub = self.create_subscription(
             JointState, settings.joint_states_topic, self.on_joint_state, CONTROL_QOS
         )
         self.get_logger().info(
-            f"configured: {deployment.describe()}; state joints {list(layout.state_joints)} from "
-            f"{self._state_sub.topic_name}, commands for {list(layout.command_joints)} on "
-            f"{self.command_pub.topic_name} ({settings.command_interface}), limits {self.limits.describe()}, "
-            f"coverage radius {coverage.radius:.4g}"
+            f"configured: {deployment.describe()}; robot model fingerprint {fingerprint[:12]}... from {source}; "
+            f"state joints {list(layout.state_joints)} from {self._state_sub.topic_name}, commands for "
+            f"{list(layout.command_joints)} on {self.command_pub.topic_name} ({settings.command_interface}), "
+            f"limits {self.limits.describe()}, coverage radius {coverage.radius:.4g}"
         )
         if math.isinf(coverage.radius):
             self.get_logger().warning(
@@ -215,9 +338,18 @@ class DeployNode(LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         if self.deployment is None:
             return self._refuse("activate", "not configured")
+        if self.refusal:  # the robot's model changed since configure
+            return self._refuse("activate", self.refusal)
+        self._latencies.clear()
+        self._periods.clear()
+        self._last_arrival = self._answered_at = None
+        self._arrived_since_activation = 0
+        self._since_fresh = dict.fromkeys(self._since_fresh, 0)
+        self._refused_at = -math.inf
+        self._stale = self._stopped_because = self._stopped_for = ""
         self.active = True
         self.watchdog.arm()
-        self.get_logger().info("active: commanding the robot")
+        self.get_logger().info("active: commanding the robot from its next usable joint state")
         if self.command_pub is not None and self.command_pub.get_subscription_count() == 0:
             self.get_logger().warning(
                 f"nothing subscribes to {self.command_pub.topic_name} yet: is the controller loaded and active?"
@@ -225,11 +357,13 @@ class DeployNode(LifecycleNode):
         return self._became("active")
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.stop_commanding("deactivated")
+        why, self._stopping_for = self._stopping_for or "deactivated", ""
+        self.stop_commanding(why)
         return self._became("inactive")
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._release()
+        self.refusal = self._stopped_because = self._stopped_for = ""
         return self._became("unconfigured")
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -249,6 +383,7 @@ class DeployNode(LifecycleNode):
 
     def _refuse(self, transition: str, reason: str) -> TransitionCallbackReturn:
         self.refusal = f"{transition} refused: {reason}"
+        self.event(self.refusal)
         self.get_logger().error(self.refusal)
         self.diagnostics.publish()
         return TransitionCallbackReturn.FAILURE
@@ -261,13 +396,15 @@ class DeployNode(LifecycleNode):
             self.destroy_publisher(self.command_pub)
             self.command_pub = None
         self.deployment = self.layout = self.limits = self.coverage = None
+        self.fingerprint = self.fingerprint_source = ""
         self._raw, self._last_answered = None, None
 
     def stop_commanding(self, why: str) -> None:
+        """Stop commanding; the safe command goes out in the watchdog's step, so no fresh command follows it."""
         was_active, self.active = self.active, False
-        self.watchdog.disarm()
+        sent = self.watchdog.disarm(self.send_safe_command if was_active else None)
         if was_active:
-            sent = self.send_safe_command()
+            self._stopped_because, self._stopped_for = f"{why} at {wall_time()}: {sent}", why
             self.get_logger().info(f"{why}: {sent}; commanding stopped")
 
     def send_safe_command(self) -> str:
@@ -288,6 +425,8 @@ class DeployNode(LifecycleNode):
             response.success, response.message = True, f"not commanding ({self.lifecycle})"
             return response
         self.get_logger().warning("stop requested: deactivating")
+        self.event("stop requested")
+        self._stopping_for = "stop requested"
         self.trigger_deactivate()
         response.success = self.lifecycle == "inactive"
         response.message = "stopped: safe command sent, inactive" if response.success else "could not deactivate"
@@ -303,6 +442,7 @@ class DeployNode(LifecycleNode):
             return
         newest: tuple[np.ndarray, JointState] | None = None
         while msg is not None:
+            self._arrived(time.monotonic())
             try:
                 raw = layout.state(msg.name, msg.position, msg.velocity)
             except RobotStateError as exc:
@@ -322,17 +462,24 @@ class DeployNode(LifecycleNode):
         stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
         if stamp == self._last_answered:
             self.counts["repeated stamps"] += 1  # the same state again: not new, not answered twice
+            self._since_fresh["repeated"] += 1
             return
         self._last_answered = stamp
-        if self.watchdog.feed():
-            self.get_logger().info("joint states flow again: commanding resumes")
         try:
             self._answer(raw, deployment, layout, started)
         except Exception as exc:  # a single state must never take the node down
             if not rclpy.ok():
-                return  # interrupted while answering: the safe command went out, nothing more can
-            self.last_error = f"could not answer a joint state: {type(exc).__name__}: {exc}"
-            self.get_logger().error(self.last_error)
+                return  # the context is gone (the process is ending): nothing more can be sent
+            self._refused_state(RobotStateError(f"could not answer it: {type(exc).__name__}: {exc}"))
+
+    def _arrived(self, now: float) -> None:
+        """A joint state taken here: the state period's jitter is measured between these, while active."""
+        if not self.active:
+            return
+        self._arrived_since_activation += 1
+        if self._last_arrival is not None:
+            self._periods.append(now - self._last_arrival)
+        self._last_arrival = now
 
     def _answer(self, raw: np.ndarray, deployment: Deployment, layout: JointLayout, started: float) -> None:
         state = stored_state(deployment.plant, raw)
@@ -353,81 +500,151 @@ class DeployNode(LifecycleNode):
             self.counts["clamped entries"] += clamped
             self._warn("clamped", f"command clamped to the actuator limits {self.limits.describe()}")
         self._command.data = float64_array(layout.command(action))
-        assert self.command_pub is not None
-        self.command_pub.publish(self._command)
+        publisher = self.command_pub
+        assert publisher is not None
+        # Sent in the watchdog's step: its safe command cannot follow this fresh one.
+        outcome = self.watchdog.send_fresh(functools.partial(publisher.publish, self._command))
+        if outcome == "disarmed":
+            return  # stopped meanwhile (the safe command went out): nothing more
         self.counts["answered"] += 1
         self._latencies.append(time.perf_counter() - started)
+        self._answered_at = time.monotonic()
+        self._since_fresh = dict.fromkeys(self._since_fresh, 0)
+        if outcome == "resumed":
+            self._stale = ""
+            self.get_logger().info("joint states flow again: commanding resumes")
+            self.diagnostics.publish()
 
     def _refused_state(self, exc: RobotStateError) -> None:
+        """A state the policy cannot act on: counted, named in the log and on /diagnostics, never fresh."""
         self.counts["refused states"] += 1
-        self.last_error = f"joint state refused: {exc}"
-        self._warn(type(exc).__name__, self.last_error)
+        self._since_fresh["refused"] += 1
+        self._refused_at, self._refused_reason = time.monotonic(), f"joint state refused: {exc}"
+        self.event(self._refused_reason)
+        # Throttled per kind of reason (its numbers aside): a flood of one fault stays one line a second,
+        # and each other fault is still printed.
+        self._warn(NUMBERS.sub("#", self._refused_reason), self._refused_reason)
         if isinstance(exc, NonFiniteState) and self.active:
             self.counts["outside coverage"] += 1
             self._outside(str(exc))
 
     def _outside(self, problem: str) -> bool:
         """Report a state the certificate does not cover; True when the node stops for it."""
-        self.last_error = problem
+        self.event(f"outside the certificate's coverage: {problem}")
         if self.settings.stop_outside_coverage and self.active:
             self.get_logger().error(f"{problem}; stop_outside_coverage is true: deactivating")
+            self._stopping_for = STOPPED_OUTSIDE
             self.trigger_deactivate()
             return True
         self._warn("outside coverage", problem)
         return False
 
     def on_states_stopped(self, age: float) -> None:
-        """Watchdog thread: no new joint state for state_timeout seconds."""
+        """Watchdog thread, in its step: no fresh command for state_timeout seconds; send the safe command."""
         sent = self.send_safe_command()
         self.counts["watchdog expiries"] += 1
-        self.last_error = (
-            f"no new joint state for {age * 1e3:.0f} ms (state_timeout {self.settings.state_timeout * 1e3:.0f} ms): "
-            f"{sent}; no commanding until states flow again"
-        )
-        self.get_logger().error(self.last_error)
+        timeout = f"state_timeout {self.settings.state_timeout * 1e3:.0f} ms"
+        if self._answered_at is None:
+            what = f"no joint state answered in the {age * 1e3:.0f} ms since activation"
+        else:
+            what = f"no new joint state for {age * 1e3:.0f} ms"
+        refused, repeated = self._since_fresh["refused"], self._since_fresh["repeated"]
+        if refused or repeated:
+            arrived = [f"{refused} refused (the last: {self._refused_reason})"] if refused else []
+            arrived += [f"{repeated} repeated the last answered stamp"] if repeated else []
+            what += f"; states arrived but none was usable: {', '.join(arrived)}"
+        self._stale = f"{what} ({timeout}): {sent}; no commanding until usable states flow again"
+
+    def after_states_stopped(self, age: float) -> None:
+        """Watchdog thread, after its step: say so."""
+        stale = self._stale
+        self.event(f"watchdog expiry: {stale}")
+        if self._answered_at is None and self._arrived_since_activation == 0:
+            self.get_logger().info(f"waiting for the robot's first joint state: {stale}")
+        else:
+            self.get_logger().error(stale)
         self.diagnostics.publish()
 
     # ---------------------------------------------------------------- health
     def health(self) -> Health:
+        """What the node does now; the last event and its time are among the values, never the level."""
         values: dict[str, object] = {"lifecycle state": self.lifecycle, "run_dir": self.settings.run_dir}
         deployment = self.deployment
         if deployment is not None:
             values["policy"] = deployment.describe()
+            values["robot model fingerprint"] = f"{self.fingerprint[:12]}... from {self.fingerprint_source}"
             if deployment.overridden:
                 values["gate overridden"] = "; ".join(deployment.overridden)
+        description = self.description
+        values["robot description"] = (
+            f"{len(description.text)} characters from {description.publishers}, received {description.at}"
+            if description is not None
+            else f"none received on {self.settings.robot_description_topic}"
+        )
         values.update(self.counts)
-        p50, p99 = percentiles(self._latencies)
         if self._latencies:
+            p50, p99 = percentiles(self._latencies)
             values["answer time p50 / p99 (us)"] = f"{p50 * 1e6:.0f} / {p99 * 1e6:.0f}"
+        if self._periods:
+            p50, p99, most = percentiles(self._periods, (50, 99, 100))
+            values["state period p50 / p99 / max (ms)"] = f"{p50 * 1e3:.2f} / {p99 * 1e3:.2f} / {most * 1e3:.2f}"
+        if self._event is not None:
+            values["last event"], values["last event at"] = self._event
         if self.refusal:
-            return Health(self.refusal, values, ERROR, self.last_error)
-        if self.active and self.watchdog.expired:
-            return Health("active, joint states stopped: safe command sent", values, ERROR, self.last_error)
+            return Health(self.refusal, values, ERROR)
         if self.active:
-            level = WARN if deployment is not None and deployment.overridden else OK
-            return Health("active: commanding the robot", values, level, self.last_error)
-        return Health(f"{self.lifecycle}: not commanding", values, OK, self.last_error)
+            return self._active_health(values)
+        doing = f"{self.lifecycle}: not commanding"
+        if self._stopped_because and self.lifecycle == "inactive":
+            doing += f" ({self._stopped_because})"
+        return Health(doing, values, WARN if self._stopped_for in (STOPPED_OUTSIDE, MODEL_CHANGED) else OK)
+
+    def _active_health(self, values: dict[str, object]) -> Health:
+        deployment = self.deployment
+        level = WARN if deployment is not None and deployment.overridden else OK
+        if self.watchdog.expired:
+            if self._answered_at is None and self._arrived_since_activation == 0:
+                return Health("active: waiting for the robot's first joint state", values, level)
+            usable = "joint states stopped" if not any(self._since_fresh.values()) else "joint states unusable"
+            doing = f"active, {usable}: safe command sent; commanding resumes when usable states flow"
+            return Health(doing, values, WARN, self._stale)
+        recent = time.monotonic() - self._refused_at < RECENT_S
+        if self._answered_at is None:
+            if recent:
+                return Health("active: waiting for a usable joint state", values, WARN, self._refused_reason)
+            return Health("active: waiting for the robot's first joint state", values, level)
+        if recent:
+            return Health("active: commanding the robot; some joint states refused", values, WARN,
+                          self._refused_reason)  # fmt: skip
+        return Health("active: commanding the robot", values, level)
 
     def destroy_node(self) -> None:
         if self.active:
-            self.stop_commanding("exiting")
+            self.stop_commanding(self.stopped_by or "exiting")
         self.watchdog.close()
         super().destroy_node()
 
 
 def make_node() -> DeployNode:
-    """The node, with Ctrl-C and SIGTERM handled so that the safe command goes out before the context shuts
-    down (rclpy's own handler shuts it down at once, and a shut-down context cannot publish)."""
+    """The node; Ctrl-C and SIGTERM are named in its log when it stops commanding.
+
+    run_node turns both signals into a stop request and tears the node down before the context shuts
+    down, so destroy_node sends the safe command after any answer in progress (never before it, as a
+    safe command sent from the signal handler itself could be, interrupting an answer) and while the
+    context can still publish. This handler only names the signal and passes it on to run_node's.
+    """
     node = DeployNode()
-
-    def stop(signum: int, frame: object) -> None:
-        for each in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(each, signal.SIG_IGN)  # once: a second signal must not interrupt the teardown
-        node.stop_commanding(signal.Signals(signum).name)
-        rclpy.try_shutdown()  # what rclpy's handler does: run_node's spin loop ends and tears down
-
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, stop)  # after rclpy.init, which installed its own
+        passed_on = signal.getsignal(signum)
+
+        def stop(signum: int, frame: object, passed_on: Any = passed_on) -> None:
+            node.stopped_by = node.stopped_by or signal.Signals(signum).name
+            if callable(passed_on):
+                passed_on(signum, frame)
+            else:
+                request_stop()
+
+        signal.signal(signum, stop)  # after run_node took both signals for itself
     return node
 
 

@@ -15,6 +15,10 @@ controller activated later picks it up).
 Joint states: every joint of the model, position = qpos, velocity = qvel, effort = the control
 applied to its actuator (0 for a joint without one); stamps are the wall clock (real time) or the
 simulated time (lockstep).
+
+Its model: the MJCF it runs, published once on /robot_description (std_msgs/String, transient local
+and reliable, as robot_state_publisher publishes a URDF), from which npp-deploy computes the model
+fingerprint its gate checks.
 """
 
 from __future__ import annotations
@@ -30,16 +34,17 @@ import numpy as np
 import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 
 from npp_ros.policy.vectors import finite_vector
 from npp_ros.run.deploy import JointLayout, parse_names, parse_vector
+from npp_ros.run.robot_model import mjcf_fingerprint, model_mjcf
 from npp_ros.tasks.registry import TASK_NAMES, Plant, get_task
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, run_node
 from npp_ros_graph.transport.convert import float64_array, stamp
 from npp_ros_graph.transport.parameters import Param, StartupError, declare_settings, parameter_help
-from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES
+from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, LATCHED_QOS
 
 HOLD_REPUBLISH_S = 0.05  # start_on_command: how often s0 goes out again while the robot waits
 
@@ -55,6 +60,7 @@ PARAMETERS = (
           "command; then the clock starts (an episode that starts exactly at s0, as npp-trial needs)"),
     Param("joint_states_topic", JOINT_STATES, "where the joint states go"),
     Param("command_topic", FORWARD_COMMANDS, "the controller's command topic"),
+    Param("robot_description_topic", "/robot_description", "where its model goes, as MJCF text (latched)"),
     Param("command_joints", "", "the controller's joints in command order, comma-separated; empty = the model's "
           "actuated joints"),
 )  # fmt: skip
@@ -73,6 +79,7 @@ class RobotSettings:
     start_on_command: bool
     joint_states_topic: str
     command_topic: str
+    robot_description_topic: str
     command_joints: str
 
     def __post_init__(self) -> None:
@@ -87,9 +94,11 @@ publishes   joint_states_topic (sensor_msgs/JointState) every control period (re
             answered command (lockstep)
 subscribes  command_topic (std_msgs/Float64MultiArray, one entry per command joint; held until the next)
             a command of the wrong length or with non-finite entries is ignored with a warning
+publishes   robot_description_topic (std_msgs/String, transient local: the MJCF of its model, once)
 publishes   /diagnostics
 
-It logs its model fingerprint at start: npp-deploy's robot_model_fingerprint.
+npp-deploy computes the robot's model fingerprint from its description; it is logged at start too (for
+npp-deploy's robot_model_fingerprint, where a description cannot be used).
 
 {parameter_help(PARAMETERS)}
 """
@@ -115,6 +124,7 @@ class RobotNode(Node):
         self._stopping = threading.Event()
         self._clock_thread: threading.Thread | None = None
         self.state_pub = self.create_publisher(JointState, settings.joint_states_topic, CONTROL_QOS)
+        self.description_pub = self.create_publisher(String, settings.robot_description_topic, LATCHED_QOS)
         self._command_sub = self.create_subscription(
             Float64MultiArray, settings.command_topic, self.on_command, CONTROL_QOS
         )
@@ -145,11 +155,19 @@ class RobotNode(Node):
         self._state_msg = JointState(name=list(plant.joint_names))
         self._applied = np.zeros(plant.action_dim)
         self.plant, self.layout = plant, layout
+        mjcf = model_mjcf(plant)
+        if mjcf is None:
+            described = f"no description on {settings.robot_description_topic} (its plant names no MJCF)"
+        elif mjcf_fingerprint(plant, mjcf) != plant.model_sha256():  # published, it must be the model it runs
+            described = f"no description on {settings.robot_description_topic} (its MJCF compiles to another model)"
+        else:
+            self.description_pub.publish(String(data=mjcf))
+            described = f"its MJCF on {settings.robot_description_topic}"
         mode = "lockstep" if settings.lockstep else f"real time, every {plant.dt * 1e3:g} ms"
         self.get_logger().info(
             f"robot {settings.task} seed {settings.seed} ready ({mode}): joints {plant.joint_names}, commands for "
             f"{list(layout.command_joints)} on {settings.command_topic}, s0 {np.round(s0, 6).tolist()}; "
-            f"model fingerprint {plant.model_sha256()}"
+            f"model fingerprint {plant.model_sha256()}, {described}"
         )
         if settings.lockstep:
             self._started = False  # the first state waits for a controller, whose answer it could otherwise miss

@@ -3,7 +3,9 @@ service and its state, for a user without the ros2 command line.
 
 Each command calls the node's standard lifecycle_msgs services (what `ros2 lifecycle set` calls) and
 prints the state it ends in. A refused transition prints the node's reason, read from its
-/diagnostics status, and exits with 1; a node that cannot be reached exits with 2.
+/diagnostics status, and exits with 1; so does a transition the node's state does not allow, with
+why (activate on an unconfigured node names the configure refusal that left it there); a node that
+cannot be reached exits with 2.
 """
 
 from __future__ import annotations
@@ -21,13 +23,27 @@ from rclpy.node import Node
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
-from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, LEVEL_NAMES, health_of
+from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, LEVEL_NAMES, Health, health_of
 from npp_ros_graph.runtime.node import release
 from npp_ros_graph.transport.topics import SERVICE_QOS
 
 TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 COMMANDS = (*TRANSITIONS, "stop", "state")
 REASON_WAIT_S = 3.0  # the node publishes its diagnostics at once on a refusal, and every second
+# The lifecycle states each transition starts from (the standard managed-node state machine).
+STARTS_FROM = {
+    "configure": ("unconfigured",),
+    "activate": ("inactive",),
+    "deactivate": ("active",),
+    "cleanup": ("inactive",),
+    "shutdown": ("unconfigured", "inactive", "active"),
+}
+WHAT_INSTEAD = {
+    "configure": "it is configured already (cleanup first to configure it again)",
+    "activate": "configure it first",
+    "deactivate": "it is not commanding",
+    "cleanup": "only an inactive node is cleaned up",
+}
 
 
 class Unreachable(RuntimeError):
@@ -79,18 +95,35 @@ class DeployControl:
         request.transition.label = label
         return bool(self.call(ChangeState, "change_state", request).success)
 
-    def reason(self) -> str:
-        """The node's latest /diagnostics status in words (its refusal, after a failed transition)."""
+    def status(self) -> Health | None:
+        """The node's next /diagnostics status (None if none comes within REASON_WAIT_S)."""
         self.statuses.clear()
         deadline = time.monotonic() + REASON_WAIT_S
         while "latest" not in self.statuses and time.monotonic() < deadline:
             self.executor.spin_once(timeout_sec=0.05)
         status = self.statuses.get("latest")
-        if status is None:
+        return None if status is None else health_of(status)
+
+    def reason(self) -> str:
+        """The node's latest /diagnostics status in words (its refusal, after a failed transition)."""
+        health = self.status()
+        if health is None:
             return "(no /diagnostics from the node to say why)"
-        health = health_of(status)
         extra = f"; last error: {health.error}" if health.error else ""
         return f"[{LEVEL_NAMES.get(health.level, health.level)}] {health.doing}{extra}"
+
+    def why_not(self, command: str, state: str) -> str:
+        """Why ``command`` cannot start from ``state``: for an unconfigured node, the configure refusal that
+        left it there, as its /diagnostics status says."""
+        text = f"cannot {command}: the node is {state}"
+        if state == "finalized":
+            return f"{text} (shut down: start it again)"
+        if state == "unconfigured":
+            health = self.status()
+            refused = "configure refused: "
+            if health is not None and health.doing.startswith(refused):
+                return f"{text} because configure was refused: {health.doing[len(refused) :]}"
+        return f"{text}: {WHAT_INSTEAD.get(command, 'not a transition from this state')}"
 
     def close(self) -> None:
         release(self.executor, self.node)
@@ -105,6 +138,9 @@ def run(command: str, control: DeployControl) -> int:
         print(f"{control.target}: {answer.message}")
         return 0 if answer.success else 1
     before = control.state()
+    if before not in STARTS_FROM[command]:
+        print(f"{control.target}: {control.why_not(command, before)}", file=sys.stderr)
+        return 1
     if control.transition(command):
         print(f"{control.target}: {command} done ({before} -> {control.state()})")
         return 0
