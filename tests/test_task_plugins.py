@@ -1,19 +1,22 @@
-"""Plug-in tasks: registered by entry point, listed with their origin, a broken one named with its error."""
+"""Plug-in tasks: registered by entry point, listed with their origin, a broken one named with its error; npp_ros's
+own tasks are the registry's, each listed once."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 from collections.abc import Iterator
+from importlib.metadata import EntryPoint
 from pathlib import Path
 
 import numpy as np
 import pytest
 from plugin_env import with_plugin_path
 
-from npp_ros.tasks import sources as task_registry
-from npp_ros.tasks.registry import TASK_NAMES, UnknownTaskError, get_task
-from npp_ros.tasks.sources import TaskLoadError, describe_tasks, task_names
+from npp_ros.tasks import registry as task_registry
+from npp_ros.tasks import sources
+from npp_ros.tasks.registry import REGISTRY, TASK_NAMES, UnknownTaskError, describe_tasks, get_task, task_names
+from npp_ros.tasks.sources import ENTRY_POINT_GROUP, TaskLoadError
 
 ORIGIN = "plug-in npp-demo-tasks 0.1.0"
 
@@ -33,7 +36,7 @@ def plugin_on_path(demo_plugin: Path) -> Iterator[Path]:
 
 
 def test_plugin_tasks_join_the_built_in_ones(plugin_on_path: Path) -> None:
-    assert set(task_names()) == {*TASK_NAMES, "acrobot_swingup", "demo_pendulum", "demo_broken"}
+    assert set(task_names()) == {*TASK_NAMES, "demo_pendulum", "demo_broken"}
     task = get_task("demo_pendulum")
     assert task.name == "demo_pendulum" and task.state_dim == 2
     plant = task.make_plant(0)
@@ -104,9 +107,32 @@ def test_command_lines_take_plugin_tasks(demo_plugin: Path, tmp_path: Path) -> N
     assert (tmp_path / "run" / "run.sqlite").exists()
 
 
-def test_npp_ros_registers_the_acrobot_the_way_a_plugin_does() -> None:
-    origin = task_registry.sources()["acrobot_swingup"].origin
-    assert origin.startswith("plug-in npp_ros ")  # an entry point of npp_ros's own package
+def test_every_task_of_npp_ros_is_built_in_and_listed_once() -> None:
+    """The acrobot is in REGISTRY like the others; npp_ros's own entry point for it, where the installed
+    package still declares one, is the same task and neither a second one nor an ignored plug-in."""
+    assert "acrobot_swingup" in TASK_NAMES
+    assert TASK_NAMES == tuple(sorted(REGISTRY))
+    origins = {name: source.origin for name, source in task_registry.registered().items()}
+    assert {name: origins[name] for name in TASK_NAMES} == dict.fromkeys(TASK_NAMES, "built-in")
+    assert not any("npp_ros" in problem for problem in task_registry.registration_problems())
+    rows = [line.split()[0] for line in describe_tasks(check=False).splitlines()[1:] if line.startswith("  ") and
+            not line.startswith(("  ignored", "  any path"))]  # fmt: skip
+    assert sorted(rows) == rows and set(TASK_NAMES) <= set(rows) and len(rows) == len(set(rows))
+    assert all(name in task_registry.unknown("nope") for name in TASK_NAMES)
+
+
+def test_an_entry_point_that_repeats_a_built_in_task_is_that_task(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same name and target is one task, listed once; the same name with another target is ignored, said so."""
+    entries = [EntryPoint("acrobot_swingup", REGISTRY["acrobot_swingup"], ENTRY_POINT_GROUP),
+               EntryPoint("lqr_2_1", "elsewhere:LQR", ENTRY_POINT_GROUP)]  # fmt: skip
+    monkeypatch.setattr(sources.importlib.metadata, "entry_points", lambda group: entries)
+    found, problems = sources.merge(REGISTRY)
+    assert set(found) == set(REGISTRY) and all(source.built_in for source in found.values())
+    assert found["acrobot_swingup"].target == REGISTRY["acrobot_swingup"]
+    assert problems == ("task 'lqr_2_1' of plug-in is ignored: the built-in task has that name",)
+
+
+def test_the_acrobot_plant_is_what_its_task_declares() -> None:
     task = get_task("acrobot_swingup")
     plant = task.make_plant(0)
     assert (plant.task, plant.state_dim, plant.action_dim, plant.actuated_joint_names) == (

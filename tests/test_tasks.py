@@ -8,13 +8,20 @@ import pytest
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
 from npp_ros.tasks import lqr
-from npp_ros.tasks.registry import TASK_NAMES, ExpertOptions, UnknownTaskError, episode_rng, get_task
+from npp_ros.tasks.registry import TASK_NAMES, ExpertOptions, UnknownTaskError, by_task, episode_rng, get_task
 
 
-def test_registry_names_the_four_tasks() -> None:
-    assert TASK_NAMES == ("cartpole_swingup", "lqr_2_1", "lqr_6_2", "pendulum_swingup")
+def test_registry_names_the_five_tasks() -> None:
+    assert TASK_NAMES == ("acrobot_swingup", "cartpole_swingup", "lqr_2_1", "lqr_6_2", "pendulum_swingup")
     with pytest.raises(UnknownTaskError, match=r"unknown task 'pendulum'; known tasks: acrobot_swingup, cartpole"):
         get_task("pendulum")
+
+
+def test_help_texts_list_every_built_in_task() -> None:
+    """by_task, behind every command's help, covers each built-in task (the acrobot too) in the registry's order."""
+    listed = by_task("default_certify")
+    assert [entry.split()[1] for entry in listed.split(", ")] == list(TASK_NAMES)
+    assert "oracle acrobot_swingup" in listed
 
 
 @pytest.mark.parametrize("name", TASK_NAMES)

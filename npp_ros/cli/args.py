@@ -57,7 +57,7 @@ class ListTasks(argparse.Action):
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=kwargs.get("help"))  # type: ignore[arg-type]
 
     def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
-        from npp_ros.tasks.sources import describe_tasks
+        from npp_ros.tasks.registry import describe_tasks
 
         print(describe_tasks())
         parser.exit()

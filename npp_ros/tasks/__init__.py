@@ -1,4 +1,7 @@
-"""The tasks: the registry, the generic rollout, the shared MuJoCo plant base, each plant and its expert.
+"""The tasks: what a task is, the registry and its other sources (plug-ins, task files), each plant and its expert.
 
-May import: npp_ros.policy, npp_ros.certificate, npp_ros.trajopt.
+The contract every task fills in is task.py; registry.py is the one lookup, over npp_ros's own tasks,
+plug-in packages (sources.py) and task files (task_file*.py); then the generic rollout, the shared
+MuJoCo plant base and each task's own module. May import: npp_ros.policy, npp_ros.certificate,
+npp_ros.trajopt.
 """

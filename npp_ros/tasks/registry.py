@@ -1,328 +1,125 @@
-"""The task registry: every plant and its expert, as the run set-up, the CLIs and the nodes see them.
+"""The task registry: every task by name, and the one lookup the run set-up, the CLIs and the nodes use.
 
-A task says what its plant and expert are (``make_plant``, ``make_expert``), how s0 ~ rho is
-drawn, what the dataset stores, which L choices it can resolve ('analytic' only where its expert
-computes a bound), its paper constants and its default certification mode. Nothing outside a
-task's own module names its plant or expert: ``npp_ros.run.setup``, ``npp-learn``, ``npp-experiment`` and
-the sim, expert and supervisor nodes call :func:`get_task`.
+A task says what its plant and expert are, how s0 ~ rho is drawn, what the dataset stores, which L
+choices it can resolve and its paper constants (the contract, npp_ros.tasks.task, whose names this
+module re-exports). Nothing outside a task's own module names its plant or expert:
+``npp_ros.run.setup``, ``npp-learn``, ``npp-experiment`` and the nodes call :func:`get_task`.
 
 Adding a task is one module (plant, expert and one :class:`Task` instance, usually an
 :class:`OptimizerTask` around an :class:`~npp_ros.trajopt.ilqr.OptimizingExpert`) and one line in
-:data:`REGISTRY`, or, outside npp_ros, an entry point in the group ``npp_ros.tasks`` of any
-installed package (name -> "module:attribute"), or a task file (``.toml``, npp_ros.tasks.task_file).
-The registry holds import paths, so listing the names loads no plant, and a task module may
-import this one (npp_ros.tasks.sources merges the sources).
+:data:`REGISTRY`, or, outside npp_ros, an entry point in the group ``npp_ros.tasks`` of any installed
+package, or a task file (``.toml``, npp_ros.tasks.task_file); npp_ros.tasks.sources reads those. The
+registry holds import paths, so listing the names loads no plant, and a task module may import this one.
+Every command lists the same tasks: :data:`TASK_NAMES` (help texts, :func:`by_task`) are the built-in
+ones, :func:`task_names` and :func:`describe_tasks` add the plug-ins.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
-from dataclasses import dataclass, fields
-from typing import Any, Protocol, runtime_checkable
+import functools
 
-import numpy as np
-from numpy.typing import ArrayLike
-
-from npp_ros.certificate.certifier import CheckedQuantity
-from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
-from npp_ros.certificate.values import ValueBasis
-from npp_ros.policy.dataset import FloatArray, Trajectory
-from npp_ros.policy.feedback import ControlSpace
-from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
+from npp_ros.tasks.sources import TaskSource, is_task_file, load, merge
+from npp_ros.tasks.task import DEFAULT_OPTIONS as DEFAULT_OPTIONS
+from npp_ros.tasks.task import MAX_HORIZON as MAX_HORIZON
+from npp_ros.tasks.task import SPEED_ONLY_OPTIONS as SPEED_ONLY_OPTIONS
+from npp_ros.tasks.task import Expert as Expert
+from npp_ros.tasks.task import ExpertOptions as ExpertOptions
+from npp_ros.tasks.task import MeasuresValueSlope as MeasuresValueSlope
+from npp_ros.tasks.task import OptimizerTask as OptimizerTask
+from npp_ros.tasks.task import Plant as Plant
+from npp_ros.tasks.task import StopsAtTimeBudget as StopsAtTimeBudget
+from npp_ros.tasks.task import Task as Task
+from npp_ros.tasks.task import UnknownTaskError as UnknownTaskError
+from npp_ros.tasks.task import check_horizon as check_horizon
+from npp_ros.tasks.task import control_space as control_space
+from npp_ros.tasks.task import episode_rng as episode_rng
+from npp_ros.tasks.task_file import load_task_file
 
 REGISTRY: dict[str, str] = {
     "lqr_2_1": "npp_ros.tasks.lqr:LQR_2_1",
     "lqr_6_2": "npp_ros.tasks.lqr:LQR_6_2",
     "pendulum_swingup": "npp_ros.tasks.pendulum:SWINGUP",
     "cartpole_swingup": "npp_ros.tasks.cartpole:SWINGUP",
+    "acrobot_swingup": "npp_ros.tasks.acrobot:SWINGUP",
 }
-"""Task name -> "module:attribute" of its :class:`Task`."""
+"""Task name -> "module:attribute" of its :class:`Task`: npp_ros's own tasks, all of them."""
 
 TASK_NAMES: tuple[str, ...] = tuple(sorted(REGISTRY))
-"""The built-in tasks; every task (plug-ins too) is listed by npp_ros.tasks.sources.task_names()."""
-MAX_HORIZON = 100_000
+"""The built-in tasks, sorted; :func:`task_names` adds the plug-ins."""
 
 
-class UnknownTaskError(ValueError):
-    pass
+@functools.cache
+def _registered() -> tuple[dict[str, TaskSource], tuple[str, ...]]:
+    """Every registered task by name, and what could not be registered (in words); cached per process."""
+    return merge(REGISTRY)
 
 
-def check_horizon(horizon: int) -> int:
-    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):
-        raise ValueError(f"horizon must be an integer, got {horizon!r}")
-    if not 1 <= horizon <= MAX_HORIZON:
-        raise ValueError(f"horizon must lie in [1, {MAX_HORIZON}], got {horizon}")
-    return int(horizon)
+def refresh() -> None:
+    """Forget what was scanned (after installing a plug-in in a running process)."""
+    _registered.cache_clear()
+    _load_registered.cache_clear()
 
 
-def episode_rng(seed: int, episode: int) -> np.random.Generator:
-    """One independent stream per (seed, episode): runs resume and replay exactly."""
-    return np.random.default_rng([int(seed), int(episode)])
+def registered() -> dict[str, TaskSource]:
+    """Every registered task (built-in and plug-in) by name."""
+    return dict(_registered()[0])
 
 
-class Plant(Protocol):
-    """A dm_control task stepped one control step at a time; ``state()`` is what the dataset stores.
+def registration_problems() -> tuple[str, ...]:
+    """Plug-in entries that were not registered, and why."""
+    return _registered()[1]
 
-    ``angles`` (the state entries stored wrapped to (-pi, pi]) and ``action_low``/``action_high`` (the
-    actuator range) are what the feedback policy needs; a plant without them has no angles and no limits.
-    """
 
-    task: str
-    seed: int
-    dt: float
-    state_dim: int
-    action_dim: int
-    joint_names: list[str]
-    actuated_joint_names: list[str]
+def task_names() -> tuple[str, ...]:
+    """Every registered task's name, sorted (task files are accepted besides these)."""
+    return tuple(sorted(_registered()[0]))
 
-    def model_sha256(self) -> str: ...
 
-    def clone(self) -> Any: ...
-
-    def reset(self, state: ArrayLike) -> FloatArray: ...
-
-    def state(self) -> FloatArray: ...
-
-    def step(self, action: ArrayLike) -> float: ...
-
-
-class Expert(Protocol):
-    """The TrajectoryOptimizer of Algorithm 1, with what a certificate needs to know about its values."""
-
-    task: str
-    seed: int
-    horizon: int
-    plant: Any  # its own Plant instance; its fingerprint must match the sim's
-
-    def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory: ...
-
-    def value_basis(self) -> ValueBasis: ...
-
-    def theorem_34_condition(self, lipschitz: float) -> tuple[bool, str]: ...
-
-
-@runtime_checkable
-class MeasuresValueSlope(Protocol):
-    """An expert that sees the slope of its own value as it works (an optimizer's backward pass)."""
-
-    requests: int
-
-    def slope_floor(self) -> float: ...
-
-
-@runtime_checkable
-class StopsAtTimeBudget(Protocol):
-    """An expert whose requests may stop at a wall-clock budget: such an answer depends on the machine's speed."""
-
-    time_budget: float
-    budget_stops: int  # requests so far that the budget stopped before convergence or the iteration cap
-
-
-SPEED_ONLY_OPTIONS = ("threads",)  # ExpertOptions that change how fast an expert answers, never what
-
-
-@dataclass(frozen=True)
-class ExpertOptions:
-    """How to build a task's expert; None means the task's default. A task refuses what it cannot honour."""
-
-    kind: str | None = None  # which of the task's experts (Task.experts); None = the first
-    gamma: float = 1.0
-    time_budget: float | None = None  # seconds per request (optimizer experts)
-    max_iterations: int | None = None  # iLQR iterations per request (optimizer experts)
-    values: str | None = None  # value mode (optimizer experts, see OptimizingExpert)
-    threads: int | None = None  # iLQR derivative threads (mujoco.batch, same answers at any count); None = 1
-    control_weight: float = 0.1  # the detuned lqr expert's control-cost scale
-
-    def answer_identity(self) -> dict[str, Any]:
-        """The options that decide the expert's answers, for records that must match a run's own.
-
-        SPEED_ONLY_OPTIONS (``threads``) are left out: a record made at one thread count (or before the
-        option existed) stays this run's at any other.
-        """
-        return {field.name: getattr(self, field.name) for field in fields(self) if field.name not in SPEED_ONLY_OPTIONS}
-
-
-DEFAULT_OPTIONS = ExpertOptions()
-
-
-@dataclass(frozen=True)
-class Task:
-    """One task: its plant, its expert, rho, what is stored, and the constants the paper gives for it."""
-
-    name: str
-    state_dim: int
-    action_dim: int
-    stored_state: str  # what one stored state's entries are
-    initial_state_diameter: float | None  # diam(S0) in the stored metric; condition (ii) needs it
-    default_certify: CheckedQuantity
-    experts: tuple[str, ...]  # expert kinds; the first is the default
-    paper_lipschitz: float | None = None
-    paper_epsilon: float | None = None
-    paper_lipschitz_note: str = "the paper's choice (Section 5); not a bound on V*"
-    no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"
-    optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
-    default_horizon: int = 1000  # the episode length when a command line gives none
-    reward_range: tuple[float, float] | None = None  # what one step's reward can be, where known (answer checks)
-
-    # ------------------------------------------------------------------ what each task provides
-    def make_plant(self, seed: int) -> Plant:
-        raise NotImplementedError
-
-    def make_expert(self, seed: int, horizon: int, options: ExpertOptions = DEFAULT_OPTIONS) -> Expert:
-        raise NotImplementedError
-
-    def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
-        raise NotImplementedError
-
-    def analytic_lipschitz(self, expert: Expert) -> LipschitzConstant:
-        raise ValueError(
-            f"L = 'analytic' is not available for {self.name}: {self.no_analytic_lipschitz}; "
-            f"use {'paper or ' if self.paper_lipschitz else ''}a number"
-        )
-
-    def expert_value(self, expert: Expert) -> Callable[[FloatArray], float] | None:
-        """The expert's value at any s0 in closed form, or None (then the episode log has it only when called)."""
-        return None
-
-    def value_slope(self, expert: Expert) -> Callable[[ArrayLike], FloatArray] | None:
-        """|grad V^expert| at given states, where the expert knows it in closed form."""
-        return None
-
-    def optimal_returns(self, expert: Expert, plant: Plant, states: FloatArray, horizon: int) -> FloatArray | None:
-        """The optimal H-step return from each s0, where it is known; None for a suboptimal-only task."""
-        return None
-
-    def expert_returns(
-        self,
-        expert: Expert,
-        plant: Plant,
-        states: FloatArray,
-        horizon: int,
-        progress: Callable[[int, int], None] | None = None,
-    ) -> FloatArray:
-        """The expert's own H-step return from each s0: one request each (its reported return).
-
-        ``progress(done, total)`` after each request: an optimizer's requests take seconds each.
-        """
-        out = np.empty(len(states))
-        for k, s0 in enumerate(states):
-            ret = expert.trajectory(s0, horizon).expert_return
-            out[k] = math.nan if ret is None else ret
-            if progress is not None:
-                progress(k + 1, len(states))
-        return out
-
-    # ------------------------------------------------------------------ derived, shared
-    def initial_state(self, seed: int, episode: int) -> FloatArray:
-        """s0 of ``episode``: its own seeded stream, so a resumed run and the graph see the same states."""
-        return self.sample_initial_state(episode_rng(seed, episode))
-
-    def expert_kind(self, options: ExpertOptions) -> str:
-        kind = options.kind or self.experts[0]
-        if kind not in self.experts:
-            raise ValueError(f"{self.name} has no {kind!r} expert; it has {', '.join(self.experts)}")
-        return kind
-
-    def epsilon(self, given: float | None) -> float:
-        """The given epsilon, or the paper's for this task when None."""
-        if given is not None:
-            return float(given)
-        if self.paper_epsilon is None:
-            raise ValueError(f"the paper gives no epsilon for {self.name}; give one")
-        return self.paper_epsilon
-
-    def lipschitz_choices(self) -> tuple[str, ...]:
-        """The named L choices this task resolves."""
-        analytic = type(self).analytic_lipschitz is not Task.analytic_lipschitz
-        return (("analytic",) if analytic else ()) + (("paper",) if self.paper_lipschitz is not None else ())
-
-    def default_lipschitz_choice(self) -> str:
-        """'analytic' where the expert computes a bound, else the paper's value; a task with neither needs a number."""
-        choices = self.lipschitz_choices()
-        if not choices:
-            raise ValueError(f"{self.name} has no analytic or paper L; give a number")
-        return choices[0]
-
-    def resolve_lipschitz(self, choice: str | float, expert: Expert) -> LipschitzConstant:
-        """'analytic' (where the expert computes a bound), 'paper' (the paper's value, a choice) or a number."""
-        if choice == "analytic":
-            return self.analytic_lipschitz(expert)
-        if choice == "paper":
-            if self.paper_lipschitz is None:
-                raise ValueError(f"the paper gives no L for {self.name}; use a number")
-            return LipschitzConstant(self.paper_lipschitz, "paper", self.paper_lipschitz_note)
-        try:
-            value = float(choice)
-        except ValueError:
-            known = ", ".join(LIPSCHITZ_CHOICES)
-            raise ValueError(f"the Lipschitz choice must be one of {known} or a number, got {choice!r}") from None
-        return LipschitzConstant(value, "user", "given on the command line")
-
-
-@dataclass(frozen=True)
-class OptimizerTask(Task):
-    """A task whose expert is an :class:`~npp_ros.trajopt.ilqr.OptimizingExpert` (iLQR on the plant's model).
-
-    Its values are the expert's own true H-step returns, a local optimum of a smooth surrogate: a
-    claim is relative to this expert, so the default check is ``oracle`` (V^E(s0) - R^pi(s0)).
-    """
-
-    default_certify: CheckedQuantity = "oracle"
-    experts: tuple[str, ...] = ("ilqr",)
-    plant_factory: Callable[[int], Plant] | None = None
-    expert_factory: Callable[..., Expert] | None = None
-    sampler: Callable[[np.random.Generator], FloatArray] | None = None
-    default_values: str = DEFAULT_VALUES
-    default_time_budget: float = DEFAULT_TIME_BUDGET_S
-
-    def make_plant(self, seed: int) -> Plant:
-        assert self.plant_factory is not None
-        return self.plant_factory(seed)
-
-    def make_expert(self, seed: int, horizon: int, options: ExpertOptions = DEFAULT_OPTIONS) -> Expert:
-        assert self.expert_factory is not None
-        self.expert_kind(options)
-        if options.gamma != 1.0:
-            raise ValueError(f"the {self.name} expert computes undiscounted H-step returns; gamma must be 1")
-        extra: dict[str, Any] = {}
-        if options.max_iterations is not None:
-            extra["max_iterations"] = options.max_iterations
-        expert = self.expert_factory(
-            seed=seed,
-            horizon=check_horizon(horizon),
-            time_budget=self.default_time_budget if options.time_budget is None else options.time_budget,
-            values=options.values or self.default_values,
-            **extra,
-        )
-        if options.threads is not None and isinstance(expert, OptimizingExpert):
-            expert.optimizer.dynamics.threads = options.threads
-        return expert
-
-    def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
-        assert self.sampler is not None
-        return self.sampler(rng)
-
-
-def control_space(plant: Plant) -> ControlSpace:
-    """How the plant's states differ and how far its actuators reach (npp_ros.policy.feedback)."""
-    low = getattr(plant, "action_low", np.full(plant.action_dim, -np.inf))
-    high = getattr(plant, "action_high", np.full(plant.action_dim, np.inf))
-    return ControlSpace.of(plant.state_dim, getattr(plant, "angles", ()), low, high)
+def unknown(name: str) -> str:
+    return f"unknown task {name!r}; known tasks: {', '.join(task_names())}, or a task file (.toml)"
 
 
 def get_task(name: str) -> Task:
-    """The task ``name``: built in, from a plug-in package, or a task file; an unknown name is refused with
-    the known ones, a plug-in that does not load with its error (npp_ros.tasks.sources)."""
-    from npp_ros.tasks import sources  # it imports this module's Task
+    """The task ``name``: built in, from a plug-in package (imported on first use), or a task file; an
+    unknown name is refused with the known ones, a plug-in that does not load with its error."""
+    if is_task_file(name):
+        return load_task_file(name)
+    return _load_registered(name)
 
-    return sources.load_task(name)
+
+@functools.cache
+def _load_registered(name: str) -> Task:
+    found = _registered()[0]
+    if name not in found:
+        raise UnknownTaskError(unknown(name))
+    return load(found[name])
+
+
+def describe_tasks(check: bool = True) -> str:
+    """The task listing (``npp-learn --list-tasks``, the sim's --help): each task and where it comes from.
+
+    ``check`` imports each plug-in to say whether it loads (built-in tasks are npp_ros's own).
+    """
+    rows = []
+    for name in task_names():
+        source = _registered()[0][name]
+        status = ""
+        if check and not source.built_in:
+            try:
+                _load_registered(name)
+            except UnknownTaskError as exc:
+                status = f"  DOES NOT LOAD: {str(exc).split(': ', 1)[-1]}"
+        rows.append(f"  {name:<24} {source.origin:<28} {source.target}{status}")
+    lines = ["tasks (name, where it comes from, its Task):", *rows]
+    lines += [f"  ignored: {problem}" for problem in registration_problems()]
+    lines.append("  any path ending in .toml: a task file (a MuJoCo model and its task, no Python)")
+    return "\n".join(lines)
 
 
 def by_task(attribute: str, tasks: tuple[str, ...] | None = None) -> str:
     """A help text's list of one property of every task that has it ("50 lqr_2_1, 300 lqr_6_2, ..."), from the
-    tasks themselves, so that no command's help can go stale when a task is added or changed."""
+    tasks themselves (every built-in task by default), so that no command's help can go stale when a task is
+    added or changed."""
     values = [(name, getattr(get_task(name), attribute)) for name in (tasks or TASK_NAMES)]
     return ", ".join(f"{value:g} {name}" if isinstance(value, float) else f"{value} {name}"
                      for name, value in values if value is not None)  # fmt: skip

@@ -68,8 +68,8 @@ from numpy.typing import ArrayLike
 from npp_ros.certificate.certifier import CERTIFY_MODES
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import wrap_angle
-from npp_ros.tasks.registry import DEFAULT_OPTIONS, Expert, ExpertOptions, OptimizerTask, check_horizon
 from npp_ros.tasks.suite_plant import SuitePlant
+from npp_ros.tasks.task import DEFAULT_OPTIONS, Expert, ExpertOptions, OptimizerTask, check_horizon
 from npp_ros.trajopt.ilqr import VALUE_MODES, OptimizingExpert, check_time_budget
 
 HASH_MARK = "#sha256="

@@ -21,9 +21,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from npp_ros.policy.vectors import finite_vector
-from npp_ros.tasks.registry import MAX_HORIZON, Plant, Task, check_horizon, get_task
+from npp_ros.tasks.registry import MAX_HORIZON, Plant, Task, check_horizon, describe_tasks, get_task
 from npp_ros.tasks.rollout import episode_return
-from npp_ros.tasks.sources import describe_tasks
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
 from npp_ros_graph.transport.convert import (

@@ -1,0 +1,295 @@
+"""What a task is: its plant, its expert, how s0 ~ rho is drawn, and what a certificate needs to know.
+
+Every source of tasks fills in this contract: npp_ros's own task modules, plug-in packages and task
+files. :class:`Task` is one task; :class:`OptimizerTask` fills it in for an expert built on the iLQR
+optimizer (:class:`~npp_ros.trajopt.ilqr.OptimizingExpert`). Which tasks exist, and the lookup every
+command and node uses, is npp_ros.tasks.registry; this module imports no other module of npp_ros.tasks.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from npp_ros.certificate.certifier import CheckedQuantity
+from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
+from npp_ros.certificate.values import ValueBasis
+from npp_ros.policy.dataset import FloatArray, Trajectory
+from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
+
+MAX_HORIZON = 100_000
+DEFAULT_HORIZON = 1000  # the episode length of a task that names none
+
+
+class UnknownTaskError(ValueError):
+    """A task name that names no task (or, as TaskLoadError, one that does not load)."""
+
+
+def check_horizon(horizon: int) -> int:
+    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):
+        raise ValueError(f"horizon must be an integer, got {horizon!r}")
+    if not 1 <= horizon <= MAX_HORIZON:
+        raise ValueError(f"horizon must lie in [1, {MAX_HORIZON}], got {horizon}")
+    return int(horizon)
+
+
+def episode_rng(seed: int, episode: int) -> np.random.Generator:
+    """One independent stream per (seed, episode): runs resume and replay exactly."""
+    return np.random.default_rng([int(seed), int(episode)])
+
+
+class Plant(Protocol):
+    """A dm_control task stepped one control step at a time; ``state()`` is what the dataset stores.
+
+    ``angles`` (the state entries stored wrapped to (-pi, pi]) and ``action_low``/``action_high`` (the
+    actuator range) are what the feedback policy needs; a plant without them has no angles and no limits.
+    """
+
+    task: str
+    seed: int
+    dt: float
+    state_dim: int
+    action_dim: int
+    joint_names: list[str]
+    actuated_joint_names: list[str]
+
+    def model_sha256(self) -> str: ...
+
+    def clone(self) -> Any: ...
+
+    def reset(self, state: ArrayLike) -> FloatArray: ...
+
+    def state(self) -> FloatArray: ...
+
+    def step(self, action: ArrayLike) -> float: ...
+
+
+class Expert(Protocol):
+    """The TrajectoryOptimizer of Algorithm 1, with what a certificate needs to know about its values."""
+
+    task: str
+    seed: int
+    horizon: int
+    plant: Any  # its own Plant instance; its fingerprint must match the sim's
+
+    def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory: ...
+
+    def value_basis(self) -> ValueBasis: ...
+
+    def theorem_34_condition(self, lipschitz: float) -> tuple[bool, str]: ...
+
+
+@runtime_checkable
+class MeasuresValueSlope(Protocol):
+    """An expert that sees the slope of its own value as it works (an optimizer's backward pass)."""
+
+    requests: int
+
+    def slope_floor(self) -> float: ...
+
+
+@runtime_checkable
+class StopsAtTimeBudget(Protocol):
+    """An expert whose requests may stop at a wall-clock budget: such an answer depends on the machine's speed."""
+
+    time_budget: float
+    budget_stops: int  # requests so far that the budget stopped before convergence or the iteration cap
+
+
+SPEED_ONLY_OPTIONS = ("threads",)  # ExpertOptions that change how fast an expert answers, never what
+
+
+@dataclass(frozen=True)
+class ExpertOptions:
+    """How to build a task's expert; None means the task's default. A task refuses what it cannot honour."""
+
+    kind: str | None = None  # which of the task's experts (Task.experts); None = the first
+    gamma: float = 1.0
+    time_budget: float | None = None  # seconds per request (optimizer experts)
+    max_iterations: int | None = None  # iLQR iterations per request (optimizer experts)
+    values: str | None = None  # value mode (optimizer experts, see OptimizingExpert)
+    threads: int | None = None  # iLQR derivative threads (mujoco.batch, same answers at any count); None = 1
+    control_weight: float = 0.1  # the detuned lqr expert's control-cost scale
+
+    def answer_identity(self) -> dict[str, Any]:
+        """The options that decide the expert's answers, for records that must match a run's own.
+
+        SPEED_ONLY_OPTIONS (``threads``) are left out: a record made at one thread count (or before the
+        option existed) stays this run's at any other.
+        """
+        return {field.name: getattr(self, field.name) for field in fields(self) if field.name not in SPEED_ONLY_OPTIONS}
+
+
+DEFAULT_OPTIONS = ExpertOptions()
+
+
+@dataclass(frozen=True)
+class Task:
+    """One task: its plant, its expert, rho, what is stored, and the constants the paper gives for it."""
+
+    name: str
+    state_dim: int
+    action_dim: int
+    stored_state: str  # what one stored state's entries are
+    initial_state_diameter: float | None  # diam(S0) in the stored metric; condition (ii) needs it
+    default_certify: CheckedQuantity
+    experts: tuple[str, ...]  # expert kinds; the first is the default
+    paper_lipschitz: float | None = None
+    paper_epsilon: float | None = None
+    paper_lipschitz_note: str = "the paper's choice (Section 5); not a bound on V*"
+    no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"
+    optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
+    default_horizon: int = DEFAULT_HORIZON  # the episode length when a command line gives none
+    reward_range: tuple[float, float] | None = None  # what one step's reward can be, where known (answer checks)
+
+    # ------------------------------------------------------------------ what each task provides
+    def make_plant(self, seed: int) -> Plant:
+        raise NotImplementedError
+
+    def make_expert(self, seed: int, horizon: int, options: ExpertOptions = DEFAULT_OPTIONS) -> Expert:
+        raise NotImplementedError
+
+    def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
+        raise NotImplementedError
+
+    def analytic_lipschitz(self, expert: Expert) -> LipschitzConstant:
+        raise ValueError(
+            f"L = 'analytic' is not available for {self.name}: {self.no_analytic_lipschitz}; "
+            f"use {'paper or ' if self.paper_lipschitz else ''}a number"
+        )
+
+    def expert_value(self, expert: Expert) -> Callable[[FloatArray], float] | None:
+        """The expert's value at any s0 in closed form, or None (then the episode log has it only when called)."""
+        return None
+
+    def value_slope(self, expert: Expert) -> Callable[[ArrayLike], FloatArray] | None:
+        """|grad V^expert| at given states, where the expert knows it in closed form."""
+        return None
+
+    def optimal_returns(self, expert: Expert, plant: Plant, states: FloatArray, horizon: int) -> FloatArray | None:
+        """The optimal H-step return from each s0, where it is known; None for a suboptimal-only task."""
+        return None
+
+    def expert_returns(
+        self,
+        expert: Expert,
+        plant: Plant,
+        states: FloatArray,
+        horizon: int,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> FloatArray:
+        """The expert's own H-step return from each s0: one request each (its reported return).
+
+        ``progress(done, total)`` after each request: an optimizer's requests take seconds each.
+        """
+        out = np.empty(len(states))
+        for k, s0 in enumerate(states):
+            ret = expert.trajectory(s0, horizon).expert_return
+            out[k] = math.nan if ret is None else ret
+            if progress is not None:
+                progress(k + 1, len(states))
+        return out
+
+    # ------------------------------------------------------------------ derived, shared
+    def initial_state(self, seed: int, episode: int) -> FloatArray:
+        """s0 of ``episode``: its own seeded stream, so a resumed run and the graph see the same states."""
+        return self.sample_initial_state(episode_rng(seed, episode))
+
+    def expert_kind(self, options: ExpertOptions) -> str:
+        kind = options.kind or self.experts[0]
+        if kind not in self.experts:
+            raise ValueError(f"{self.name} has no {kind!r} expert; it has {', '.join(self.experts)}")
+        return kind
+
+    def epsilon(self, given: float | None) -> float:
+        """The given epsilon, or the paper's for this task when None."""
+        if given is not None:
+            return float(given)
+        if self.paper_epsilon is None:
+            raise ValueError(f"the paper gives no epsilon for {self.name}; give one")
+        return self.paper_epsilon
+
+    def lipschitz_choices(self) -> tuple[str, ...]:
+        """The named L choices this task resolves."""
+        analytic = type(self).analytic_lipschitz is not Task.analytic_lipschitz
+        return (("analytic",) if analytic else ()) + (("paper",) if self.paper_lipschitz is not None else ())
+
+    def default_lipschitz_choice(self) -> str:
+        """'analytic' where the expert computes a bound, else the paper's value; a task with neither needs a number."""
+        choices = self.lipschitz_choices()
+        if not choices:
+            raise ValueError(f"{self.name} has no analytic or paper L; give a number")
+        return choices[0]
+
+    def resolve_lipschitz(self, choice: str | float, expert: Expert) -> LipschitzConstant:
+        """'analytic' (where the expert computes a bound), 'paper' (the paper's value, a choice) or a number."""
+        if choice == "analytic":
+            return self.analytic_lipschitz(expert)
+        if choice == "paper":
+            if self.paper_lipschitz is None:
+                raise ValueError(f"the paper gives no L for {self.name}; use a number")
+            return LipschitzConstant(self.paper_lipschitz, "paper", self.paper_lipschitz_note)
+        try:
+            value = float(choice)
+        except ValueError:
+            known = ", ".join(LIPSCHITZ_CHOICES)
+            raise ValueError(f"the Lipschitz choice must be one of {known} or a number, got {choice!r}") from None
+        return LipschitzConstant(value, "user", "given on the command line")
+
+
+@dataclass(frozen=True)
+class OptimizerTask(Task):
+    """A task whose expert is an :class:`~npp_ros.trajopt.ilqr.OptimizingExpert` (iLQR on the plant's model).
+
+    Its values are the expert's own true H-step returns, a local optimum of a smooth surrogate: a
+    claim is relative to this expert, so the default check is ``oracle`` (V^E(s0) - R^pi(s0)).
+    """
+
+    default_certify: CheckedQuantity = "oracle"
+    experts: tuple[str, ...] = ("ilqr",)
+    plant_factory: Callable[[int], Plant] | None = None
+    expert_factory: Callable[..., Expert] | None = None
+    sampler: Callable[[np.random.Generator], FloatArray] | None = None
+    default_values: str = DEFAULT_VALUES
+    default_time_budget: float = DEFAULT_TIME_BUDGET_S
+
+    def make_plant(self, seed: int) -> Plant:
+        assert self.plant_factory is not None
+        return self.plant_factory(seed)
+
+    def make_expert(self, seed: int, horizon: int, options: ExpertOptions = DEFAULT_OPTIONS) -> Expert:
+        assert self.expert_factory is not None
+        self.expert_kind(options)
+        if options.gamma != 1.0:
+            raise ValueError(f"the {self.name} expert computes undiscounted H-step returns; gamma must be 1")
+        extra: dict[str, Any] = {}
+        if options.max_iterations is not None:
+            extra["max_iterations"] = options.max_iterations
+        expert = self.expert_factory(
+            seed=seed,
+            horizon=check_horizon(horizon),
+            time_budget=self.default_time_budget if options.time_budget is None else options.time_budget,
+            values=options.values or self.default_values,
+            **extra,
+        )
+        if options.threads is not None and isinstance(expert, OptimizingExpert):
+            expert.optimizer.dynamics.threads = options.threads
+        return expert
+
+    def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
+        assert self.sampler is not None
+        return self.sampler(rng)
+
+
+def control_space(plant: Plant) -> ControlSpace:
+    """How the plant's states differ and how far its actuators reach (npp_ros.policy.feedback)."""
+    low = getattr(plant, "action_low", np.full(plant.action_dim, -np.inf))
+    high = getattr(plant, "action_high", np.full(plant.action_dim, np.inf))
+    return ControlSpace.of(plant.state_dim, getattr(plant, "angles", ()), low, high)
