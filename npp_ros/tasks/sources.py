@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from npp_ros.tasks.task import Task, UnknownTaskError
-from npp_ros.tasks.task_file import HASH_MARK
+from npp_ros.tasks.task_file_schema import HASH_MARK
 
 ENTRY_POINT_GROUP = "npp_ros.tasks"
 TASK_FILE_SUFFIX = ".toml"

@@ -1,0 +1,164 @@
+"""A task file read into a :class:`TaskDefinition`, section by section, every key checked.
+
+:func:`parse` reads the TOML, then each part in the file's order: the model and its timestep
+(npp_ros.tasks.task_file_model), the run's defaults (horizon, epsilon, L, certification mode),
+``[state]``, ``actuators``, ``[rho]``, ``[reward]`` (npp_ros.tasks.task_file_terms) and ``[expert]``.
+The first problem is refused with one line naming the file and the key (TaskFileError).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from npp_ros.certificate.certifier import CERTIFY_MODES
+from npp_ros.policy.dataset import FloatArray
+from npp_ros.policy.feedback import wrap_angle
+from npp_ros.tasks.task import DEFAULT_HORIZON, check_horizon
+from npp_ros.tasks.task_file_cost import DEFAULT_CONTROL_WEIGHT, DEFAULT_VELOCITY_WEIGHT
+from npp_ros.tasks.task_file_model import load_model, read_actuators, read_rho, read_state, read_timestep
+from npp_ros.tasks.task_file_reader import Reader, TaskFileError
+from npp_ros.tasks.task_file_terms import FunctionReward, Term, TermReward, read_reward, read_terms
+from npp_ros.trajopt.ilqr import DEFAULT_VALUES, VALUE_MODES, check_time_budget
+
+HASH_MARK = "#sha256="  # a task file's name: its absolute path, this, and its content's SHA-256
+TOP_KEYS = {"name", "model", "control_timestep", "horizon", "epsilon", "lipschitz", "certify", "actuators", "state",
+            "rho", "reward", "expert"}  # fmt: skip
+EXPERT_KEYS = {"max_iterations", "time_budget", "values", "warm_start", "control_weight", "velocity_weight", "terms"}
+WARM_STARTS = ("zero",)
+DEFAULT_CERTIFY = "oracle"  # the check of every task with an iLQR expert (OptimizerTask)
+DEFAULT_MAX_ITERATIONS = 30  # iLQR iterations per request of a task file's expert
+DEFAULT_WARM_START = "zero"
+
+
+@dataclass(frozen=True)
+class TaskDefinition:
+    """Everything the file says, checked against the compiled model."""
+
+    path: Path
+    sha256: str
+    label: str
+    model_path: Path
+    dt: float
+    horizon: int
+    epsilon: float | None
+    lipschitz: float | None
+    certify: str
+    joint_names: tuple[str, ...]
+    actuator_names: tuple[str, ...]
+    actuated_joint_names: tuple[str, ...]
+    wrapped: tuple[int, ...]  # qpos indices stored wrapped
+    rho_low: FloatArray
+    rho_high: FloatArray
+    reward: TermReward | FunctionReward
+    cost_terms: tuple[Term, ...]
+    expert: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return f"{self.path}{HASH_MARK}{self.sha256}"
+
+    @property
+    def state_dim(self) -> int:
+        return 2 * len(self.joint_names)
+
+    @property
+    def action_dim(self) -> int:
+        return len(self.actuator_names)
+
+    def stored_state(self) -> str:
+        angles = [self.joint_names[i] for i in self.wrapped]
+        wrapped = f" ({', '.join(angles)} wrapped to (-pi, pi])" if angles else ""
+        return f"qpos then qvel of {', '.join(self.joint_names)}{wrapped}"
+
+    def represent(self, raw: ArrayLike) -> FloatArray:
+        x = np.array(raw, dtype=np.float64, copy=True)
+        for i in self.wrapped:
+            x[..., i] = wrap_angle(x[..., i])
+        return x
+
+    def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
+        """s0 ~ rho: uniform in each entry's range (an entry whose range is a point is not drawn)."""
+        return rng.uniform(self.rho_low, self.rho_high)
+
+    def initial_state_diameter(self) -> float:
+        widths = self.rho_high - self.rho_low
+        for i in self.wrapped:
+            widths[i] = min(widths[i], 2 * math.pi)
+        return float(np.linalg.norm(widths))
+
+
+def parse(path: Path, content: bytes) -> TaskDefinition:
+    """The definition in ``content`` (the file at ``path``); TaskFileError naming the key on any problem."""
+    reader = Reader(path)
+    try:
+        doc = tomllib.loads(content.decode())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise TaskFileError(f"task file {path}: not valid TOML: {exc}") from None
+    reader.unknown_keys(doc, TOP_KEYS, "")
+    model_path, model = load_model(reader, doc, path)
+    dt = read_timestep(reader, doc, model)
+    horizon, epsilon, lipschitz, certify = _run_defaults(reader, doc)
+    joint_names, wrapped = read_state(reader, doc, model)
+    actuator_names, actuated = read_actuators(reader, doc, model)
+    low, high = read_rho(reader, doc, model)
+    reward = read_reward(reader, doc, model)
+    options, cost_terms = _read_expert(reader, doc, model, reward)
+    label = doc.get("name", path.parent.name or path.stem)
+    return TaskDefinition(
+        path=path, sha256=hashlib.sha256(content).hexdigest(), label=reader.text(label, "name"),
+        model_path=model_path, dt=dt, horizon=horizon, epsilon=epsilon, lipschitz=lipschitz, certify=certify,
+        joint_names=joint_names, actuator_names=actuator_names, actuated_joint_names=actuated,
+        wrapped=wrapped, rho_low=low, rho_high=high, reward=reward, cost_terms=cost_terms, expert=options,
+    )  # fmt: skip
+
+
+def _run_defaults(reader: Reader, doc: dict[str, Any]) -> tuple[int, float | None, float | None, str]:
+    """The horizon, epsilon, L and certification mode a run takes when its command line gives none."""
+    horizon = int(reader.number(doc.get("horizon", DEFAULT_HORIZON), "horizon", positive=True))
+    try:
+        check_horizon(horizon)
+    except ValueError as exc:
+        raise reader.fail("horizon", str(exc)) from None
+    epsilon = reader.number(doc["epsilon"], "epsilon", positive=True) if "epsilon" in doc else None
+    lipschitz = reader.number(doc["lipschitz"], "lipschitz", positive=True) if "lipschitz" in doc else None
+    certify = doc.get("certify", DEFAULT_CERTIFY)
+    if certify not in CERTIFY_MODES:
+        raise reader.fail("certify", f"must be one of {', '.join(CERTIFY_MODES)}, got {certify!r}")
+    return horizon, epsilon, lipschitz, certify
+
+
+def _read_expert(
+    reader: Reader, doc: dict[str, Any], model: Any, reward: TermReward | FunctionReward
+) -> tuple[dict[str, Any], tuple[Term, ...]]:
+    """``[expert]``: the iLQR expert's options (only those the file gives, and its value mode and cost weights)
+    and the terms of its smooth cost (the reward's own, or ``[[expert.terms]]``, which a reward function needs)."""
+    expert = reader.table(doc.get("expert", {}), "expert")
+    reader.unknown_keys(expert, EXPERT_KEYS, "expert.")
+    options: dict[str, Any] = {}
+    if "max_iterations" in expert:
+        options["max_iterations"] = int(reader.number(expert["max_iterations"], "expert.max_iterations", True))
+    if "time_budget" in expert:
+        try:
+            options["time_budget"] = check_time_budget(expert["time_budget"])
+        except ValueError as exc:
+            raise reader.fail("expert.time_budget", str(exc)) from None
+    options["values"] = expert.get("values", DEFAULT_VALUES)
+    if options["values"] not in VALUE_MODES:
+        raise reader.fail("expert.values", f"must be one of {', '.join(VALUE_MODES)}, got {expert['values']!r}")
+    if expert.get("warm_start", DEFAULT_WARM_START) not in WARM_STARTS:
+        raise reader.fail("expert.warm_start", f"must be one of {', '.join(WARM_STARTS)}")
+    for key, default in (("control_weight", DEFAULT_CONTROL_WEIGHT), ("velocity_weight", DEFAULT_VELOCITY_WEIGHT)):
+        options[key] = reader.non_negative(expert.get(key, default), f"expert.{key}")
+    if "terms" in expert:
+        return options, read_terms(reader, expert["terms"], "expert.terms", model, True)
+    if isinstance(reward, TermReward):
+        return options, reward.terms
+    raise reader.fail("expert.terms", "a reward function needs [[expert.terms]]: the iLQR expert's smooth cost")

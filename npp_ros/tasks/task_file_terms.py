@@ -1,0 +1,200 @@
+"""A task file's reward: tolerance terms on named quantities of the model, or a Python function.
+
+A term is dm_control.utils.rewards.tolerance of one quantity: ``joint_position``, ``joint_velocity``
+(a joint), ``site_position`` (a site, with ``axis`` x, y or z), ``site_distance`` (two sites) or
+``control`` (an actuator). The reward combines the terms as a weighted sum or a product, computed from
+the physics after each step with the applied (clamped) control, as dm_control's suite does. The same
+terms give the iLQR expert its smooth cost (npp_ros.tasks.task_file_cost).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from npp_ros.tasks.task_file_model import model_ids
+from npp_ros.tasks.task_file_reader import Reader
+
+QUANTITIES = ("joint_position", "joint_velocity", "site_position", "site_distance", "control")
+SIGMOIDS = ("gaussian", "hyperbolic", "long_tail", "reciprocal", "cosine", "linear", "quadratic", "tanh_squared")
+BOUNDED_SIGMOIDS = ("linear", "quadratic", "cosine")  # reach 0 at the margin: any value_at_margin will do
+COMBINES = ("sum", "product")
+REWARD_KEYS = {"combine", "terms", "function"}
+TERM_KEYS = {*QUANTITIES, "axis", "bounds", "margin", "sigmoid", "value_at_margin", "weight"}
+AXES = ("x", "y", "z")
+DEFAULT_COMBINE = "product"
+# dm_control's tolerance defaults
+DEFAULT_BOUNDS = (0.0, 0.0)
+DEFAULT_MARGIN = 0.0
+DEFAULT_SIGMOID = "gaussian"
+DEFAULT_VALUE_AT_MARGIN = 0.1
+DEFAULT_WEIGHT = 1.0
+
+
+@dataclass(frozen=True)
+class Term:
+    """One tolerance term: which quantity, and dm_control's tolerance parameters."""
+
+    quantity: str
+    target: tuple[int, ...]  # joint, site or actuator ids (two sites for a distance)
+    axis: int
+    bounds: tuple[float, float]
+    margin: float
+    sigmoid: str
+    value_at_margin: float
+    weight: float
+    label: str
+
+    @property
+    def on_control(self) -> bool:
+        return self.quantity == "control"
+
+
+# ----------------------------------------------------------------------------- reading the terms
+def read_terms(reader: Reader, entries: Any, key: str, model: Any, weighted: bool) -> tuple[Term, ...]:
+    """The list of term tables at ``key``; ``weighted``: the terms are summed, so a weight is allowed."""
+    if not isinstance(entries, list) or not entries:
+        raise reader.fail(key, "must be a non-empty list of terms ([[...]] tables)")
+    ids = {kind: model_ids(model, kind) for kind in ("joint", "site", "actuator")}
+    return tuple(_read_term(reader, entry, f"{key}[{k}]", ids, weighted) for k, entry in enumerate(entries))
+
+
+def _read_term(reader: Reader, entry: Any, where: str, ids: dict[str, dict[str, int]], weighted: bool) -> Term:
+    entry = reader.table(entry, where)
+    reader.unknown_keys(entry, TERM_KEYS, f"{where}.")
+    quantity, kind, wanted = _quantity_and_names(reader, entry, where, ids)
+    axis = _axis(reader, entry, where, quantity)
+    bounds = reader.interval(entry.get("bounds", list(DEFAULT_BOUNDS)), f"{where}.bounds")
+    margin = reader.non_negative(entry.get("margin", DEFAULT_MARGIN), f"{where}.margin")
+    sigmoid = entry.get("sigmoid", DEFAULT_SIGMOID)
+    if sigmoid not in SIGMOIDS:
+        raise reader.fail(f"{where}.sigmoid", f"unknown sigmoid {sigmoid!r}; known: {', '.join(SIGMOIDS)}")
+    at_margin = reader.number(entry.get("value_at_margin", DEFAULT_VALUE_AT_MARGIN), f"{where}.value_at_margin")
+    if margin > 0 and not 0 < at_margin < 1 and sigmoid not in BOUNDED_SIGMOIDS:
+        raise reader.fail(f"{where}.value_at_margin", f"must lie in (0, 1) for a {sigmoid} sigmoid")
+    weight = reader.number(entry.get("weight", DEFAULT_WEIGHT), f"{where}.weight", positive=True)
+    if not weighted and "weight" in entry:
+        raise reader.fail(f"{where}.weight", 'weights apply to combine = "sum" only')
+    target = tuple(ids[kind][name] for name in wanted)
+    label = f"{quantity} {'-'.join(wanted)}"
+    return Term(quantity, target, axis, bounds, margin, sigmoid, at_margin, weight, label)
+
+
+def _quantity_and_names(
+    reader: Reader, entry: dict[str, Any], where: str, ids: dict[str, dict[str, int]]
+) -> tuple[str, str, list[str]]:
+    """The term's one quantity, the kind of model object it is on, and the object(s) it names."""
+    named = [q for q in QUANTITIES if q in entry]
+    if not named:
+        raise reader.fail(where, f"the term is on nothing: name one quantity ({', '.join(QUANTITIES)})")
+    if len(named) > 1:
+        raise reader.fail(where, f"one quantity per term, got {', '.join(named)}")
+    quantity = named[0]
+    kind = {"control": "actuator", "site_position": "site", "site_distance": "site"}.get(quantity, "joint")
+    key = f"{where}.{quantity}"
+    if quantity == "site_distance":
+        wanted = reader.names(entry[quantity], key)
+        if len(wanted) != 2:
+            raise reader.fail(key, f"must name two sites, got {wanted!r}")
+    else:
+        wanted = [reader.text(entry[quantity], key)]
+    for name in wanted:
+        if name not in ids[kind]:
+            known = ", ".join(sorted(n for n in ids[kind] if n)) or "none"
+            raise reader.fail(key, f"unknown {kind} {name!r} (the model's: {known})")
+    return quantity, kind, wanted
+
+
+def _axis(reader: Reader, entry: dict[str, Any], where: str, quantity: str) -> int:
+    """The axis of a site_position term (0, 1, 2 for x, y, z); other terms have none (0)."""
+    if quantity == "site_position":
+        axis_name = entry.get("axis")
+        if axis_name not in AXES:
+            raise reader.fail(f"{where}.axis", f"site_position needs axis x, y or z, got {axis_name!r}")
+        return AXES.index(axis_name)
+    if "axis" in entry:
+        raise reader.fail(f"{where}.axis", "only site_position terms have an axis")
+    return 0
+
+
+# ----------------------------------------------------------------------------- the reward
+def quantity(term: Term, physics: Any) -> float:
+    """The term's quantity in the physics' current state (kinematics up to date, as after a step)."""
+    data = physics.data
+    model = physics.model
+    if term.quantity == "joint_position":
+        return float(data.qpos[model.jnt_qposadr[term.target[0]]])
+    if term.quantity == "joint_velocity":
+        return float(data.qvel[model.jnt_dofadr[term.target[0]]])
+    if term.quantity == "site_position":
+        return float(data.site_xpos[term.target[0], term.axis])
+    if term.quantity == "site_distance":
+        return float(np.linalg.norm(data.site_xpos[term.target[0]] - data.site_xpos[term.target[1]]))
+    return float(data.ctrl[term.target[0]])
+
+
+@dataclass(frozen=True)
+class TermReward:
+    """The file's reward: a sum (weighted) or product of tolerance terms, read from the physics after a step."""
+
+    terms: tuple[Term, ...]
+    combine: str
+
+    def get_reward(self, physics: Any) -> float:
+        from dm_control.utils.rewards import tolerance
+
+        values = [
+            float(tolerance(quantity(t, physics), t.bounds, t.margin, t.sigmoid, t.value_at_margin)) for t in self.terms
+        ]
+        if self.combine == "product":
+            return float(np.prod(values))
+        return float(sum(t.weight * v for t, v in zip(self.terms, values, strict=True)))
+
+    def bounds(self) -> tuple[float, float]:
+        """The reward's range: [0, 1] for a product, [0, sum of weights] for a sum."""
+        return (0.0, 1.0) if self.combine == "product" else (0.0, float(sum(t.weight for t in self.terms)))
+
+
+@dataclass(frozen=True)
+class FunctionReward:
+    """The file's ``reward.function``: module:function called as function(physics) -> float."""
+
+    target: str
+    function: Callable[[Any], float]
+
+    def get_reward(self, physics: Any) -> float:
+        return float(self.function(physics))
+
+
+def read_reward(reader: Reader, doc: dict[str, Any], model: Any) -> TermReward | FunctionReward:
+    """``[reward]``: tolerance terms and how they combine, or a function."""
+    table = reader.table(doc.get("reward", {}), "reward")
+    reader.unknown_keys(table, REWARD_KEYS, "reward.")
+    combine = table.get("combine", DEFAULT_COMBINE)
+    if combine not in COMBINES:
+        raise reader.fail("reward.combine", f"must be sum or product, got {combine!r}")
+    if "function" in table:
+        if "terms" in table:
+            raise reader.fail("reward", "give terms or a function, not both")
+        return FunctionReward(*_function(reader, table["function"]))
+    if "terms" in table:
+        return TermReward(read_terms(reader, table["terms"], "reward.terms", model, combine == "sum"), combine)
+    raise reader.fail("reward", "missing: give [[reward.terms]] (tolerance terms) or function = 'module:function'")
+
+
+def _function(reader: Reader, target: Any) -> tuple[str, Callable[[Any], float]]:
+    text = reader.text(target, "reward.function")
+    module, _, attribute = text.partition(":")
+    if not module or not attribute:
+        raise reader.fail("reward.function", f"must be 'module:function', got {text!r}")
+    try:
+        function = getattr(importlib.import_module(module), attribute)
+    except Exception as exc:
+        raise reader.fail("reward.function", f"{text} does not load: {type(exc).__name__}: {exc}") from None
+    if not callable(function):
+        raise reader.fail("reward.function", f"{text} is not callable")
+    return text, function
