@@ -3,11 +3,15 @@
 npp_ros is the ROS-free core, in parts that follow the paper and a run; npp_ros_graph adapts it to
 ROS 2. The table below says which part may import which; the test parses every module with ast,
 so an import that only runs on request (inside a function) counts as much as one at the top.
+Within a part the modules import each other freely, but never in a circle: the module import graph
+of both packages (and of the scripts in nodes/) has no cycle, and a cycle is named module by module.
 """
 
 from __future__ import annotations
 
 import ast
+from collections.abc import Iterator
+from itertools import pairwise
 from pathlib import Path
 
 import pytest
@@ -120,6 +124,95 @@ def violations(root: Path = REPO) -> list[str]:
     return found
 
 
+def imported_modules(path: Path, module: str, known: dict[str, Path]) -> Iterator[tuple[int, str]]:
+    """The modules of ``known`` that ``path`` imports, anywhere in it, with the line.
+
+    ``from pkg import name`` imports the module pkg.name where there is one, else pkg; ``import a.b.c`` the
+    longest known module of that path. A package's ``__init__`` counts only where an import names it.
+    """
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+
+    def longest(name: str) -> str | None:
+        while name and name not in known:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            targets = [longest(alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else longest(base) for a in node.names]
+        else:
+            continue
+        yield from ((node.lineno, target) for target in targets if target is not None and target != module)
+
+
+def module_graph(root: Path = REPO) -> dict[str, dict[str, tuple[Path, int]]]:
+    """Each module -> the modules it imports, each with the file and line of its first import there."""
+    known = {module_name(p, root): p for p in sources(root)}
+    graph: dict[str, dict[str, tuple[Path, int]]] = {}
+    for module, path in known.items():
+        edges = graph.setdefault(module, {})
+        for line, target in sorted(imported_modules(path, module, known)):
+            edges.setdefault(target, (path.relative_to(root), line))
+    return graph
+
+
+def cycles(root: Path = REPO) -> list[str]:
+    """Every set of modules that import each other in a circle (a strongly connected component of the import
+    graph), each named by one of its cycles with the line of every import on it."""
+    graph = module_graph(root)
+    order: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    components: list[list[str]] = []
+
+    def connect(module: str) -> None:  # Tarjan's algorithm
+        order[module] = low[module] = len(order)
+        stack.append(module)
+        for target in graph[module]:
+            if target not in order:
+                connect(target)
+                low[module] = min(low[module], low[target])
+            elif target in stack:
+                low[module] = min(low[module], order[target])
+        if low[module] == order[module]:
+            component = []
+            while not component or component[-1] != module:
+                component.append(stack.pop())
+            if len(component) > 1:
+                components.append(sorted(component))
+
+    for module in sorted(graph):
+        if module not in order:
+            connect(module)
+    return [describe_cycle(graph, component) for component in sorted(components)]
+
+
+def describe_cycle(graph: dict[str, dict[str, tuple[Path, int]]], component: list[str]) -> str:
+    """The shortest way round from the component's first module back to it, import by import."""
+    start, members = component[0], set(component)
+    paths = {start: [start]}
+    frontier = [start]
+    while frontier:
+        module = frontier.pop(0)
+        for target in sorted(graph[module]):
+            if target == start:
+                circle = [*paths[module], start]
+                steps = [f"{graph[a][b][0]}:{graph[a][b][1]} imports {b}" for a, b in pairwise(circle)]
+                others = sorted(members - set(circle))
+                more = f" (and, in circles with these, {', '.join(others)})" if others else ""
+                return f"import cycle {' -> '.join(circle)}: {'; '.join(steps)}{more}"
+            if target in members and target not in paths:
+                paths[target] = [*paths[module], target]
+                frontier.append(target)
+    raise AssertionError(f"no way round {component}")  # a strongly connected component always has one
+
+
 def test_every_module_is_in_a_part() -> None:
     modules = [module_name(p, REPO) for p in sources(REPO)]
     assert "npp_ros.run.loop" in modules and "npp_ros_graph.nodes.supervisor.node" in modules
@@ -129,6 +222,11 @@ def test_every_module_is_in_a_part() -> None:
 
 def test_the_layering_holds() -> None:
     assert violations() == []
+
+
+def test_no_module_imports_itself_in_a_circle() -> None:
+    """Across parts the table rules out a cycle; within a part this does, function-level imports included."""
+    assert cycles() == []
 
 
 def test_the_table_has_no_cycle() -> None:
@@ -167,3 +265,26 @@ def test_the_check_catches_what_it_looks_for(tmp_path: Path) -> None:
     found = violations(tmp_path)
     assert len(found) == 3, found  # rclpy, npp_ros_graph, npp_ros.run: one line each
     assert any("imports rclpy" in f for f in found) and any("may not import npp_ros.run" in f for f in found)
+
+
+def test_the_cycle_check_names_a_cycle_through_a_function_level_import(tmp_path: Path) -> None:
+    """A lazy import that closes a circle is found and named with its line; a package that re-exports its own
+    modules, and a module that imports a sibling, are no cycle."""
+    tasks = tmp_path / "npp_ros/tasks"
+    tasks.mkdir(parents=True)
+    (tmp_path / "npp_ros/__init__.py").write_text("")
+    (tasks / "__init__.py").write_text("from npp_ros.tasks.registry import get\n")
+    (tasks / "registry.py").write_text("from npp_ros.tasks import task\n\n\ndef get():\n    from . import sources\n")
+    (tasks / "sources.py").write_text("import npp_ros.tasks.task_file\n")
+    (tasks / "task_file.py").write_text("from npp_ros.tasks.registry import get\n")
+    (tasks / "task.py").write_text("import math\n")
+    for folder in ("npp_ros_graph", "nodes"):
+        (tmp_path / folder).mkdir()
+    assert cycles(tmp_path) == [
+        "import cycle npp_ros.tasks.registry -> npp_ros.tasks.sources -> npp_ros.tasks.task_file -> "
+        "npp_ros.tasks.registry: npp_ros/tasks/registry.py:5 imports npp_ros.tasks.sources; "
+        "npp_ros/tasks/sources.py:1 imports npp_ros.tasks.task_file; "
+        "npp_ros/tasks/task_file.py:1 imports npp_ros.tasks.registry"
+    ]
+    (tasks / "task_file.py").write_text("from npp_ros.tasks.task import math\n")
+    assert cycles(tmp_path) == []
