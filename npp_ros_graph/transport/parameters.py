@@ -91,9 +91,21 @@ def _accepted_override(param: Param, given: Parameter) -> Parameter:
     return given
 
 
+def _overrides(node: Node) -> dict[str, Parameter]:
+    """The parameter values given to the node (``--ros-args -p``, parameter files), by name, before any is declared.
+
+    rclpy has no public call for them: ``get_parameter``/``get_parameters`` see declared parameters only, and an
+    override for a name the node never declares is silently kept unused. So this reads rclpy's private
+    ``Node._parameter_overrides`` (the dict ``declare_parameter`` takes its initial values from), here and
+    nowhere else: to refuse an unknown name with the closest known one, and to replace a whole number given for a
+    float before it is declared. If rclpy renames it, this is the one line to change.
+    """
+    return node._parameter_overrides
+
+
 def _refuse_unknown(node: Node, params: Sequence[Param]) -> None:
     known = [p.name for p in params]
-    for name in node._parameter_overrides:
+    for name in _overrides(node):
         if name in known or name in RCLPY_PARAMETERS or name.startswith("qos_overrides."):
             continue
         close = difflib.get_close_matches(name, known, n=1)
@@ -110,7 +122,7 @@ def declare_settings(node: Node, params: Sequence[Param], settings: type[Setting
     names = {f.name for f in fields(settings)}  # type: ignore[arg-type]
     assert names == {p.name for p in params}, f"{settings.__name__} and its parameter table disagree"
     _refuse_unknown(node, params)
-    overrides = node._parameter_overrides
+    overrides = _overrides(node)
     values: dict[str, Any] = {}
     for param in params:
         if param.name in overrides:
