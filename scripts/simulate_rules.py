@@ -4,8 +4,9 @@ Usage: .venv/bin/python scripts/simulate_rules.py [--repetitions 1000] [--max-ch
        [--out results/rules]
 
 No plant and no expert: a policy that holds j joined trajectories passes each check with
-probability q_j, and the rules' own certifiers (npp_ros.certification, npp_ros.mixture) decide
-from the outcomes, holding data back exactly as the loop does. p = 0.9, delta = 0.1.
+probability q_j, and the rules' own certifiers (npp_ros.certificate.certifier and
+npp_ros.certificate.mixture, through npp_ros.certificate.mixture.simulate_run) decide from the
+outcomes, holding data back exactly as the loop does. p = 0.9, delta = 0.1.
 
 - Learning curves: q_j = c - (c - 0.5) exp(-j / tau), for a plateau c and a pace tau, and
   q_j = 1 - 0.5 exp(-j / 40); "q = 1 at once" is a policy that passes every check from its first
