@@ -1,4 +1,5 @@
-"""npp-bench-deploy: npp-deploy's latency from a joint state to its command, and the watchdog's reaction time.
+"""npp-bench-deploy: npp-deploy's latency from a joint state to its command, the watchdog's reaction time, and
+the state period's jitter as npp-deploy sees it.
 
 For each case (lqr_2_1 with 10^5 points, lqr_6_2 with 10^6) the core loop stores a run of real LQR
 expert trajectories (``certify=surrogate`` with a tiny epsilon, so every episode asks the expert and
@@ -14,7 +15,11 @@ Measured:
 - the node's own answer time (its callback's start to its publish), p50 and p99 of its last 1,000
   answers, as npp-deploy reports them on /diagnostics;
 - the watchdog: ``--stops`` times, states at the control rate for 0.5 s and then none; the time from
-  the last state published to the safe command received, against ``state_timeout``.
+  the last state published to the safe command received, against ``state_timeout``;
+- the state period: npp-robot, as its own process, publishes the task's joint states in real time (one
+  per control period) and npp-deploy answers ``--periods`` of them; the interval between two joint states
+  as npp-deploy takes them, median, p99 and max, as npp-deploy reports them on /diagnostics (its last
+  1,000 intervals). This is the figure ``state_timeout`` must stay above.
 
 Every run gets its own ROS_DOMAIN_ID and localhost-only discovery. ``--out DIR`` writes DIR/bench.json
 and DIR/bench.md with the command, the date and the load average.
@@ -49,6 +54,8 @@ from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_
 CASES = (("lqr_2_1", 100), ("lqr_6_2", 1000))  # (task, trajectories of H = 1000): 10^5 and 10^6 points
 HORIZON = 1000
 STATE_TIMEOUT_S = 0.1
+STATE_PERIOD = "state period p50 / p99 / max (ms)"  # npp-deploy's /diagnostics values, over its last 1,000
+STATE_PERIODS = "state periods measured"
 
 
 def log(text: str) -> None:
@@ -85,6 +92,7 @@ class Robot(Node):
         self.change = self.create_client(ChangeState, "/npp_deploy/change_state", qos_profile=SERVICE_QOS)
         self.command: tuple[float, list[float]] | None = None
         self.health: Any = None
+        self.statuses = 0
         self.sent = 0
 
     def on_command(self, msg: Float64MultiArray) -> None:
@@ -94,6 +102,7 @@ class Robot(Node):
         for status in msg.status:
             if status.name == "/npp_deploy":
                 self.health = health_of(status)
+                self.statuses += 1
 
     def publish(self) -> float:
         """The plant's state as the robot's joint state, with a new stamp; returns when it went out."""
@@ -162,6 +171,31 @@ def watchdog_delays(executor: SingleThreadedExecutor, robot: Robot, stops: int) 
     return delays
 
 
+def state_periods(
+    executor: SingleThreadedExecutor, robot: Robot, periods: int, env: dict[str, str], log_path: Path
+) -> tuple[list[float], int]:
+    """npp-robot in real time against the active npp-deploy: the state period's p50, p99 and max (seconds) over
+    the intervals npp-deploy took, as it reports them, and how many intervals those are."""
+    transition(executor, robot, "deactivate", 60.0)
+    task = robot.plant.task
+    proc = spawn(["npp_ros_graph.nodes.robot", "--ros-args", "-p", f"task:={task}"], env, log_path)
+    try:
+        # The robot publishes from its start; npp-deploy measures from its activation on.
+        if not wait_for(executor, lambda: robot.count_publishers(JOINT_STATES) >= 2, 120.0):
+            raise RuntimeError(f"npp-robot's joint states did not appear; see {log_path}")
+        transition(executor, robot, "activate", 60.0)
+        wait_for(executor, lambda: False, periods * robot.plant.dt)
+        seen = robot.statuses
+        if not wait_for(executor, lambda: robot.statuses > seen and STATE_PERIOD in robot.health.values, 10.0):
+            raise RuntimeError("npp-deploy reported no state period")
+        health = robot.health
+        transition(executor, robot, "deactivate", 60.0)
+    finally:
+        stop(proc)
+    figures = [float(x) * 1e-3 for x in str(health.values[STATE_PERIOD]).split("/")]
+    return figures, int(health.values[STATE_PERIODS])
+
+
 def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: dict[str, str]) -> dict[str, Any]:
     started = time.perf_counter()
     run = make_run(task, trajectories, args.runs / f"{task}-{trajectories}")
@@ -187,6 +221,7 @@ def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: di
                  5.0)  # fmt: skip
         answer = robot.health.values.get("answer time p50 / p99 (us)", "-") if robot.health else "-"
         delays = watchdog_delays(executor, robot, args.stops)
+        (j50, j99, jmax), intervals = state_periods(executor, robot, args.periods, env, args.logs / f"robot-{task}.log")
     finally:
         stop(proc)
         executor.remove_node(robot)
@@ -200,16 +235,19 @@ def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: di
         "configure_s": configure_s, "state_timeout_ms": STATE_TIMEOUT_S * 1e3, "stops": len(delays),
         "safe_command_after_last_state_ms": [d * 1e3 for d in delays], "safe_p50_ms": w50 * 1e3,
         "safe_max_ms": wmax * 1e3, "control_period_ms": robot.plant.dt * 1e3,
+        "state_periods": intervals,
+        "state_period_p50_ms": j50 * 1e3, "state_period_p99_ms": j99 * 1e3, "state_period_max_ms": jmax * 1e3,
     }  # fmt: skip
     log(f"{task} {result['points']:,d} points: round trip p50 {p50:.0f} us, p99 {p99:.0f} us; node {answer} us; "
         f"safe command {w50 * 1e3:.1f} ms (max {wmax * 1e3:.1f}) after the last state, timeout "
-        f"{STATE_TIMEOUT_S * 1e3:.0f} ms")  # fmt: skip
+        f"{STATE_TIMEOUT_S * 1e3:.0f} ms; state period {j50 * 1e3:.2f} / {j99 * 1e3:.2f} / {jmax * 1e3:.2f} ms "
+        f"(p50 / p99 / max) against {robot.plant.dt * 1e3:g} ms")  # fmt: skip
     return result
 
 
 def markdown(out: dict[str, Any]) -> str:
     lines = [
-        "# npp-deploy: latency and watchdog",
+        "# npp-deploy: latency, watchdog and state period",
         "",
         f"Command: `{out['command']}` ({out['date']}; load average {out['load_average_start'][0]:.2f} at the start, "
         f"{out['load_average_end'][0]:.2f} at the end; {os.cpu_count()} cores shared with other jobs).",
@@ -240,6 +278,20 @@ def markdown(out: dict[str, Any]) -> str:
             f"| {r['task']} | {r['state_timeout_ms']:.0f} | {r['control_period_ms']:.0f} | {r['stops']} | "
             f"{r['safe_p50_ms']:.1f} / {r['safe_max_ms']:.1f} |"
         )
+    lines += [
+        "",
+        "State period: npp-robot publishes joint states in real time, one per control period, and npp-deploy "
+        "answers them; the interval between two joint states as npp-deploy takes them, over its last intervals "
+        "(up to 1,000), as npp-deploy reports it on /diagnostics.",
+        "",
+        "| case | control period (ms) | intervals | state period p50 / p99 / max (ms) |",
+        "|---|---|---|---|",
+    ]
+    for r in out["cases"]:
+        lines.append(
+            f"| {r['task']} | {r['control_period_ms']:.0f} | {r['state_periods']:,d} | "
+            f"{r['state_period_p50_ms']:.2f} / {r['state_period_p99_ms']:.2f} / {r['state_period_max_ms']:.2f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -248,13 +300,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="small runs and few states (a smoke run)")
     parser.add_argument("--states", type=int, default=5000, help="joint states timed per case")
     parser.add_argument("--stops", type=int, default=20, help="times the states stop, per case")
+    parser.add_argument("--periods", type=int, default=1000, help="real-time joint states npp-deploy answers for "
+                        "the state period, per case (it reports its last 1,000)")  # fmt: skip
     parser.add_argument("--runs", type=Path, default=Path("runs/bench-deploy"), help="folder for the runs it stores")
     parser.add_argument("--logs", type=Path, default=None, help="folder for npp-deploy's logs")
     parser.add_argument("--out", type=Path, default=None, help="write OUT/bench.json and OUT/bench.md")
     args = parser.parse_args(argv)
     cases = [(task, 2 if args.quick else n) for task, n in CASES]
     if args.quick:
-        args.states, args.stops = min(args.states, 300), min(args.stops, 3)
+        args.states, args.stops, args.periods = min(args.states, 300), min(args.stops, 3), min(args.periods, 100)
     args.logs = args.logs or args.runs / "logs"
     args.logs.mkdir(parents=True, exist_ok=True)
     out: dict[str, Any] = {

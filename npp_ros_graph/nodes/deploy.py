@@ -588,6 +588,7 @@ class DeployNode(LifecycleNode):
         if self._periods:
             p50, p99, most = percentiles(self._periods, (50, 99, 100))
             values["state period p50 / p99 / max (ms)"] = f"{p50 * 1e3:.2f} / {p99 * 1e3:.2f} / {most * 1e3:.2f}"
+            values["state periods measured"] = len(self._periods)  # since activation, up to LATENCY_WINDOW
         if self._event is not None:
             values["last event"], values["last event at"] = self._event
         if self.refusal:

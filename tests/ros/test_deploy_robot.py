@@ -33,6 +33,7 @@ from std_srvs.srv import Trigger
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.run.robot_model import model_mjcf
+from npp_ros.run.setup import policy_for, spec_of
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.rollout import rollout
@@ -59,8 +60,9 @@ def certified_policy(run: Path) -> NonparametricPolicy:
     """The certificate's policy, read here straight from the run file (not through npp_ros.deploy)."""
     with RunStore.open(run / "run.sqlite") as store:
         certificate, data = store.certificate(), store.load_dataset()
+        spec = spec_of(store.metadata, get_task(TASK).initial_state_diameter)
     assert certificate is not None
-    return NonparametricPolicy(data.prefix(certificate["policy_trajectories"]), certificate["lipschitz"])
+    return policy_for(data.prefix(certificate["policy_trajectories"]), spec, TASK, 0)
 
 
 def s0_text(state: np.ndarray) -> str:
@@ -279,6 +281,10 @@ def test_the_real_time_robot_stays_close_to_the_in_process_policy(runs, launch, 
     first = max(next(k for k, effort in enumerate(efforts) if effort) - 1, 0)
     steps = 60
     client.wait_for(lambda: len(states) > first + steps, 60.0, f"{steps} real-time steps")
+    # npp-deploy measures the state period as it takes the states (what state_timeout must stay above).
+    health = deploy.health_where(lambda h: count(h, "state periods measured") >= steps, "state periods measured")
+    p50, p99, most = (float(x) for x in str(health.values["state period p50 / p99 / max (ms)"]).split(" / "))
+    assert 0 <= p50 <= p99 <= most and most > 0
     launch.stop(robot)
     policy = certified_policy(good)
     got = np.array(states[first : first + steps])
