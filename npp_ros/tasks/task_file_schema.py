@@ -1,4 +1,4 @@
-"""A task file read into a :class:`TaskDefinition`, section by section, every key checked.
+"""A task file read into a TaskDefinition, section by section, every key checked.
 
 :func:`parse` reads the TOML, then each part in the file's order: the model and its timestep
 (npp_ros.tasks.task_file_model), the run's defaults (horizon, epsilon, L, certification mode),
