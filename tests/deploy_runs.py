@@ -9,6 +9,7 @@ import sqlite3
 from pathlib import Path
 
 from npp_ros.certificate.certifier import StoppingRule
+from npp_ros.policy.feedback import PolicyKind
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
 
@@ -18,11 +19,16 @@ NUDGE_ONE_POINT = "UPDATE points SET s_0 = s_0 + 1e-9 WHERE trajectory = 0 AND s
 NUDGE_ONE_POINT = "UPDATE points SET s_0 = s_0 + 1e-9 WHERE trajectory = 0 AND step = 3"
 
 
-def make_run(folder: Path, *, rule: StoppingRule = "sequential", max_episodes: int = 300) -> Path:
-    """An lqr_2_1 run at H = 100 (oracle checks, epsilon 2): certifies in about 30 episodes, in a second."""
+def make_run(
+    folder: Path, *, rule: StoppingRule = "sequential", max_episodes: int = 300, policy: PolicyKind = "open-loop"
+) -> Path:
+    """An lqr_2_1 run at H = 100 (oracle checks, epsilon 2): certifies in about 30 episodes, in a second.
+
+    Open loop by default: its checks fail now and then, which the gate's replay of the log needs to tell an edit
+    apart (the feedback policy is the LQR expert's own law here, and passes every check)."""
     expert = get_task(TASK).make_expert(SEED, HORIZON)
     lipschitz = resolve_lipschitz(TASK, "analytic", expert)
-    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, certify="oracle", rule=rule)
+    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, certify="oracle", rule=rule, policy=policy)
     loop = build_loop(config, expert, store_path=folder / "run.sqlite")
     try:
         loop.run(max_episodes)
@@ -57,6 +63,7 @@ def bad_folders(good: Path, root: Path) -> dict[str, tuple[Path, str]]:
         "not proven": (make_run(root / "paper-rule", rule="paper"), "not proven"),
         "altered data": (altered_copy(good, root / "altered-data", (NUDGE_ONE_POINT, ())), "fails its SHA-256 check"),
         "altered certificate": (edited_certificate(good, root / "altered-certificate", epsilon=50.0), "altered"),
+        "another policy": (edited_certificate(good, root / "another-policy", policy="feedback"), "altered"),
         "deleted certificate": (
             altered_copy(good, root / "deleted-certificate", ("DELETE FROM meta WHERE key = 'certificate'", ())),
             "no certificate",

@@ -62,8 +62,35 @@ def test_a_certified_run_deploys_exactly_the_policy_its_certificate_names(runs) 
     assert "proven" in deployment.describe() and f"greedy over {count} trajectories" in deployment.describe()
 
 
+def test_a_feedback_run_deploys_its_feedback_policy_and_the_gate_refuses_another(tmp_path) -> None:
+    run = make_run(tmp_path / "feedback", policy="feedback")
+    deployment = load_deployment(run, ACCEPT)
+    with RunStore.open(run / "run.sqlite") as store:
+        certificate, dataset = store.certificate(), store.load_dataset()
+    assert certificate is not None and certificate["policy"] == "feedback"
+    assert deployment.policy.kind == "feedback" and "acting feedback" in deployment.describe()
+    open_loop = NonparametricPolicy(dataset.prefix(certificate["policy_trajectories"]), certificate["lipschitz"])
+    plant = get_task(TASK).make_plant(SEED)
+    s0 = get_task(TASK).initial_state(SEED, 1000)
+    expert = get_task(TASK).make_expert(SEED, HORIZON)
+    got = rollout(plant, deployment.policy.act, s0, HORIZON)
+    np.testing.assert_allclose(got.actions, rollout(plant, expert.action, s0, HORIZON).actions, rtol=1e-9, atol=1e-12)
+    assert not np.array_equal(got.actions, rollout(plant, open_loop.act, s0, HORIZON).actions)
+    with pytest.raises(GateRefusal, match="policy 'open-loop' against the run's 'feedback'"):
+        load_deployment(edited_certificate(run, tmp_path / "edited", policy="open-loop"), ACCEPT)
+
+
 @pytest.mark.parametrize(
-    "case", ["missing", "uncertified", "not proven", "altered data", "altered certificate", "deleted certificate"]
+    "case",
+    [
+        "missing",
+        "uncertified",
+        "not proven",
+        "altered data",
+        "altered certificate",
+        "another policy",
+        "deleted certificate",
+    ],
 )
 def test_the_gate_refuses_each_bad_folder_with_its_reason(runs, case: str) -> None:
     _, bad = runs

@@ -197,10 +197,14 @@ class NonparametricPolicy:
 
     def act(self, states: ArrayLike) -> FloatArray:
         """pi(s): a_{i*} (open loop, always an action from the dataset, Remark 3.2), or the feedback law at i*."""
+        return self.act_at(states)[0]
+
+    def act_at(self, states: ArrayLike) -> tuple[FloatArray, int | NDArray[np.int64]]:
+        """pi(s) and i*, the chosen point (a robot checks its coverage there without another search)."""
         batch, single = self._states(states)
         index = self._greedy(batch)
         if self.control is None:
             actions = self.dataset.actions[index]
         else:
             actions = feedback_actions(self.dataset, index, batch, self.control)
-        return actions[0].copy() if single else actions.copy()
+        return (actions[0].copy(), int(index[0])) if single else (actions.copy(), index)

@@ -32,20 +32,19 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from npp_ros.certificate.certifier import CertificationSpec
 from npp_ros.certificate.mixture import certifier_for
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray
-from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.vectors import MAX_MAGNITUDE
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.setup import policy_for, spec_of
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import Plant, Task, UnknownTaskError, get_task
 
 RUN_FILE = "run.sqlite"
 CommandInterface = Literal["effort", "position"]
 COMMAND_INTERFACES: tuple[str, ...] = ("effort", "position")
-_SPEC_FIELDS = ("condition", "epsilon", "p", "delta", "certify", "rule", "lipschitz", "lipschitz_source")
+_SPEC_FIELDS = ("condition", "epsilon", "p", "delta", "certify", "rule", "policy", "lipschitz", "lipschitz_source")
 _MJ_JOINT_SLIDE, _MJ_JOINT_HINGE = 2, 3  # MuJoCo joint types with one position and one velocity
 _MJ_BIAS_NONE = 0  # a motor: the control is a force or torque
 T = TypeVar("T")
@@ -103,6 +102,7 @@ class Deployment:
         """One line: which run, which policy, what its certificate claims."""
         meta, cert = self.metadata, self.certificate
         policy = f"greedy over {self.policy_trajectories} trajectories ({len(self.policy.dataset)} points)"
+        policy += f", acting {self.policy.kind}"
         head = f"{meta.task} seed {meta.seed}, {policy}, L {self.policy.lipschitz:g}"
         if cert is None:
             return f"{head}; NO certificate"
@@ -156,7 +156,7 @@ def _pass_gate(run_file: Path, acceptance: Acceptance) -> Deployment:
     named = certificate is not None and not inconsistent
     count = int(certificate["policy_trajectories"]) if named else dataset.num_trajectories
     data = dataset if count == dataset.num_trajectories else dataset.prefix(count)
-    policy = NonparametricPolicy(data, float(metadata.lipschitz))
+    policy = policy_for(data, spec_of(metadata, task.initial_state_diameter), task.name, int(metadata.seed))
     policy.act(data.states[0])  # builds the search index now: the first state on the robot must not wait for it
     outside = [row.initial_state for row in rows if row.trajectory is None or row.trajectory >= count]
     checked_starts = np.array(outside, dtype=np.float64).reshape(len(outside), metadata.state_dim)
@@ -231,7 +231,7 @@ def _inconsistencies(
     problems = [
         f"{name} {certificate.get(name)!r} against the run's {getattr(metadata, name, None)!r}"
         for name in _SPEC_FIELDS
-        if certificate.get(name) != getattr(metadata, name, None)
+        if certificate.get(name, RunMetadata.BEFORE_RECORDED.get(name)) != getattr(metadata, name, None)
     ]
     if certificate.get("task") != metadata.task:
         problems.append(f"task {certificate.get('task')!r} against the run's {metadata.task!r}")
@@ -244,11 +244,7 @@ def _inconsistencies(
     if not 1 <= episodes <= len(rows):
         return [f"it was issued at episode {episodes}, the log holds {len(rows)}"]
     try:
-        spec = CertificationSpec(
-            metadata.condition, metadata.epsilon, metadata.p, metadata.delta,
-            LipschitzConstant(float(metadata.lipschitz), str(metadata.lipschitz_source)),
-            task.initial_state_diameter, certify=metadata.certify, rule=metadata.rule,
-        )  # fmt: skip
+        spec = spec_of(metadata, task.initial_state_diameter)
     except (ValueError, TypeError) as exc:
         return [f"its specification is invalid: {exc}"]
     # Replay the run's checks through its rule, as a resumed run does: the certificate must be issued at its
@@ -258,7 +254,7 @@ def _inconsistencies(
     status = None
     for row in rows[:episodes]:
         passed = spec.passes(row.checked_gap)
-        stored += int(row.oracle_called)
+        stored += row.trajectories_stored
         status = certifier.observe(math.inf if row.checked_gap is None else row.checked_gap, not passed)
         if not status.frozen:
             joined = stored

@@ -25,6 +25,7 @@ from npp_ros.policy.feedback import DEFAULT_POLICY, ControlSpace, PolicyKind, ch
 from npp_ros.policy.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
 from npp_ros.run.explore import RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
+from npp_ros.run.records import RunMetadata
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, control_space, get_task
 from npp_ros.tasks.rollout import rollout
@@ -66,6 +67,16 @@ def build_config(
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,
         horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed), explore=check_radius(explore),
+    )  # fmt: skip
+
+
+def spec_of(metadata: RunMetadata, diameter: float | None) -> CertificationSpec:
+    """The spec a run file records (its metadata), read back: what the deployment gate and a reader check against.
+    Raises ValueError or TypeError when the recorded values are no spec (a hand-edited file)."""
+    lipschitz = LipschitzConstant(float(metadata.lipschitz), str(metadata.lipschitz_source))
+    return CertificationSpec(
+        metadata.condition, metadata.epsilon, metadata.p, metadata.delta, lipschitz, diameter,  # type: ignore[arg-type]
+        certify=metadata.certify, rule=metadata.rule, policy=metadata.policy,  # type: ignore[arg-type]
     )  # fmt: skip
 
 

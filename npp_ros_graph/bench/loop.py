@@ -119,6 +119,7 @@ class Driver(Node):
         lip = self.expert.analytic_lipschitz()
         response.success, response.total, response.run = True, total, self.run
         response.lipschitz, response.lipschitz_source = lip.value, lip.source
+        response.policy = "feedback"  # the default policy, with the LQR expert's gains: the costlier answer
         stop = min(total, request.start + (request.max_count or 50))
         for k in range(request.start, stop):
             response.trajectories.append(self.seal.seal(trajectory_to_msg(k, self.data.trajectory(k), self.run)))

@@ -485,7 +485,7 @@ class DeployNode(LifecycleNode):
         state = stored_state(deployment.plant, raw)
         assert self.coverage is not None and self.limits is not None
         policy = deployment.policy
-        chosen = policy.greedy_index(state)  # pi(s) = a_{i*}; s_{i*} spares the coverage check a search
+        wanted, chosen = policy.act_at(state)  # the certified policy's own action; s_{i*} spares coverage a search
         inside, distance = self.coverage.covers(state, policy.dataset.states[chosen])
         if not inside:
             self.counts["outside coverage"] += 1
@@ -495,7 +495,7 @@ class DeployNode(LifecycleNode):
             )
             if self._outside(problem):
                 return
-        action, clamped = self.limits.clamp(policy.dataset.actions[chosen])
+        action, clamped = self.limits.clamp(wanted)
         if clamped:
             self.counts["clamped entries"] += clamped
             self._warn("clamped", f"command clamped to the actuator limits {self.limits.describe()}")

@@ -39,7 +39,8 @@ from reference import ROLLOUT_FREE, assert_stored_run_is_uninterrupted
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32
 
-from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.certificate.certifier import CertificationSpec
+from npp_ros.run.setup import policy_for
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.lqr import LQRPlant
 from npp_ros.tasks.rollout import rollout
@@ -143,9 +144,9 @@ class Intruder:
         return self.other.seal(response, answering=request)
 
 
-def expected_return(data: Any, lipschitz: float, row: Any, plant: LQRPlant) -> float:
-    """What the run's own greedy policy earns from the episode's s0 with the data it held then."""
-    policy = NonparametricPolicy(data.prefix(row.dataset_size // HORIZON), lipschitz)
+def expected_return(data: Any, spec: CertificationSpec, row: Any, plant: LQRPlant) -> float:
+    """What the run's own policy earns from the episode's s0 with the data it held then."""
+    policy = policy_for(data.prefix(row.dataset_size // HORIZON), spec, "lqr_2_1", 0)
     return rollout(plant, policy.act, np.asarray(row.initial_state), HORIZON).total_return
 
 
@@ -194,12 +195,12 @@ def test_nothing_from_outside_the_run_enters_it(
     data, rows, local_loop = assert_stored_run_is_uninterrupted(run_dir / "run.sqlite", HORIZON, MAX_EPISODES)
     assert not np.any(data.actions == 42.0)
 
-    lipschitz = local_loop.config.spec.lipschitz.value
+    spec = local_loop.config.spec
     plant = LQRPlant("lqr_2_1", 0)
     driven = [row for row in rows if row.policy_return is not None]
     assert len(driven) >= len(rows) - 5, "the intruders kept the policy from driving"
     for row in driven:
-        assert row.policy_return == pytest.approx(expected_return(data, lipschitz, row, plant), rel=1e-9, abs=1e-9)
+        assert row.policy_return == pytest.approx(expected_return(data, spec, row, plant), rel=1e-9, abs=1e-9)
 
     logs = {name: launch.log(proc) for name, proc in procs.items()}
     assert "does not carry this run's seal" in logs["policy"]  # states, trajectories

@@ -52,7 +52,7 @@ SEAL = RUN_SEAL.for_plant("test").for_run(RUN)  # the test plays this run's sim 
 
 def serve_dataset(request: Any, response: Any) -> Any:
     response.success, response.total, response.lipschitz, response.lipschitz_source = True, 1, 1.0, "user"
-    response.run = RUN
+    response.run, response.policy = RUN, "open-loop"
     response.trajectories = [SEAL.seal(trajectory_to_msg(0, DATA, RUN))] if request.start == 0 else []
     return SEAL.seal(response, answering=request)
 

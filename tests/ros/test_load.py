@@ -139,7 +139,7 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
 
     def serve(req: GetTrajectories.Request, res: GetTrajectories.Response) -> GetTrajectories.Response:
         res.success, res.total, res.run = True, data.num_trajectories, run
-        res.lipschitz, res.lipschitz_source = lipschitz, "lqr-analytic"
+        res.lipschitz, res.lipschitz_source, res.policy = lipschitz, "lqr-analytic", "open-loop"
         stop = min(req.start + (req.max_count or 50), data.num_trajectories)
         res.trajectories = [seal.seal(trajectory_to_msg(k, data.trajectory(k), run)) for k in range(req.start, stop)]
         return seal.seal(res, answering=req)
