@@ -426,7 +426,9 @@ class RunStore:
         return None if value is None else json.loads(value)
 
     def episodes(self) -> list[EpisodeRow]:
-        columns = EPISODE_COLUMNS if self.format_version >= 3 else [c for c in EPISODE_COLUMNS if c != "explored"]
+        # The columns this file has: one from an older npp_ros lacks the newer ones, whose fields keep their defaults.
+        present = {row[1] for row in self._conn.execute("PRAGMA table_info(episodes)")}
+        columns = [c for c in EPISODE_COLUMNS if c in present]
         cur = self._conn.execute(f"SELECT {', '.join(columns)} FROM episodes ORDER BY episode")
         rows = []
         for raw in cur:
