@@ -8,7 +8,10 @@ outside this server.
 
 It listens on 127.0.0.1 only, unless --host says otherwise. Live, it shows the episodes reported
 after it started: `npp-run --dashboard` starts it before the nodes; for a run that is over, open its
-folder (--run) or its bag (--bag).
+folder (--run) or its bag (--bag). Live and given the run's key (NPP_RUN_KEY, as npp-run gives it), it
+shows the reports of the run that the run's supervisor runs and no other's (a replayed bag's, another
+run's under the same key: npp_ros_graph/runtime/reports.py); without the key, the page says that what it
+shows is not verified.
 """
 
 from __future__ import annotations
@@ -188,7 +191,8 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
 
     from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, LEVEL_NAMES, health_of
     from npp_ros_graph.runtime.node import release
-    from npp_ros_graph.transport.seal import RunSeal
+    from npp_ros_graph.runtime.reports import RunReports
+    from npp_ros_graph.transport.seal import SealError
     from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_READER_QOS, PLANT, REPORT_HISTORY_QOS
 
     class DashboardNode(Node):
@@ -197,23 +201,33 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
 
         def __init__(self) -> None:
             super().__init__("npp_dashboard")
-            seal = RunSeal.from_environment()  # given NPP_RUN_KEY (npp-run --dashboard), only that run's reports
-            self.create_subscription(
-                GapReport, GAP, lambda m: seal.shows(m) and hub.add_episode(episode_entry(m)), REPORT_HISTORY_QOS
-            )
-            self.create_subscription(
-                Certificate,
-                CERTIFICATE,
-                lambda m: seal.shows(m) and hub.set("certificate", certificate_entry(m)),
-                LATCHED_READER_QOS,
-            )
+            # Given NPP_RUN_KEY (npp-run --dashboard), only the reports of the run its supervisor runs.
+            self.reports = RunReports(self, self.on_report, lambda line: print(f"npp-dashboard: {line}", flush=True))
+            hub.set("verified", self.reports.verified)
+            if not self.reports.verified:
+                hub.set("source", f"{hub.state['source']}; reports not verified: no run key (NPP_RUN_KEY), so any "
+                        "run on the domain, or a replayed bag, may have sent them")  # fmt: skip
+            self.create_subscription(GapReport, GAP, self.reports.take, REPORT_HISTORY_QOS)
+            self.create_subscription(Certificate, CERTIFICATE, self.reports.take, LATCHED_READER_QOS)
             self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_READER_QOS)
             self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_diagnostics, DIAGNOSTICS_QOS)
             self.health: dict[str, dict[str, str]] = {}
             self.create_timer(1.0, self.look_at_nodes)
             self.look_at_nodes()
 
+        def on_report(self, msg: GapReport | Certificate) -> None:
+            """A report of this run (RunReports), or any report while unverified."""
+            if isinstance(msg, Certificate):
+                hub.set("certificate", certificate_entry(msg) | {"verified": self.reports.mark(msg) or "yes"})
+            else:
+                hub.add_episode(episode_entry(msg))
+
         def on_plant(self, msg: PlantDescription) -> None:
+            if self.reports.verified:
+                try:
+                    self.reports.seal.check(msg, "a plant description")
+                except SealError:
+                    return  # another run's plant, under another key
             hub.set("plant", {"task": msg.task, "seed": int(msg.seed), "horizon": int(msg.horizon)})
 
         def on_diagnostics(self, msg: DiagnosticArray) -> None:

@@ -49,6 +49,7 @@ from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
 from npp_ros_graph.graph.description import graph_parameters, node_argv
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, WARN, health_of
 from npp_ros_graph.runtime.node import node_name, publishers_of, release
+from npp_ros_graph.runtime.reports import RunReports
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
@@ -114,11 +115,12 @@ def parser() -> argparse.ArgumentParser:
 class Follower(Node):
     def __init__(self) -> None:
         super().__init__("npp_run")
-        self.seal = RunSeal.from_environment()  # main() has set the run's key
         self.last: GapReport | None = None
         self.certificate: Certificate | None = None
-        self.create_subscription(GapReport, GAP, self.on_gap, REPORT_QOS)
-        self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_READER_QOS)
+        # Only this run's reports: main() has set the run's key, and the run's supervisor names its run.
+        self.reports = RunReports(self, self.on_report, lambda line: say(f"\nnpp-run: {line}"))
+        self.create_subscription(GapReport, GAP, self.reports.take, REPORT_QOS)
+        self.create_subscription(Certificate, CERTIFICATE, self.reports.take, LATCHED_READER_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_health, DIAGNOSTICS_QOS)
         self.tty = sys.stderr.isatty()
         self._printed = 0.0
@@ -138,9 +140,11 @@ class Follower(Node):
             elif self._worried.pop(status.name, None) is not None:
                 say(f"\nnpp-run: {status.name[1:].replace('_', '-', 1)}: going on ({health.doing})")
 
-    def on_gap(self, msg: GapReport) -> None:
-        if not self.seal.shows(msg):
-            return  # another run's report
+    def on_report(self, msg: GapReport | Certificate) -> None:
+        """A report of this run (RunReports): the progress line, or the certificate that ends the run."""
+        if isinstance(msg, Certificate):
+            self.certificate = msg
+            return
         self.last = msg
         now = time.monotonic()
         text = gap_line(msg)
@@ -149,10 +153,6 @@ class Follower(Node):
         elif now - self._printed > 2.0:
             say(text)
             self._printed = now
-
-    def on_certificate(self, msg: Certificate) -> None:
-        if self.seal.shows(msg):
-            self.certificate = msg
 
     def other_graph(self, ours: int) -> str | None:
         """Who else publishes a graph's one-per-graph topics (the sim's plant, the supervisor's gaps), or None.

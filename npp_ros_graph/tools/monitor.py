@@ -1,6 +1,11 @@
 """npp-monitor: prints the gap, episode and certificate topics live (there is no ros2 CLI here), or those of a
 bag recorded by npp-record (--bag), in the same lines.
 
+Given the run's key (NPP_RUN_KEY), it prints the reports of the run that the run's supervisor runs, and
+no other's: not a replayed bag's, not another run's under the same key (npp_ros_graph/runtime/reports.py);
+it names each run it leaves out on stderr. Without the key it prints every report, and says that they are
+not verified, and which run they name, whenever that run changes.
+
 While nothing arrives (no graph yet, another ROS domain, a finished run) it says on stderr what it waits
 for and where it listens (ROS_DOMAIN_ID, discovery range), with the npp nodes and publishers it sees:
 first after a few seconds, then periodically."""
@@ -23,7 +28,7 @@ from rclpy.node import Node
 
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_lines
 from npp_ros_graph.runtime.node import leave_if_teardown_hangs, release
-from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.runtime.reports import UNVERIFIED, RunReports, report_origin
 from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_READER_QOS, REPORT_QOS
 
 TOPICS = {"gap": GAP, "episode": EPISODE, "health": DIAGNOSTICS.lstrip("/")}  # --topics; the certificate always
@@ -75,33 +80,45 @@ class MonitorNode(Node):
         self.topics = [TOPICS[name] for name in TOPICS if name in topics] + [CERTIFICATE]
         self.last_message = self.last_notice = time.monotonic()
         self.notices = 0
-        self.seal = RunSeal.from_environment()  # given NPP_RUN_KEY, only that run's reports are shown
+        self.reports = RunReports(self, self.show, lambda line: say(f"npp-monitor: {line}"))
+        self.unverified_run: str | None = None  # the run the unverified reports shown last name
         if "gap" in topics:
-            self.create_subscription(GapReport, GAP, lambda m: self.show(gap_line(m), m), REPORT_QOS)
+            self.create_subscription(GapReport, GAP, self.reports.take, REPORT_QOS)
         if "episode" in topics:
-            self.create_subscription(EpisodeResult, EPISODE, lambda m: self.show(episode_line(m), m), REPORT_QOS)
-        self.create_subscription(Certificate, CERTIFICATE, self.on_certificate, LATCHED_READER_QOS)
+            self.create_subscription(EpisodeResult, EPISODE, self.reports.take, REPORT_QOS)
+        self.create_subscription(Certificate, CERTIFICATE, self.reports.take, LATCHED_READER_QOS)
         self._health_shown: dict[str, str] = {}  # each node's /diagnostics line, printed when it changes
         if "health" in topics:
             self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_diagnostics, DIAGNOSTICS_QOS)
         self.create_timer(1.0, self.notice_if_silent)
 
-    def show(self, line: str, msg: GapReport | EpisodeResult | Certificate) -> bool:
-        if not self.seal.shows(msg):
-            return False
+    def show(self, msg: GapReport | EpisodeResult | Certificate) -> None:
+        """A report to print (RunReports: this run's, or any while unverified, then marked so).
+
+        Unverified, a line says so whenever the run the reports name changes, and the certificate says it
+        too; the report lines themselves stay as `--bag` prints them.
+        """
         self.last_message = time.monotonic()
-        print(line, flush=True)
-        return True
+        mark = self.reports.mark(msg)
+        if mark:
+            origin = report_origin(msg)
+            run = origin[1][:12] if origin else "none"
+            if run != self.unverified_run:
+                self.unverified_run = run
+                print(f"[reports] {UNVERIFIED}: the reports below name run {run}; any run on the domain, or a "
+                      "replayed bag, may have sent them", flush=True)  # fmt: skip
+        if isinstance(msg, Certificate):
+            print(certificate_line(msg) + (f"\n              {mark}" if mark else ""), flush=True)
+            self.certified = True
+            if self.exit_on_certificate:  # from here on, the exit is due
+                self.start_leaving()
+            return
+        print(gap_line(msg) if isinstance(msg, GapReport) else episode_line(msg), flush=True)
 
     def on_diagnostics(self, msg: DiagnosticArray) -> None:
         for line in health_lines(msg, self._health_shown):
             self.last_message = time.monotonic()
             print(line, flush=True)
-
-    def on_certificate(self, msg: Certificate) -> None:
-        self.certified = self.show(certificate_line(msg), msg) or self.certified
-        if self.exit_on_certificate and self.certified:  # from here on, the exit is due
-            self.start_leaving()
 
     def start_leaving(self) -> None:
         """The exit's countdown (see leave_if_teardown_hangs), started once."""
@@ -125,10 +142,15 @@ class MonitorNode(Node):
         )
         others = [n for n in nodes if n != "/npp_monitor"]
         seen = ", ".join(others) if others else "none (no graph on this domain, or not discoverable from here)"
+        held = self.reports.waiting() or ("" if self.reports.verified else f"Reports will be shown {UNVERIFIED}")
         return (
             f"nothing received for {silent_s:.0f} s; waiting for {', '.join('/' + t for t in self.topics)} "
-            f"on {listening_on()}. Publishers: {publishers}. npp nodes seen: {seen}"
+            f"on {listening_on()}. Publishers: {publishers}. npp nodes seen: {seen}" + (f". {held}" if held else "")
         )
+
+
+def say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def listening_on() -> str:

@@ -52,6 +52,7 @@ from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollout
 from npp_ros_graph.runtime.diagnostics import WARN, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, request_stop, run_node
+from npp_ros_graph.runtime.reports import report_context
 from npp_ros_graph.transport.convert import (
     trajectory_to_msg,
 )
@@ -316,7 +317,8 @@ class SupervisorNode(Node):
             log = self.get_logger()
             reporter = GraphReporter(
                 gaps=self.gap_pub, episodes=self.episode_pub, certificates=self.certificate_pub,
-                send_trajectory=self.send_trajectory, run_seal=self.run_seal, clock=self.get_clock(), logger=log,
+                send_trajectory=self.send_trajectory, seal=self.seal,
+                context=report_context(plant.model_sha256, self.run_id), clock=self.get_clock(), logger=log,
                 config=config, run_dir=run_dir,
             )  # fmt: skip
             # Every answer is replayed on the supervisor's own plant before anything of it is stored.

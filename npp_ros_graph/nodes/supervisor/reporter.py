@@ -26,8 +26,10 @@ GAP_COLUMNS = ["episode", "gap", "v_lb", "v_ub", "epsilon", "oracle_called", "da
 class GraphReporter(Observer):
     """Publishes gap reports, episode results and the certificate; appends the CSV logs.
 
-    It gets what it uses: the three report publishers, the run's seal for them, a way to send a
-    trajectory to the policy, the node's clock and logger, the run's config and its folder.
+    It gets what it uses: the three report publishers, the run's seal (key, plant and identity) and the
+    context that names that plant and run in each report (runtime/reports.py: a viewer checks a report
+    like the run's own data), a way to send a trajectory to the policy, the node's clock and logger, the
+    run's config and its folder.
     """
 
     def __init__(
@@ -37,14 +39,15 @@ class GraphReporter(Observer):
         episodes: Publisher,
         certificates: Publisher,
         send_trajectory: Callable[[int, Trajectory], None],
-        run_seal: RunSeal,
+        seal: RunSeal,
+        context: str,
         clock: Clock,
         logger: RcutilsLogger,
         config: RunConfig,
         run_dir: Path,
     ) -> None:
         self.gaps, self.episodes, self.certificates = gaps, episodes, certificates
-        self.send_trajectory, self.run_seal = send_trajectory, run_seal
+        self.send_trajectory, self.seal, self.context = send_trajectory, seal, context
         self.clock, self.logger, self.config = clock, logger, config
         self.gap_log = run_dir / "gaps.csv"
         self.episode_log = run_dir / "episodes.csv"
@@ -52,9 +55,9 @@ class GraphReporter(Observer):
     def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
         stamp = self.clock.now().to_msg()
         gap: GapReport = gap_report(row, self.config, stamp)
-        self.gaps.publish(self.run_seal.seal_header(gap))
+        self.gaps.publish(self.seal.seal_header(gap, self.context))
         result: EpisodeResult = episode_result(row, self.config.horizon, stamp)
-        self.episodes.publish(self.run_seal.seal_header(result))
+        self.episodes.publish(self.seal.seal_header(result, self.context))
         _append(
             self.gap_log,
             GAP_COLUMNS,
@@ -68,7 +71,7 @@ class GraphReporter(Observer):
 
     def on_certificate(self, certificate: Certificate) -> None:
         msg: CertificateMsg = certificate_to_msg(certificate, self.clock.now().to_msg())
-        self.certificates.publish(self.run_seal.seal_header(msg))
+        self.certificates.publish(self.seal.seal_header(msg, self.context))
         self.logger.info("\n" + certificate.summary())
 
 
