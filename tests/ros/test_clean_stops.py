@@ -28,6 +28,8 @@ from domain_coordinator import domain_id
 
 from npp_ros_graph.graph.description import ROLES
 
+pytestmark = pytest.mark.slow
+
 HORIZON = 50
 MID_RUN_EPISODES = 40  # episodes done before the Ctrl-C: the control loop is busy when it comes
 START_TIMEOUT_S = 180.0  # four Python processes importing rclpy and MuJoCo on a shared 2-core machine

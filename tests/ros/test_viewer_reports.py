@@ -28,6 +28,8 @@ from domain_coordinator import domain_id
 from npp_ros.run.store import RunStore
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
 
+pytestmark = pytest.mark.slow
+
 HORIZON = 50
 TIMEOUT_S = 600.0
 PYTHON = sys.executable
