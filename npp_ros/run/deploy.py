@@ -1,6 +1,6 @@
 """Deploying one certified run on a robot: the gate, the robot's joints, command limits, coverage, the watchdog.
 
-No ROS here: npp-deploy (``npp_ros_graph/deploy.py``) converts the robot's messages and calls these.
+No ROS here: npp-deploy (``npp_ros_graph/nodes/deploy.py``) converts the robot's messages and calls these.
 
 The gate (:func:`load_deployment`) decides whether a run folder may command a robot. It refuses:
 
