@@ -29,6 +29,7 @@ from numpy.typing import ArrayLike
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
+from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.trajopt.ilqr import (
     ILQR,
@@ -42,6 +43,15 @@ TASK = "acrobot_swingup"
 DEFAULT_HORIZON = 1000
 DEFAULT_TIME_BUDGET = 10.0
 TARGET_RADIUS = 0.2
+CONTROL_TIMESTEP = 0.01  # dm_control's acrobot: one RK4 step per control step (the plant checks it)
+UPRIGHT_DEGREES = 8.0
+SUCCESS = SuccessCriterion(
+    f"both links within {UPRIGHT_DEGREES:g} degrees of upright",
+    UprightAngles(((0,), (0, 1)), UPRIGHT_DEGREES),  # the lower link's own angle is shoulder + elbow
+    steps=steps_for(1.0, CONTROL_TIMESTEP),
+    seconds=1.0,
+)
+"""Swung up and held for the last second (100 steps), the band :func:`held_upright` asks of a plan."""
 
 
 def represent(raw: ArrayLike) -> FloatArray:
@@ -342,4 +352,5 @@ SWINGUP = OptimizerTask(
     sampler=sample_initial_state,
     default_time_budget=DEFAULT_TIME_BUDGET,
     reward_range=(0.0, 1.0),
+    success=SUCCESS,
 )

@@ -28,11 +28,23 @@ from scipy.linalg import solve_discrete_are
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
+from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, MujocoDynamics, OptimizingExpert
 
 TASK = "cartpole_swingup"
 DEFAULT_HORIZON = 1000
+CONTROL_TIMESTEP = 0.01  # dm_control's cartpole: one RK4 step per control step (the plant checks it)
+UPRIGHT_DEGREES = 12.0
+SUCCESS = SuccessCriterion(
+    f"the pole within {UPRIGHT_DEGREES:g} degrees of upright",
+    UprightAngles(((1,),), UPRIGHT_DEGREES),
+    steps=steps_for(1.0, CONTROL_TIMESTEP),
+    seconds=1.0,
+)
+"""Swung up and balanced for the last second (100 steps). dm_control's reward has no upright band (its factor
+(1 + cos q) / 2 is smooth); 12 degrees is the classic cart-pole's balance limit (Barto, Sutton and Anderson, 1983),
+and the pole's angle is its own: the cart may still move."""
 
 
 def represent(raw: ArrayLike) -> FloatArray:
@@ -190,4 +202,5 @@ SWINGUP = OptimizerTask(
     expert_factory=CartpoleExpert,
     sampler=sample_initial_state,
     reward_range=(0.0, 1.0),  # dm_control's tolerance-based reward
+    success=SUCCESS,
 )

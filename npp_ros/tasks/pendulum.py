@@ -33,6 +33,7 @@ from scipy.linalg import solve_discrete_are
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
+from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
@@ -44,6 +45,14 @@ H-step return is an integer, so a value is a staircase in s0 and no finite L bou
 (``scripts/pendulum_expert_report.py`` bisects a step of the expert's Q_0)."""
 PAPER_EPSILON = 130.0
 UPRIGHT_DEGREES = 8.0
+CONTROL_TIMESTEP = 0.02  # dm_control's pendulum: one MuJoCo step per control step (the plant checks it)
+SUCCESS = SuccessCriterion(
+    f"the pole within {UPRIGHT_DEGREES:g} degrees of upright",
+    UprightAngles(((0,),), UPRIGHT_DEGREES),
+    steps=steps_for(1.0, CONTROL_TIMESTEP),
+    seconds=1.0,
+)
+"""Swung up and held: the band of dm_control's own reward (1 within 8 degrees), for the last second (50 steps)."""
 
 
 def represent(raw: ArrayLike) -> FloatArray:
@@ -218,6 +227,7 @@ SWINGUP = OptimizerTask(
     expert_factory=PendulumExpert,
     sampler=sample_initial_state,
     reward_range=(0.0, 1.0),  # dm_control's tolerance-based reward
+    success=SUCCESS,
 )
 """Stored values are ``window`` (the H-step return of each stored state), not ``return-to-go``: an upright
 state held to the end is stored with value H - t under return-to-go, one state with many values, which

@@ -3,7 +3,8 @@
 Every source of tasks fills in this contract: npp_ros's own task modules, plug-in packages and task
 files. :class:`Task` is one task; :class:`OptimizerTask` fills it in for an expert built on the iLQR
 optimizer (:class:`~npp_ros.trajopt.ilqr.OptimizingExpert`). Which tasks exist, and the lookup every
-command and node uses, is npp_ros.tasks.registry; this module imports no other module of npp_ros.tasks.
+command and node uses, is npp_ros.tasks.registry; of npp_ros.tasks this module imports only the success
+criterion's type (npp_ros.tasks.success, which imports none).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
 MAX_HORIZON = 100_000
@@ -148,6 +150,9 @@ class Task:
     optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
     default_horizon: int = DEFAULT_HORIZON  # the episode length when a command line gives none
     reward_range: tuple[float, float] | None = None  # what one step's reward can be, where known (answer checks)
+    # When an episode did the task (npp_ros.tasks.success): every run measures its expert and its policy on it and
+    # the certificate states both; None = the task states none, and the certificate says that nothing was measured.
+    success: SuccessCriterion | None = None
 
     # ------------------------------------------------------------------ what each task provides
     def make_plant(self, seed: int) -> Plant:
