@@ -32,6 +32,11 @@ describes every key. In short::
     time_budget = 5.0
     warm_start = "zero"
 
+    [success]                      # optional: when an episode did the task (npp_ros.tasks.task_file_success)
+    distance = ["fingertip", "target"]   # or joint = NAME, or site = NAME with axis = "x", "y" or "z"
+    within = [0.0, 0.02]
+    last_seconds = 0.5
+
 Quantities: ``joint_position``, ``joint_velocity`` (a joint), ``site_position`` (a site, with
 ``axis`` x, y or z), ``site_distance`` (two sites), ``control`` (an actuator). The reward is
 computed from the physics after each step with the applied (clamped) control, as dm_control's
@@ -218,5 +223,6 @@ def _task(path: Path, digest: str, content: bytes) -> FileTask:
         default_time_budget=definition.expert.get("time_budget", DEFAULT_TIME_BUDGET_S),
         default_horizon=definition.horizon,
         reward_range=definition.reward.bounds() if isinstance(definition.reward, TermReward) else None,
+        success=definition.success,
         definition=definition,
     )

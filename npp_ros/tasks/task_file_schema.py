@@ -2,7 +2,8 @@
 
 :func:`parse` reads the TOML, then each part in the file's order: the model and its timestep
 (npp_ros.tasks.task_file_model), the run's defaults (horizon, epsilon, L, certification mode),
-``[state]``, ``actuators``, ``[rho]``, ``[reward]`` (npp_ros.tasks.task_file_terms) and ``[expert]``.
+``[state]``, ``actuators``, ``[rho]``, ``[reward]`` (npp_ros.tasks.task_file_terms), ``[expert]`` and
+``[success]`` (npp_ros.tasks.task_file_success).
 The first problem is refused with one line naming the file and the key (TaskFileError).
 """
 
@@ -21,16 +22,18 @@ from numpy.typing import ArrayLike
 from npp_ros.certificate.certifier import CERTIFY_MODES
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import wrap_angle
+from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.tasks.task import DEFAULT_HORIZON, check_horizon
 from npp_ros.tasks.task_file_cost import DEFAULT_CONTROL_WEIGHT, DEFAULT_VELOCITY_WEIGHT
 from npp_ros.tasks.task_file_model import load_model, read_actuators, read_rho, read_state, read_timestep
 from npp_ros.tasks.task_file_reader import Reader, TaskFileError
+from npp_ros.tasks.task_file_success import read_success
 from npp_ros.tasks.task_file_terms import FunctionReward, Term, TermReward, read_reward, read_terms
 from npp_ros.trajopt.ilqr import DEFAULT_VALUES, VALUE_MODES, check_time_budget
 
 HASH_MARK = "#sha256="  # a task file's name: its absolute path, this, and its content's SHA-256
 TOP_KEYS = {"name", "model", "control_timestep", "horizon", "epsilon", "lipschitz", "certify", "actuators", "state",
-            "rho", "reward", "expert"}  # fmt: skip
+            "rho", "reward", "expert", "success"}  # fmt: skip
 EXPERT_KEYS = {"max_iterations", "time_budget", "values", "warm_start", "control_weight", "velocity_weight", "terms"}
 WARM_STARTS = ("zero",)
 DEFAULT_CERTIFY = "oracle"  # the check of every task with an iLQR expert (OptimizerTask)
@@ -60,6 +63,7 @@ class TaskDefinition:
     reward: TermReward | FunctionReward
     cost_terms: tuple[Term, ...]
     expert: dict[str, Any] = field(default_factory=dict)
+    success: SuccessCriterion | None = None  # [success]: when an episode did the task (None: the file states none)
 
     @property
     def name(self) -> str:
@@ -111,12 +115,14 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
     low, high = read_rho(reader, doc, model)
     reward = read_reward(reader, doc, model)
     options, cost_terms = _read_expert(reader, doc, model, reward)
+    success = read_success(reader, doc, model, model_path, dt)
     label = doc.get("name", path.parent.name or path.stem)
     return TaskDefinition(
         path=path, sha256=hashlib.sha256(content).hexdigest(), label=reader.text(label, "name"),
         model_path=model_path, dt=dt, horizon=horizon, epsilon=epsilon, lipschitz=lipschitz, certify=certify,
         joint_names=joint_names, actuator_names=actuator_names, actuated_joint_names=actuated,
         wrapped=wrapped, rho_low=low, rho_high=high, reward=reward, cost_terms=cost_terms, expert=options,
+        success=success,
     )  # fmt: skip
 
 
