@@ -1,4 +1,4 @@
-"""What npp-bench measures: the exact index against 1-NN trees and brute force, the iLQR experts.
+"""What npp-bench measures: the exact index against 1-NN trees and brute force, any task's expert.
 
 Each function returns plain dicts that :mod:`npp_ros.bench.report` turns into bench.md; npp-bench
 (:mod:`npp_ros.cli.bench`) decides what runs.
@@ -7,6 +7,7 @@ Each function returns plain dicts that :mod:`npp_ros.bench.report` turns into be
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import platform
 import subprocess
@@ -30,7 +31,9 @@ from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.policy.kdtree import BoundIndex
 from npp_ros.tasks.lqr import LQRExpert, sample_initial_state
 from npp_ros.tasks.registry import ExpertOptions, get_task
+from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads
+from npp_ros.trajopt.ilqr import OptimizingExpert
 
 try:  # the registry's fastest plain 1-NN tree; the benchmark still runs without it
     from pykdtree.kdtree import KDTree as PyKDTree
@@ -44,7 +47,7 @@ TIMEABLE_EXPERT_TASKS = (*EXPERT_TASKS, "acrobot_swingup")  # the acrobot's minu
 POLE_ANGLE = {"pendulum_swingup": 0, "cartpole_swingup": 1, "acrobot_swingup": 0}  # upright angle's entry (stored)
 EXPERT_TARGET_KEY = {"pendulum_swingup": "pendulum_expert_s"}
 EXPERT_PATHS = ("batch", "reference")  # the iLQR expert's code paths (MujocoDynamics.reference)
-UPRIGHT_DEGREES = 8.0  # dm_control's pendulum rewards 1 within 8 degrees of upright
+UPRIGHT_DEGREES = 8.0  # dm_control's pendulum rewards 1 within 8 degrees of upright (its success criterion's band)
 
 
 # ----------------------------------------------------------------------------- progress and stats
@@ -396,63 +399,88 @@ def time_expert(
     progress: Progress,
     paths: tuple[str, ...] = ("batch",),
 ) -> list[dict[str, Any]]:
-    """Seconds per request of the task's default expert (options and budget), one request at a time.
+    """Seconds per request of the task's default expert (options and budget), one request at a time, and how many
+    answers met the task's success criterion (npp_ros.tasks.success): any task, a task file's too.
 
-    A request is the whole answer the expert node gives: warm-start rollout, iLQR, and the replays
-    on the plant for the true rewards. The optimizer's own phase timings say where its part went;
-    the rest of a request is the warm start and the replays. A request succeeded when the pole
-    stays within 8 degrees of upright over the last half of the horizon (500 steps at H = 1000).
-    With several iLQR code paths (EXPERT_PATHS), each s0 is asked of one path after the other, so
-    that the paths meet the same load; one result per path.
+    A request is the whole answer the expert node gives: for an iLQR expert the warm-start rollout, iLQR, and the
+    replays on the plant for the true rewards (the optimizer's own phase timings say where its part went; the rest
+    of a request is the warm start and the replays); for a closed-form expert its trajectory. An answer succeeded
+    when its stored states meet the task's criterion (the last second of a swing-up held upright; an episode
+    shorter than the criterion's window is judged on all its states); a task that states none is timed, not
+    scored. With several iLQR code paths (EXPERT_PATHS), each s0 is asked of one path after the other, so that the
+    paths meet the same load; one result per path (a closed-form expert has one).
     """
     task = get_task(name)
+    label = short_name(task.name)
+    criterion = task.success
     experts: dict[str, Any] = {}
     for path in paths:
-        experts[path] = task.make_expert(seed, horizon, ExpertOptions(threads=default_threads()))  # alone: every core
-        experts[path].optimizer.dynamics.reference = path == "reference"
-        experts[path].solve(starts[0], min(horizon, 50))  # warm-up: lazy loads and first-call costs stay out
-    hold = max(1, horizon // 2)
+        expert = task.make_expert(seed, horizon, ExpertOptions(threads=default_threads()))  # alone: every core
+        if not isinstance(expert, OptimizingExpert):
+            experts = {"closed form": expert}
+            break
+        experts[path] = expert
+        expert.optimizer.dynamics.reference = path == "reference"
+        expert.solve(starts[0], min(horizon, 50))  # warm-up: lazy loads and first-call costs stay out
+    window = criterion.window(horizon) if criterion is not None else max(1, horizon // 2)
+    angle = POLE_ANGLE.get(task.name)
     phases = {path: {"derivatives": 0.0, "backward": 0.0, "line_search": 0.0, "rollout": 0.0, "optimizer_other": 0.0,
-                     "warm_start_and_replays": 0.0} for path in paths}  # fmt: skip
-    rows: dict[str, list[dict[str, Any]]] = {path: [] for path in paths}
-    wall: dict[str, list[float]] = {path: [] for path in paths}
-    cpu: dict[str, list[float]] = {path: [] for path in paths}
+                     "warm_start_and_replays": 0.0} for path in experts}  # fmt: skip
+    rows: dict[str, list[dict[str, Any]]] = {path: [] for path in experts}
+    wall: dict[str, list[float]] = {path: [] for path in experts}
+    cpu: dict[str, list[float]] = {path: [] for path in experts}
     for k, s0 in enumerate(starts):
         for path, expert in experts.items():
             tick, cpu_tick = time.perf_counter(), time.process_time()
-            solution = expert.solve(s0)
+            if isinstance(expert, OptimizingExpert):
+                solution = expert.solve(s0)
+                trajectory, answer = solution.trajectory, solution.expert_return
+            else:
+                trajectory = expert.trajectory(s0, horizon)
+                answer = trajectory.expert_return
             wall[path].append(time.perf_counter() - tick)
             cpu[path].append(time.process_time() - cpu_tick)
-            opt = solution.optimization
-            for key in ("derivatives", "backward", "line_search", "rollout"):
-                phases[path][key] += opt.timings[key]
-            phases[path]["optimizer_other"] += opt.wall_time - sum(opt.timings.values())
-            phases[path]["warm_start_and_replays"] += wall[path][-1] - opt.wall_time
-            worst = worst_angle_degrees(solution.trajectory.states, POLE_ANGLE[name], hold, name == "acrobot_swingup")
-            rows[path].append({
-                "s0": [float(x) for x in s0], "seconds": wall[path][-1], "cpu_seconds": cpu[path][-1],
-                "iterations": opt.iterations, "stop_reason": opt.stop_reason, "expert_return": solution.expert_return,
-                "kept_warm_start": solution.kept_warm_start, "worst_angle_deg": worst,
-                "success": bool(worst <= UPRIGHT_DEGREES),
-            })  # fmt: skip
-            progress.step(f"{name} ({path}) request {k + 1}/{len(starts)}: {wall[path][-1]:.2f}s, {opt.stop_reason} "
-                          f"after {opt.iterations} iterations, return {solution.expert_return:.0f}, "
-                          f"held upright: {'yes' if rows[path][-1]['success'] else 'no'}")  # fmt: skip
+            met = None if criterion is None else criterion.met(trajectory.states)
+            row: dict[str, Any] = {"s0": [float(x) for x in s0], "seconds": wall[path][-1],
+                                   "cpu_seconds": cpu[path][-1], "expert_return": answer, "success": met}  # fmt: skip
+            if isinstance(expert, OptimizingExpert):
+                opt = solution.optimization
+                for key in ("derivatives", "backward", "line_search", "rollout"):
+                    phases[path][key] += opt.timings[key]
+                phases[path]["optimizer_other"] += opt.wall_time - sum(opt.timings.values())
+                phases[path]["warm_start_and_replays"] += wall[path][-1] - opt.wall_time
+                row.update(iterations=opt.iterations, stop_reason=opt.stop_reason,
+                           kept_warm_start=solution.kept_warm_start)  # fmt: skip
+            else:
+                row.update(iterations=0, stop_reason="closed form", kept_warm_start=False)
+            if angle is not None:  # how far from upright the pole came, over the states the criterion judges
+                row["worst_angle_deg"] = worst_angle_degrees(
+                    trajectory.states, angle, window, name == "acrobot_swingup"
+                )
+            rows[path].append(row)
+            said = {None: "not scored", True: "yes", False: "no"}[row["success"]]
+            progress.step(f"{label} ({path}) request {k + 1}/{len(starts)}: {wall[path][-1]:.2f}s, "
+                          f"{row['stop_reason']} after {row['iterations']} iterations, return {answer:.0f}, "
+                          f"succeeded: {said}")  # fmt: skip
     target = TARGETS.get(EXPERT_TARGET_KEY.get(name, ""))
     results = []
     for path, expert in experts.items():
         total = float(sum(wall[path]))
         timing = seconds_summary(wall[path])
+        succeeded = None if criterion is None else sum(r["success"] for r in rows[path])
+        optimizer = isinstance(expert, OptimizingExpert)
         results.append({
-            "task": name, "path": path, "horizon": horizon, "requests": len(starts), "seed": seed,
-            "options": {"time_budget_s": expert.time_budget, "max_iterations": expert.max_iterations,
-                        "values": expert.values},
-            "derivatives_by": expert.optimizer.dynamics.derivatives_by,
-            "success_rule": f"{held_part(name)} within {UPRIGHT_DEGREES:g} degrees of upright, last {hold} steps",
+            "task": label, "path": path, "horizon": horizon, "requests": len(starts), "seed": seed,
+            "options": {"time_budget_s": expert.time_budget if optimizer else math.nan,
+                        "max_iterations": expert.max_iterations if optimizer else 0,
+                        "values": expert.values if optimizer else "closed form"},
+            "derivatives_by": expert.optimizer.dynamics.derivatives_by if optimizer else "closed form",
+            "success_rule": "not scored: the task states no success criterion" if criterion is None
+            else f"{criterion.describe()}; at H = {horizon}, the last {window} steps",
             "seconds": timing, "cpu_seconds": seconds_summary(cpu[path]),
-            "phases_s": phases[path], "phase_shares": {k: v / total for k, v in phases[path].items()},
-            "succeeded": sum(r["success"] for r in rows[path]), "target_s": target,
-            "met": None if target is None else timing["max_s"] <= target, "detail": rows[path],
+            "phases_s": phases[path], "phase_shares": {k: v / total if total else 0.0 for k, v in phases[path].items()},
+            "succeeded": succeeded, "success_fraction": None if succeeded is None else succeeded / len(starts),
+            "target_s": target, "met": None if target is None else timing["max_s"] <= target, "detail": rows[path],
         })  # fmt: skip
     return results
 
