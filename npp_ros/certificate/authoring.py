@@ -3,14 +3,62 @@
 The loop decides *when* a run certifies (the stopping rule); what the certificate then says depends
 only on the spec, the expert's value basis and the run's counts, so it is written here, beside the
 spec and the certificate it fills in.
+
+A certificate is relative to its expert, so its statement also says how often the expert did the task on its
+own answers and the policy on its checked rollouts, by the task's success criterion (:class:`MeasuredSuccess`),
+or that the task states none and nothing was measured.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
-from npp_ros.certificate.certifier import Certificate, CertificationSpec, CertificationStatus, assumption_list
+from npp_ros.certificate.certifier import (
+    SUCCESS_MARK,
+    Certificate,
+    CertificationSpec,
+    CertificationStatus,
+    assumption_list,
+)
 from npp_ros.certificate.values import ValueBasis
+
+LOW_EXPERT_SUCCESS = 0.5  # below this share of successful answers the statement says the expert fails the task
+
+
+@dataclass(frozen=True)
+class MeasuredSuccess:
+    """What a run measured of the task's success criterion, for the certificate's words.
+
+    ``criterion`` is the criterion in words (None: the task states none); ``expert`` is (answers that succeeded,
+    answers judged); ``policy`` is (rollouts that succeeded, checked episodes), None when the check measures no
+    rollout of the policy (surrogate).
+    """
+
+    criterion: str | None
+    expert: tuple[int, int] = (0, 0)
+    policy: tuple[int, int] | None = (0, 0)
+
+    def sentence(self) -> str:
+        """One sentence, starting with SUCCESS_MARK, that the statement ends with."""
+        if self.criterion is None:
+            return (
+                f"{SUCCESS_MARK}: not measured; the task states no success criterion, so this certificate does not "
+                "say whether the expert, or the policy, does the task."
+            )
+        done, answers = self.expert
+        said = f"the expert succeeded on {done} of {answers} answers"
+        if self.policy is None:
+            said += "; the policy's rollouts are not checked in this mode"
+        else:
+            said += f"; the policy on {self.policy[0]} of {self.policy[1]} checked episodes"
+        sentence = f"{SUCCESS_MARK}, {self.criterion}: {said}."
+        if answers and done / answers < LOW_EXPERT_SUCCESS:
+            sentence += (
+                " A certificate is relative to its expert, and this expert mostly fails the task: a claim about the"
+                " policy against it does not say the policy does the task."
+            )
+        return sentence
 
 
 def author_certificate(
@@ -24,8 +72,11 @@ def author_certificate(
     oracle_calls: int,
     dataset_size: int,
     policy_trajectories: int,
+    success: MeasuredSuccess | None = None,
 ) -> Certificate:
-    """The certificate a run issues when ``status`` certifies, about the policy on its first trajectories."""
+    """The certificate a run issues when ``status`` certifies, about the policy on its first trajectories;
+    ``success``: what the run measured of the task's success criterion (None: the task states none)."""
+    measured = success if success is not None else MeasuredSuccess(None)
     certify = spec.certify
     if certify == "oracle":
         value = f"the expert's own H-step return V^E_H (H = {horizon}), as the oracle reports it"
@@ -47,7 +98,9 @@ def author_certificate(
         value=value,
         statement=spec.statement(
             status.window, value, policy_trajectories, status.test, status.failures, status.log_mixture
-        ),
+        )
+        + " "
+        + measured.sentence(),
         proven=is_proven(spec, basis),
         assumptions=assumptions(spec, basis),
         failures=status.failures,

@@ -55,6 +55,9 @@ DEFAULT_RULES: dict[str, StoppingRule] = {"rollout": "sequential", "oracle": "se
 CERTIFY_MODES: tuple[str, ...] = get_args(CheckedQuantity)
 STOPPING_RULES: tuple[str, ...] = get_args(StoppingRule)
 
+# The statement ends with what the run measured of the task's success (authoring.MeasuredSuccess), from here on.
+SUCCESS_MARK = "Success as the task defines it"
+
 QUANTITY = {
     "rollout": "V_ub(s0) + tail(s0) - R^pi(s0)",
     "oracle": "V^E(s0) - R^pi(s0)",
@@ -319,11 +322,25 @@ class Certificate:
             else f"  verification    {self.window} checks, {self.failures} failed (required {self.required} at that "
             f"count), M = {self.mixture:.4g} >= 1/delta_v = {1 / self.delta_spent:.4g}",
             f"  proven          {proof}",
-            f"  statement       {self.statement}",
-            "  assumptions",
+            f"  statement       {self.claim}",
         ]
+        if self.success:
+            lines.append(f"  success         {self.success}")
+        lines.append("  assumptions")
         lines += [f"    - {text}" for text in self.assumptions]
         return "\n".join(lines)
+
+    @property
+    def claim(self) -> str:
+        """The statement's claim, without what it says of the task's success."""
+        return self.statement.partition(f" {SUCCESS_MARK}")[0]
+
+    @property
+    def success(self) -> str:
+        """What the statement says of the task's success: how often the expert and the policy met the task's
+        criterion, or that the task states none ("" in certificates from before success was measured)."""
+        _, mark, rest = self.statement.partition(f" {SUCCESS_MARK}")
+        return rest.removeprefix(",").removeprefix(":").strip() if mark else ""
 
     def record(self) -> dict[str, Any]:
         """One flat record of plain values: what the run file stores and the message carries."""

@@ -25,7 +25,14 @@ from npp_ros.run.evaluation import check_policy
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.progress import Counter, StatusLine
 from npp_ros.run.records import RunFileError, write_episode_log
-from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, policy_for, resolve_lipschitz
+from npp_ros.run.setup import (
+    build_config,
+    build_loop,
+    expert_notice,
+    lipschitz_checks,
+    policy_for,
+    resolve_lipschitz,
+)
 from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads
@@ -145,6 +152,10 @@ def main(argv: list[str] | None = None) -> int:
     status.close()
     elapsed = time.perf_counter() - started
     write_episode_log(run_dir / "episodes.csv", result.rows)
+    counts = loop.success_counts()
+    for line in expert_notice(args.task, counts):  # before anything else: the reason, where the user looks
+        print(f"npp-learn: {line}", file=sys.stderr)
+    sys.stderr.flush()
 
     evaluation = None
     if args.evaluate > 0 and len(loop.dataset):
@@ -172,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         "lipschitz": asdict(lipschitz),
         "certificate": result.certificate.record() if result.certificate else None,
         "lipschitz_checks": [{"slope": c.slope, "source": c.source, "ok": c.ok} for c in checks],
+        "success": {"criterion": task.success.describe() if task.success else None, **asdict(counts)},
         "wall_time_s": elapsed,
     }
     if result.certificate:
@@ -181,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
             f"NOT CERTIFIED after {result.episodes} episodes "
             f"({result.oracle_calls} oracle calls, |D| = {result.dataset_size})"
         )
+        print(f"  {loop.measured_success().sentence()}")
     print(f"  L source detail  {lipschitz.detail}")
     for check in checks:
         print(f"  L check         {'ok  ' if check.ok else 'FAIL'} {check.message()}")

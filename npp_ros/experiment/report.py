@@ -11,8 +11,10 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import binom
 
+from npp_ros.certificate.authoring import LOW_EXPERT_SUCCESS
 from npp_ros.experiment.evaluation import HeldOutCheck
 from npp_ros.experiment.runs import RunRecord
+from npp_ros.run.records import SuccessCounts
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,11 @@ class ResultRow:
     held_out_p_value: float
     held_out_below_v_lb: int
     held_out_verdict: str
+    # The task's success criterion over the run's episodes (npp_ros.tasks.success; 0 of 0: not judged)
+    expert_successes: int = 0  # of the expert's answers from s0 ...
+    expert_answers: int = 0  # ... judged
+    policy_successes: int = 0  # of the policy's rollouts in episodes whose check measured them ...
+    policy_checked: int = 0  # ... judged (a surrogate check measures none)
 
 
 def held_out_verdict(check: HeldOutCheck | None, p: float, delta: float) -> str:
@@ -91,6 +98,7 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
     violations = sum(row.violates_lower_bound for row in rows)
     last = record.episodes[-1] if record.episodes else None
     check = record.held_out
+    success = SuccessCounts.of(record.episodes, policy=record.arm.certify != "surrogate")
     return ResultRow(
         task=record.arm.task,
         expert=record.arm.expert,
@@ -125,6 +133,10 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
         held_out_p_value=check.p_value if check else float("nan"),
         held_out_below_v_lb=check.below_v_lb if check else 0,
         held_out_verdict=held_out_verdict(check, p, delta),
+        expert_successes=success.expert_successes,
+        expert_answers=success.expert_answers,
+        policy_successes=success.policy_successes,
+        policy_checked=success.policy_checked,
     )
 
 
@@ -171,6 +183,11 @@ COLUMN_NOTES = """\
   guarantees then rest on an assumption this column shows to be false there.
 - verdict: "held" when within eps >= p and no return fell below V_lb; "FAILED" when a one-sided binomial
   test rejects P(gap <= eps) >= p at level delta.
+- expert success, policy success: how often the expert's answers from s0, and the policy's rollouts in the
+  episodes whose check measured them, met the task's success criterion, over the run's episodes (summed over
+  the seeds per arm). A certificate is relative to its expert: one over an expert that rarely succeeds says
+  nothing about doing the task. "-": not judged (the task states no criterion; a surrogate check measures no
+  rollout).
 """
 
 
@@ -219,13 +236,24 @@ def _slope_cell(row: ResultRow) -> str:
     return f"**{row.max_visited_slope:.1f} > L**" if above else f"{row.max_visited_slope:.1f}"
 
 
+def _success_cells(group: Sequence[ResultRow]) -> str:
+    """The expert's and the policy's successes over the rows' episodes, as two table cells ("-": not judged)."""
+    cells = []
+    for done, judged in (("expert_successes", "expert_answers"), ("policy_successes", "policy_checked")):
+        total = sum(getattr(r, judged) for r in group)
+        count = sum(getattr(r, done) for r in group)
+        low = done == "expert_successes" and count < LOW_EXPERT_SUCCESS * total
+        cells.append(f"{count}/{total}{' **low**' if low else ''}" if total else "-")
+    return " | ".join(cells)
+
+
 def summary_table(rows: Sequence[ResultRow]) -> str:
     """One line per arm: what a user needs to decide whether to trust the certificates."""
     head = (
         "| task | expert | L used (slope needed) | certified | certified at (median, range) | oracle calls "
         "| return policy / expert (median) | within eps (worst seed) | returns < V_lb | V_ub < V_lb episodes "
-        "| slope visited / L (max) | verdicts | compute s |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| slope visited / L (max) | expert success | policy success | verdicts | compute s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for (task, expert, _, certify, rule), group in _arms(rows).items():
@@ -251,9 +279,11 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
         ratio = f"{max(r.max_visited_slope / r.lipschitz for r in group):.2f}"
         above = sum(r.max_visited_slope > r.lipschitz for r in group)
         ratio += f" (**{above} of {len(group)} seeds above L**)" if above else ""
+        successes = _success_cells(group)
         lines.append(
             f"| {task} | {expert} | {used} ({needed}){bound} | {len(certs)}/{len(group)} | {at} | {calls} "
-            f"| {returns} | {worst:.0%} | {below}/{total} | {crossed} | {ratio} | {said} | {compute:.0f} |"
+            f"| {returns} | {worst:.0%} | {below}/{total} | {crossed} | {ratio} | {successes} | {said} "
+            f"| {compute:.0f} |"
         )
     return head + "\n".join(lines) + "\n"
 
@@ -262,8 +292,8 @@ def markdown_table(rows: Sequence[ResultRow]) -> str:
     head = (
         "| task | expert | L (needed) | seed | certified at | oracle calls | \\|D\\| | return q50 policy / expert "
         "| gap q50 / q90 / max | within eps | gap to optimum q50 | returns < V_lb | V_ub < V_lb at s0 "
-        "| max slope visited | verdict | wall s |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| max slope visited | expert success | policy success | verdict | wall s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for r in rows:
@@ -274,6 +304,6 @@ def markdown_table(rows: Sequence[ResultRow]) -> str:
             f"| {r.oracle_calls} | {r.dataset_size} | {r.policy_return_q50:.1f} / {r.expert_return_q50:.1f} "
             f"| {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
             f"| {r.fraction_within_epsilon:.0%} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
-            f"| {r.crossed_bounds} | {_slope_cell(r)} | {r.verdict} | {r.wall_time_s:.0f} |"
+            f"| {r.crossed_bounds} | {_slope_cell(r)} | {_success_cells([r])} | {r.verdict} | {r.wall_time_s:.0f} |"
         )
     return head + "\n".join(lines) + "\n"

@@ -20,6 +20,11 @@ Order within an episode, per mode:
 Under the ``mixture`` rule (mixture.py) a verification also holds back its failed checks'
 trajectories, in every mode, until it certifies or gives up: the certifier's status says when the
 policy is frozen, and the loop only follows it.
+
+Where the task states a success criterion (npp_ros.tasks.success), every episode is also judged on it: the
+expert's answer from s0 on its stored states, the policy's rollout on the states of that rollout, which a
+:class:`Replay` gives (the in-process driver's own rollout, or in the graph the same rollout re-run on a local
+copy of the deterministic plant). Nothing of this decides a check; the certificate states the counts.
 """
 
 from __future__ import annotations
@@ -28,19 +33,23 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from npp_ros.certificate.authoring import author_certificate
+from npp_ros.certificate.authoring import MeasuredSuccess, author_certificate
 from npp_ros.certificate.certifier import Certificate, CertificationSpec, CertificationStatus, Certifier
 from npp_ros.certificate.mixture import MixtureCertifier, certifier_for
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
-from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, state_tuple
+from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts, state_tuple
 from npp_ros.run.store import RunStore
+from npp_ros.tasks.success import SuccessCriterion
+
+if TYPE_CHECKING:
+    from npp_ros.tasks.rollout import Rollout
 
 
 class Oracle(Protocol):
@@ -53,6 +62,12 @@ class Explorer(Protocol):
     """Where to ask the expert besides s0 after a failed check (npp_ros.run.explore), or None."""
 
     def state_to_ask(self, initial_state: FloatArray, policy: NonparametricPolicy) -> FloatArray | None: ...
+
+
+class Replay(Protocol):
+    """The policy's own rollout from s0 (npp_ros.run.explore.PolicyReplay): what the success check judges."""
+
+    def rollout(self, initial_state: FloatArray, policy: NonparametricPolicy) -> Rollout: ...
 
 
 class EpisodeInterrupted(RuntimeError):
@@ -145,6 +160,8 @@ class NPPLoop:
         basis: ValueBasis | None = None,
         control: ControlSpace | None = None,
         explorer: Explorer | None = None,
+        success: SuccessCriterion | None = None,
+        replay: Replay | None = None,
     ) -> None:
         self.config = config
         self.spec = config.spec
@@ -165,6 +182,8 @@ class NPPLoop:
         self.basis = basis
         self.control = control if self.spec.policy == "feedback" else None
         self.explorer = explorer if config.explore > 0 else None
+        self.success = success
+        self.replay = replay  # None: the policy's success is not judged (the expert's still is)
         self.certifier = certifier_for(self.spec)
         self.rows: list[EpisodeRow] = []
         self.certificate: Certificate | None = None
@@ -293,6 +312,8 @@ class NPPLoop:
         expert_value = self.expert_value(s0) if self.expert_value is not None else None
         if expert_value is None and trajectory is not None:
             expert_value = float(trajectory.values[0])
+        expert_success = self._met(trajectory.states) if trajectory is not None else None
+        policy_success = self._policy_success(s0) if policy_return is not None else None
         row = EpisodeRow(
             episode=episode,
             initial_state=state_tuple(s0),
@@ -314,6 +335,8 @@ class NPPLoop:
             test=status.test,
             test_delta=status.test_delta,
             explored=len(explored),
+            expert_success=expert_success,
+            policy_success=policy_success,
         )
         # Persist before anything else can fail: expert data is the expensive part.
         if self.store is not None:
@@ -336,10 +359,10 @@ class NPPLoop:
         if mode == "surrogate" and self.driver is not None:
             ret = self._drive(episode, s0)
             if ret is not None:
-                row = replace(row, policy_return=ret)
+                row = replace(row, policy_return=ret, policy_success=self._policy_success(s0))
                 self.rows[-1] = row
                 if self.store is not None:
-                    self.store.set_policy_return(episode, ret)
+                    self.store.set_policy_return(episode, ret, row.policy_success)
         for observer in self.observers:
             observer.on_episode(row, status)
         if status.certified and self.certificate is None:
@@ -351,6 +374,20 @@ class NPPLoop:
             if self.held_back:
                 self._release_held()
         return row
+
+    def _met(self, states: FloatArray) -> bool | None:
+        """Whether an episode with these stored states met the task's success criterion (None: the task states none)."""
+        return None if self.success is None else self.success.met(states)
+
+    def _policy_success(self, s0: FloatArray) -> bool | None:
+        """The success criterion on the current policy's own rollout from s0 (the one the episode measured)."""
+        if self.success is None or self.replay is None or len(self.policy_data) == 0:
+            return None
+        return self.success.met(self.replay.rollout(s0, self.policy).states)
+
+    def success_counts(self) -> SuccessCounts:
+        """The expert's and the policy's successes so far; the policy's only where the check measured its rollout."""
+        return SuccessCounts.of(self.rows, policy=self.spec.certify != "surrogate")
 
     def _explore(self, s0: FloatArray) -> list[Trajectory]:
         """After a failed check: the expert's trajectory from where the checked policy's rollout left the data."""
@@ -390,6 +427,16 @@ class NPPLoop:
             oracle_calls=self.oracle_calls,
             dataset_size=len(self.policy_data),
             policy_trajectories=self.policy_data.num_trajectories,
+            success=self.measured_success(),
+        )
+
+    def measured_success(self) -> MeasuredSuccess:
+        """What the run measured of the task's success, in the words the certificate states."""
+        counts = self.success_counts()
+        return MeasuredSuccess(
+            criterion=None if self.success is None else self.success.describe(),
+            expert=(counts.expert_successes, counts.expert_answers),
+            policy=None if self.spec.certify == "surrogate" else (counts.policy_successes, counts.policy_checked),
         )
 
     # ------------------------------------------------------------------ whole run

@@ -16,6 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from npp_ros.certificate.authoring import LOW_EXPERT_SUCCESS
 from npp_ros.policy.dataset import FloatArray
 
 
@@ -85,6 +86,10 @@ class EpisodeRow:
     test: int = 0  # the test this episode belongs to (0: no policy yet; the mixture rule: no verification runs)
     test_delta: float = 0.0  # the confidence that test may spend
     explored: int = 0  # more trajectories asked from where the policy's rollout left the data (npp_ros.run.explore)
+    # The task's success criterion (npp_ros.tasks.success) on this episode; None when not known: the task states
+    # none, no answer or rollout was there to judge, or the file is from before success was recorded.
+    expert_success: bool | None = None  # on the expert's answer from s0 (its stored states)
+    policy_success: bool | None = None  # on the policy's own rollout from s0
 
     @property
     def trajectories_stored(self) -> int:
@@ -93,6 +98,52 @@ class EpisodeRow:
 
 
 EPISODE_COLUMNS = tuple(EpisodeRow.__dataclass_fields__)
+SUCCESS_COLUMNS = ("expert_success", "policy_success")  # absent from files made before success was recorded
+
+
+@dataclass(frozen=True)
+class SuccessCounts:
+    """How often the expert and the policy met the task's success criterion over a run's episodes.
+
+    ``expert``: the expert's answers from s0 that were judged, and how many succeeded; ``policy``: the episodes
+    whose check measured the policy's own rollout, and how many of those rollouts succeeded (a surrogate check
+    measures none, so ``policy_checked`` counts only rows the caller says were checked on a rollout).
+    """
+
+    expert_successes: int
+    expert_answers: int
+    policy_successes: int
+    policy_checked: int
+
+    @classmethod
+    def of(cls, rows: Iterable[EpisodeRow], policy: bool = True) -> SuccessCounts:
+        """The counts over ``rows``; ``policy`` False: the run's check measured no rollout (surrogate)."""
+        rows = list(rows)
+        expert = [row.expert_success for row in rows if row.expert_success is not None]
+        driven = [row.policy_success for row in rows if row.policy_success is not None] if policy else []
+        return cls(sum(expert), len(expert), sum(driven), len(driven))
+
+    @property
+    def expert_rate(self) -> float:
+        """The share of judged answers that succeeded (NaN when none was judged)."""
+        return self.expert_successes / self.expert_answers if self.expert_answers else math.nan
+
+    @property
+    def expert_fails(self) -> bool:
+        """Whether the expert met the criterion on fewer than LOW_EXPERT_SUCCESS of its judged answers."""
+        return bool(self.expert_answers) and self.expert_rate < LOW_EXPERT_SUCCESS
+
+    def warning(self, criterion: str) -> list[str]:
+        """The lines a command prints before anything else when the expert fails (none when it does not)."""
+        if not self.expert_fails:
+            return []
+        return [
+            f"WARNING: the expert succeeded on {self.expert_successes} of its {self.expert_answers} answers "
+            f"({self.expert_rate:.0%}); success: {criterion}.",
+            "WARNING: a certificate is relative to its expert: this run compares the policy with an expert that "
+            "does not do the task, so a certificate of it says nothing about doing the task. Check the expert "
+            "first (npp-bench --only experts --expert-tasks TASK).",
+        ]
 
 
 def _episode_cells(row: EpisodeRow) -> list[object]:

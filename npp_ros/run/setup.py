@@ -23,12 +23,12 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.policy.feedback import DEFAULT_POLICY, ControlSpace, PolicyKind, check_policy_kind
 from npp_ros.policy.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
-from npp_ros.run.explore import RolloutExplorer, check_radius
+from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
-from npp_ros.run.records import RunMetadata
+from npp_ros.run.records import RunFileError, RunMetadata, SuccessCounts
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, control_space, get_task
-from npp_ros.tasks.rollout import rollout
+from npp_ros.tasks.registry import Expert, MeasuresValueSlope, control_space, get_task
+from npp_ros.tasks.sources import short_name
 
 
 def resolve_lipschitz(task: str, choice: str | float, expert: Expert) -> LipschitzConstant:
@@ -106,16 +106,16 @@ def initial_state_fn(task: str, seed: int) -> Callable[[int], FloatArray]:
 
 
 class PolicyRollouts:
-    """Episode driver: the greedy policy drives the plant for H steps; returns the return."""
+    """Episode driver: the greedy policy drives the plant for H steps; returns the return. Its rollout is the
+    replay's, which the success check and the explorer of the same episode then share."""
 
-    def __init__(self, plant: Plant, horizon: int) -> None:
-        self.plant = plant
-        self.horizon = horizon
+    def __init__(self, replay: PolicyReplay) -> None:
+        self.replay = replay
 
     def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None:
         if len(policy.dataset) == 0:
             return None
-        return rollout(self.plant, policy.act, initial_state, self.horizon).total_return
+        return self.replay.rollout(initial_state, policy).total_return
 
 
 def build_loop(
@@ -135,13 +135,20 @@ def build_loop(
     the plant (the sound modes always let it drive; ``rollouts`` in surrogate mode too). The supervisor node gives
     its own ``oracle`` (the expert service) and ``driver`` (the sim, or None when it does not let the policy
     drive) and the ``store`` it opened; the expert is then still the task's, for L, V(s0) and the value basis.
+
+    The policy's rollout is judged on the task's success criterion and explored from on one local replay: in one
+    process it is the driver's own rollout; behind the graph's sim, the same rollout re-run on a local copy of the
+    plant (deterministic, as every certificate assumes), so both give the same rows.
     """
     if store is None and store_path is not None:
         store = RunStore.open_or_create(store_path, config.metadata())
     task = get_task(config.task)
+    needs_replay = oracle is None or task.success is not None or config.explore > 0
+    replay = PolicyReplay(task.make_plant(config.seed), config.horizon) if needs_replay else None
     if oracle is None:
         drive = rollouts or config.spec.certify != "surrogate"
-        driver = PolicyRollouts(task.make_plant(config.seed), config.horizon) if drive else None
+        assert replay is not None
+        driver = PolicyRollouts(replay) if drive else None
     return NPPLoop(
         config,
         oracle or expert,
@@ -152,10 +159,33 @@ def build_loop(
         expert_value=task.expert_value(expert),
         basis=value_basis(expert, config.spec.lipschitz.value),
         control=task_control_space(config.task, config.seed) if config.spec.policy == "feedback" else None,
-        explorer=RolloutExplorer(task.make_plant(config.seed), config.horizon, config.explore)
-        if config.explore
-        else None,
+        explorer=RolloutExplorer(replay, config.explore) if config.explore and replay is not None else None,
+        success=task.success,
+        replay=replay if driver is not None else None,
     )
+
+
+def expert_notice(task: str, counts: SuccessCounts) -> list[str]:
+    """What a command prints before a run's certificate about its expert: a warning when the expert failed the
+    task's success criterion on most of its answers, a note when the task states no criterion, else nothing."""
+    criterion = get_task(task).success
+    if criterion is None:
+        return [
+            f"note: {short_name(task)} states no success criterion: nothing measured whether its expert does the "
+            "task, and a certificate is relative to that expert"
+        ]
+    return counts.warning(criterion.describe())
+
+
+def run_file_notice(run_file: Path) -> list[str]:
+    """:func:`expert_notice` for the run a run file holds (npp-run reads it after the graph's run); nothing for a
+    file that cannot be read or a task that no longer loads (the run's own output says why)."""
+    try:
+        with RunStore.open(run_file) as store:
+            rows, task, certify = store.episodes(), str(store.metadata.task), store.metadata.certify
+        return expert_notice(task, SuccessCounts.of(rows, policy=certify != "surrogate"))
+    except (RunFileError, ValueError):
+        return []
 
 
 def value_basis(expert: Expert, lipschitz: float) -> ValueBasis:

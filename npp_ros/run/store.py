@@ -13,7 +13,9 @@ R or any language; no pickle. Tables (see README, "Run file format"):
   ``feedback`` is 1 when its expert gave feedback gains;
 - ``points(trajectory, step, s_0.., a_0.., q, k_0_0..)``: the (s, a, Q) triplets, one row per step, with the
   expert's feedback gain K (action_dim x state_dim; ``k_i_j`` is row i, column j; zero without gains);
-- ``episodes(episode, ...)``: Algorithm 1's decision per episode, and the policy's return.
+- ``episodes(episode, ...)``: Algorithm 1's decision per episode, the policy's return, and whether the expert's
+  answer and the policy's rollout met the task's success criterion (``expert_success``, ``policy_success``:
+  1, 0 or NULL when not judged).
 
 Each trajectory is committed in one transaction together with the episode that asked for it.
 Crash safety, while a writer runs: journal_mode=WAL with synchronous=FULL. A commit appends the
@@ -42,7 +44,9 @@ a damaged or foreign file is refused with a clear error instead of loading parti
 
 Files of version 2 (before gains were stored) open unchanged for reading, their trajectories without
 gains (``gains_note`` says so); the first write upgrades them in place to version 3, in one transaction
-that adds the gain columns as zeros.
+that adds the gain columns as zeros. Files made before success was recorded (version 2, and version 3 from
+before the columns existed) open with None for it; the first write adds the two columns, NULL for the rows
+already there. Nullable columns leave the version at 3: an older npp_ros reads such a file as before.
 """
 
 from __future__ import annotations
@@ -68,7 +72,7 @@ from typing import Any
 import numpy as np
 
 from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
-from npp_ros.run.records import EPISODE_COLUMNS, EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.records import EPISODE_COLUMNS, SUCCESS_COLUMNS, EpisodeRow, RunFileError, RunMetadata
 
 FORMAT_NAME = "npp_ros.run"
 FORMAT_VERSION = 3  # 2: certification mode, stopping rule, checked gap and test per episode; 3: feedback gains
@@ -192,7 +196,7 @@ class RunStore:
                 "quiet_episodes INTEGER NOT NULL, window INTEGER NOT NULL, required INTEGER NOT NULL, "
                 "certified INTEGER NOT NULL, expert_value REAL, policy_return REAL, wall_time REAL, "
                 "checked_gap REAL, test INTEGER NOT NULL, test_delta REAL NOT NULL, "
-                "explored INTEGER NOT NULL DEFAULT 0)"
+                "explored INTEGER NOT NULL DEFAULT 0, expert_success INTEGER, policy_success INTEGER)"
             )
             rows = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "created": str(time.time()),
                     "run_id": new_run_id()}  # fmt: skip
@@ -276,17 +280,26 @@ class RunStore:
                 raise
 
     def _upgrade(self) -> None:
-        """A version-2 file gets the gain columns (zeros) and becomes version 3, in one transaction."""
-        if self.format_version == FORMAT_VERSION:
+        """A version-2 file gets the gain columns (zeros) and becomes version 3, and a file without the success
+        columns gets them (NULL: not judged), in one transaction."""
+        missing = [column for column in SUCCESS_COLUMNS if column not in self._episode_columns()]
+        if self.format_version == FORMAT_VERSION and not missing:
             return
         meta = self.metadata
         with _transaction(self._conn, self.path):
-            self._conn.execute("ALTER TABLE trajectories ADD COLUMN feedback INTEGER NOT NULL DEFAULT 0")
-            self._conn.execute("ALTER TABLE episodes ADD COLUMN explored INTEGER NOT NULL DEFAULT 0")
-            for column in gain_columns(meta.state_dim, meta.action_dim):
-                self._conn.execute(f"ALTER TABLE points ADD COLUMN {column} REAL NOT NULL DEFAULT 0")
-            self._conn.execute("UPDATE meta SET value = ? WHERE key = 'format_version'", (str(FORMAT_VERSION),))
+            if self.format_version != FORMAT_VERSION:
+                self._conn.execute("ALTER TABLE trajectories ADD COLUMN feedback INTEGER NOT NULL DEFAULT 0")
+                self._conn.execute("ALTER TABLE episodes ADD COLUMN explored INTEGER NOT NULL DEFAULT 0")
+                for column in gain_columns(meta.state_dim, meta.action_dim):
+                    self._conn.execute(f"ALTER TABLE points ADD COLUMN {column} REAL NOT NULL DEFAULT 0")
+                self._conn.execute("UPDATE meta SET value = ? WHERE key = 'format_version'", (str(FORMAT_VERSION),))
+            for column in missing:
+                self._conn.execute(f"ALTER TABLE episodes ADD COLUMN {column} INTEGER")
         self.format_version = FORMAT_VERSION
+
+    def _episode_columns(self) -> set[str]:
+        """The columns the file's episodes table has (an older file lacks some of EPISODE_COLUMNS)."""
+        return {str(row[1]) for row in self._conn.execute("PRAGMA table_info(episodes)")}
 
     @property
     def gains_note(self) -> str:
@@ -379,10 +392,14 @@ class RunStore:
             ((index, int(r[0]), *r[1:].tolist()) for r in block),
         )
 
-    def set_policy_return(self, episode: int, policy_return: float) -> None:
+    def set_policy_return(self, episode: int, policy_return: float, policy_success: bool | None = None) -> None:
+        """The policy's return (and its success) of an episode it drove after the episode was stored."""
         self._writable()
         with _transaction(self._conn, self.path):
-            self._conn.execute("UPDATE episodes SET policy_return = ? WHERE episode = ?", (policy_return, episode))
+            self._conn.execute(
+                "UPDATE episodes SET policy_return = ?, policy_success = ? WHERE episode = ?",
+                (policy_return, _encode(policy_success), episode),
+            )
 
     def set_certificate(self, certificate: Mapping[str, Any]) -> None:
         self._writable()
@@ -427,7 +444,7 @@ class RunStore:
 
     def episodes(self) -> list[EpisodeRow]:
         # The columns this file has: one from an older npp_ros lacks the newer ones, whose fields keep their defaults.
-        present = {row[1] for row in self._conn.execute("PRAGMA table_info(episodes)")}
+        present = self._episode_columns()
         columns = [c for c in EPISODE_COLUMNS if c in present]
         cur = self._conn.execute(f"SELECT {', '.join(columns)} FROM episodes ORDER BY episode")
         rows = []
@@ -436,6 +453,9 @@ class RunStore:
             item["initial_state"] = tuple(json.loads(item["initial_state"]))
             for flag in ("oracle_called", "certified"):
                 item[flag] = bool(item[flag])
+            for flag in SUCCESS_COLUMNS:  # 1, 0 or NULL (not judged)
+                if item.get(flag) is not None:
+                    item[flag] = bool(item[flag])
             rows.append(EpisodeRow(**item))
         return rows
 

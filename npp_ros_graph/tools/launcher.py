@@ -42,6 +42,7 @@ from npp_ros.cli.args import TASK_HELP, ListTasks, task_name
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.records import RunFileError
+from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import WriterLock
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros.tasks.sources import short_name
@@ -404,6 +405,9 @@ def main(argv: list[str] | None = None) -> int:
         for signum in (signal.SIGHUP, signal.SIGTERM):
             signal.signal(signum, _ignore_further)
         if follower is not None:
+            notice = run_file_notice(run_dir / "run.sqlite")  # the expert's failure, before the certificate
+            if notice:
+                say(("\n" if follower.tty else "") + "\n".join(f"npp-run: {line}" for line in notice))
             if follower.certificate is not None:
                 with suppress(OSError):
                     print(("\n" if follower.tty else "") + certificate_line(follower.certificate))
