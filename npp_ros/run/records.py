@@ -141,8 +141,8 @@ class SuccessCounts:
             f"WARNING: the expert succeeded on {self.expert_successes} of its {self.expert_answers} answers "
             f"({self.expert_rate:.0%}); success: {criterion}.",
             "WARNING: a certificate is relative to its expert: this run compares the policy with an expert that "
-            "does not do the task, so a certificate of it says nothing about doing the task. Check the expert "
-            "first (npp-bench --only experts --expert-tasks TASK).",
+            "fails the task on most of its answers, so a certificate of it says nothing about doing the task. "
+            "Check the expert first (npp-bench --only experts --expert-tasks TASK).",
         ]
 
 
