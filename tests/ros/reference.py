@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from npp_ros.policy.dataset import Dataset
+from npp_ros.policy.feedback import DEFAULT_POLICY
 from npp_ros.run.loop import NPPLoop, RunResult
 from npp_ros.run.records import EpisodeRow
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
@@ -19,7 +20,7 @@ from npp_ros.tasks.lqr import LQRExpert
 # policy's rollouts, so a killed sim or a restarted policy cannot change them and a faulted run
 # must repeat the uninterrupted one decision for decision. (In the rollout and oracle modes a lost
 # rollout is a failed check, which is sound but changes the run.)
-ROLLOUT_FREE = {"certify": "surrogate", "rule": "paper"}
+ROLLOUT_FREE = {"certify": "surrogate", "rule": "paper", "policy": "open-loop"}
 
 
 def uninterrupted_run(
@@ -29,11 +30,21 @@ def uninterrupted_run(
     max_episodes: int = 400,
     certify: str = "rollout",
     rule: str = "sequential",
+    policy: str = DEFAULT_POLICY,
 ) -> tuple[NPPLoop, RunResult]:
     """lqr_2_1 with the analytic L through the same loop the supervisor runs (no store)."""
     expert = LQRExpert("lqr_2_1", task_seed, horizon=horizon)
     lipschitz = resolve_lipschitz("lqr_2_1", "analytic", expert)
-    config = build_config("lqr_2_1", task_seed, lipschitz, epsilon, horizon=horizon, certify=certify, rule=rule)  # type: ignore[arg-type]
+    config = build_config(
+        "lqr_2_1",
+        task_seed,
+        lipschitz,
+        epsilon,
+        horizon=horizon,
+        certify=certify,
+        rule=rule,
+        policy=policy,  # type: ignore[arg-type]
+    )
     loop = build_loop(config, expert)
     return loop, loop.run(max_episodes=max_episodes)
 

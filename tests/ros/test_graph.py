@@ -22,7 +22,18 @@ def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: P
             [sys.executable, "-m", "npp_ros_graph.tools.monitor", "--exit-on-certificate"], stdout=out
         )
     run = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--max-episodes", "400"],
+        # The main job's run: the paper's open-loop policy, as make run starts it.
+        [
+            sys.executable,
+            "-m",
+            "npp_ros_graph.tools.launcher",
+            "--run-dir",
+            str(run_dir),
+            "--max-episodes",
+            "400",
+            "--policy",
+            "open-loop",
+        ],
         capture_output=True,
         text=True,
         timeout=1200,
@@ -52,7 +63,7 @@ def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: P
     assert len(returns) >= len(graph_rows) - 5
     assert all(ret >= v_lb for ret, v_lb in returns)
 
-    local_loop, local = uninterrupted_run()
+    local_loop, local = uninterrupted_run(policy="open-loop")
     assert decisions(graph_rows) == decisions(local.rows)
     assert local.certificate is not None and certificate["episodes"] == local.certificate.episodes
     assert certificate == local.certificate.record()  # the same certificate, field by field
