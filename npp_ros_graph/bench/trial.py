@@ -213,7 +213,8 @@ def markdown(out: dict[str, Any]) -> str:
         "",
         f"Run: {out['run']} ({out['task']} seed {out['seed']}, H {out['horizon']}); certificate: epsilon "
         f"{c['epsilon']:g}, p {c['p']:g}, delta {c['delta']:g}, certify={c['certify']}, rule={c['rule']}, "
-        f"{c['policy_trajectories']} trajectories in the policy. npp-deploy loaded it through its gate "
+        f"{c['policy_trajectories']} trajectories in the policy, acting {out.get('policy', 'open-loop')}. npp-deploy "
+        "loaded it through its gate "
         f"(no override); npp-robot ran each episode in real time ({out['control_period_ms']:g} ms period) "
         "from a fresh s0.",
         "",
@@ -266,6 +267,7 @@ def main(argv: list[str] | None = None) -> int:
         "control_period_ms": deployment.plant.dt * 1e3,
         "certificate": {k: deployment.certificate[k] for k in ("epsilon", "p", "delta", "certify", "rule",
                                                                "policy_trajectories")},
+        "policy": deployment.policy.kind,
     }  # fmt: skip
     rows: list[TrialEpisode] = []
     started = time.monotonic()

@@ -8,6 +8,7 @@ do not depend on the machine's speed.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -59,3 +60,15 @@ def test_the_cartpole_certifies_through_the_graph_with_the_feedback_policy(tmp_p
     ]
     for name in ("states", "actions", "values", "gains"):
         np.testing.assert_array_equal(getattr(graph_data, name), getattr(loop.dataset, name))
+
+    # The certified feedback policy on the real-time robot, through npp-deploy's gate.
+    trial = tmp_path / "trial"
+    command = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(run_dir), "--episodes", "2", "--out", str(trial)]
+    subprocess.run(command, check=True, timeout=600)
+    out = json.loads((trial / "trial.json").read_text())
+    assert out["policy"] == "feedback" and len(out["episodes"]) == 2
+    for episode in out["episodes"]:
+        assert episode["replay_mismatches"] == 0, episode  # the robot moved exactly as the model does
+        assert episode["first_command_answers_s0"], episode
+        if episode["fresh_command_share"] == 1.0:  # no command missed its period: the in-process episode exactly
+            assert episode["robot_return"] == episode["in_process_return"], episode
