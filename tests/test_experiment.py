@@ -19,7 +19,21 @@ from npp_ros.tasks.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng
 from npp_ros.tasks.rollout import rollout
 
 EXPERIMENT = [sys.executable, "-m", "npp_ros.cli.experiment"]
-REDUCED = ["--tasks", "lqr_2_1", "--seeds", "0", "--evaluate", "4", "--horizon", "200", "--jobs", "1"]
+# The paper's experiment, reduced: its open-loop policy (arms named as the paper's).
+REDUCED = [
+    "--tasks",
+    "lqr_2_1",
+    "--seeds",
+    "0",
+    "--evaluate",
+    "4",
+    "--horizon",
+    "200",
+    "--jobs",
+    "1",
+    "--policies",
+    "open-loop",
+]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 

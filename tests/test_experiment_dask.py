@@ -32,7 +32,7 @@ EXPERIMENT = [sys.executable, "-m", "npp_ros.cli.experiment"]
 REDUCED = [
     "--tasks", "lqr_2_1", "--experts", "optimal", "--lipschitz", "analytic", "--certify", "oracle",
     "--seeds", "0", "1", "--horizon", "50", "--max-episodes", "40", "--checkpoints", "10,40",
-    "--evaluate", "4", "--held-out", "10", "--rules", "sequential",
+    "--evaluate", "4", "--held-out", "10", "--rules", "sequential", "--policies", "open-loop",
 ]  # fmt: skip
 # How long a run took, when, and its random identity: the only values allowed to differ.
 TIMES = {"wall_time", "wall_time_s", "created", "run_id"}

@@ -98,11 +98,12 @@ def test_bad_requests_to_the_optimizer_get_precise_errors(
     pendulum_expert: tuple[RosClient, Any], state: list[float], fragments: list[str]
 ) -> None:
     client, service = pendulum_expert
-    answer = client.call(service, request(state, 0))
+    # One attempt, however long it takes: a second one sent while the first computes would meet max_queue 1.
+    answer = client.call(service, request(state, 0), TIMEOUT, attempt_timeout=TIMEOUT)
     assert not answer.success
     for fragment in fragments:
         assert fragment in answer.message, answer.message
-    good = client.call(service, request([3.0, 0.0], 0))  # the node keeps serving
+    good = client.call(service, request([3.0, 0.0], 0), TIMEOUT, attempt_timeout=TIMEOUT)  # the node keeps serving
     assert good.success, good.message
     states, _, values = unpack(good)
     expert = get_task(TASK).make_expert(0, HORIZON, ExpertOptions(time_budget=BUDGET, max_iterations=ITERATIONS))
