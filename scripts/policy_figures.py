@@ -36,7 +36,8 @@ def checkpoints(folder: Path) -> dict[str, list[tuple[float, float, float]]]:
         if not evaluations.is_file():
             continue
         with RunStore.open(run / "run.sqlite") as store:
-            task, rows = store.metadata.task, store.episodes()
+            task, rows, explore = store.metadata.task, store.episodes(), float(store.metadata.explore)
+        task = f"{task}|explore {explore:g}" if explore else task  # its own series beside the arm without
         per_checkpoint: dict[int, list[tuple[float, float]]] = defaultdict(list)
         with evaluations.open() as fh:
             for row in csv.DictReader(fh):
@@ -84,8 +85,9 @@ def main() -> None:
         source = "checkpoints"
         if not curves:
             curves, source = final_points(path), "final"
-        for task, points in curves.items():
-            plotted[task][label] = {"folder": folder, "from": source, "points": points}
+        for key, points in curves.items():
+            task, _, arm = key.partition("|")
+            plotted[task][f"{label}, {arm}" if arm else label] = {"folder": folder, "from": source, "points": points}
     for task, series in plotted.items():
         fig, ax = plt.subplots(figsize=(6.4, 4.0))
         expert = []
