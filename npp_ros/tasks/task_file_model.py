@@ -30,6 +30,21 @@ def model_ids(model: Any, kind: str) -> dict[str, int]:
     return {mujoco.mj_id2name(model, obj, i): i for i in range(count)}
 
 
+def named_objects(reader: Reader, value: Any, key: str, ids: dict[str, int], kind: str, *, pair: bool) -> list[str]:
+    """The one name (or, with ``pair``, the two names) ``key`` gives, each an object of the model of ``kind``."""
+    if pair:
+        wanted = reader.names(value, key)
+        if len(wanted) != 2:
+            raise reader.fail(key, f"must name two sites, got {wanted!r}")
+    else:
+        wanted = [reader.text(value, key)]
+    for name in wanted:
+        if name not in ids:
+            known = ", ".join(sorted(n for n in ids if n)) or "none"
+            raise reader.fail(key, f"unknown {kind} {name!r} (the model's: {known})")
+    return wanted
+
+
 def in_model_order(ids: dict[str, int]) -> list[str]:
     return [name for name, _ in sorted(ids.items(), key=lambda item: item[1])]
 

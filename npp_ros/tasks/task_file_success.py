@@ -27,7 +27,7 @@ import numpy as np
 
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.success import SuccessCriterion, WithinBand, steps_for
-from npp_ros.tasks.task_file_model import in_model_order, model_ids
+from npp_ros.tasks.task_file_model import in_model_order, model_ids, named_objects
 from npp_ros.tasks.task_file_reader import Reader
 
 SUCCESS_KEYS = {"joint", "site", "axis", "distance", "within", "last_seconds", "description"}
@@ -120,16 +120,7 @@ def _sites(
     """A site's coordinate along ``axis``, or the distance between two sites."""
     sites = model_ids(model, "site")
     key = f"success.{quantity}"
-    if quantity == "distance":
-        wanted = reader.names(table[quantity], key)
-        if len(wanted) != 2:
-            raise reader.fail(key, f"must name two sites, got {wanted!r}")
-    else:
-        wanted = [reader.text(table[quantity], key)]
-    for name in wanted:
-        if name not in sites:
-            known = ", ".join(sorted(n for n in sites if n)) or "none"
-            raise reader.fail(key, f"unknown site {name!r} (the model's: {known})")
+    wanted = named_objects(reader, table[quantity], key, sites, "site", pair=quantity == "distance")
     ids = tuple(sites[name] for name in wanted)
     if quantity == "distance":
         band = SiteBand(str(model_path), ids, 0, low, high)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from npp_ros.tasks.task_file_model import model_ids
+from npp_ros.tasks.task_file_model import model_ids, named_objects
 from npp_ros.tasks.task_file_reader import Reader
 
 QUANTITIES = ("joint_position", "joint_velocity", "site_position", "site_distance", "control")
@@ -96,16 +96,7 @@ def _quantity_and_names(
     quantity = named[0]
     kind = {"control": "actuator", "site_position": "site", "site_distance": "site"}.get(quantity, "joint")
     key = f"{where}.{quantity}"
-    if quantity == "site_distance":
-        wanted = reader.names(entry[quantity], key)
-        if len(wanted) != 2:
-            raise reader.fail(key, f"must name two sites, got {wanted!r}")
-    else:
-        wanted = [reader.text(entry[quantity], key)]
-    for name in wanted:
-        if name not in ids[kind]:
-            known = ", ".join(sorted(n for n in ids[kind] if n)) or "none"
-            raise reader.fail(key, f"unknown {kind} {name!r} (the model's: {known})")
+    wanted = named_objects(reader, entry[quantity], key, ids[kind], kind, pair=quantity == "site_distance")
     return quantity, kind, wanted
 
 
