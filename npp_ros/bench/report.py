@@ -47,7 +47,7 @@ def expert_markdown(experts: dict[str, Any]) -> list[str]:
     lines += [f"Command: `{experts['command']}`, {experts['date']}; load average at start "
               f"{experts['load_average_start']}, at end {experts['load_average_end']}.", ""]  # fmt: skip
     lines += ["| task | H | requests | median s | quartiles | min - max | CPU s (median) | iterations | stop reasons "
-              "| held upright | target | met |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+              "| succeeded | target | met |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for t in experts["tasks"]:
         w, c = t["seconds"], t["cpu_seconds"]
         iterations = [r["iterations"] for r in t["detail"]]
@@ -74,7 +74,7 @@ def expert_markdown(experts: dict[str, Any]) -> list[str]:
     for t in experts["tasks"]:
         o = t["options"]
         lines.append(f"- {expert_label(t)}: default expert (time budget {o['time_budget_s']:g} s per request, at most "
-                     f"{o['max_iterations']} iterations, {o['values']} values); held upright = "
+                     f"{o['max_iterations']} iterations, {o['values']} values); succeeded = "
                      f"{t['success_rule']}.")  # fmt: skip
     lines += [
         "",
