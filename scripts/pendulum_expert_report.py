@@ -4,7 +4,7 @@ Usage: .venv/bin/python scripts/pendulum_expert_report.py [--requests 12] [--gri
 (``--grid 0`` skips part 3.)
 
 1. ``--requests`` 1000-step requests from s0 ~ rho (seeded), timed one at a time with
-   :func:`npp_ros.trajopt.ilqr.time_trajectories` at the expert's default budget.
+   :func:`npp_ros.trajopt.expert.time_trajectories` at the expert's default budget.
 2. Slopes: max |W_x| of the surrogate cost-to-go (the backward pass), and the data-based slope
    |Q_i - Q_j| / |s_i - s_j| of the true values over those trajectories (an under-estimate), with
    both value conventions (return-to-go, and H-step windows).
@@ -25,7 +25,7 @@ import numpy as np
 from npp_ros.policy.dataset import Dataset
 from npp_ros.policy.lipschitz import estimate_global
 from npp_ros.tasks.pendulum import PAPER_LIPSCHITZ, PendulumExpert, sample_initial_state
-from npp_ros.trajopt.ilqr import ExpertSolution, replay_rewards, time_trajectories, window_values
+from npp_ros.trajopt.expert import ExpertSolution, replay_rewards, time_trajectories, window_values
 
 
 def main() -> None:

@@ -14,7 +14,9 @@ import pytest
 from npp_ros.tasks.expert_pool import ExpertPool
 from npp_ros.tasks.registry import ExpertOptions, get_task
 from npp_ros.trajopt import batch_steps
-from npp_ros.trajopt.ilqr import LINE_SEARCH_STEPS, MujocoDynamics, OptimizingExpert
+from npp_ros.trajopt.dynamics import MujocoDynamics
+from npp_ros.trajopt.expert import OptimizingExpert
+from npp_ros.trajopt.ilqr import LINE_SEARCH_STEPS
 
 TASKS = ("cartpole_swingup", "acrobot_swingup", "pendulum_swingup")
 SHORT = 150  # steps per request: a few seconds for every task and both paths

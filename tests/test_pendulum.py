@@ -19,7 +19,7 @@ from npp_ros.tasks.pendulum import (
     sample_initial_state,
     wrap_angle,
 )
-from npp_ros.trajopt.ilqr import replay_return_to_go
+from npp_ros.trajopt.expert import replay_return_to_go
 
 COS_8 = math.cos(math.radians(8.0))
 HANGING = np.array([math.pi, 0.0])

@@ -7,18 +7,16 @@ import pytest
 
 from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
 from npp_ros.tasks.rollout import rollout
-from npp_ros.trajopt.ilqr import (
-    ILQR,
-    MujocoDynamics,
+from npp_ros.trajopt.dynamics import MujocoDynamics
+from npp_ros.trajopt.expert import (
     OptimizingExpert,
-    TrajOptResult,
-    lqr_task_cost,
     replay_return_to_go,
     replay_rewards,
     return_to_go,
     time_trajectories,
     window_values,
 )
+from npp_ros.trajopt.ilqr import ILQR, TrajOptResult, lqr_task_cost
 
 TASK, SEED, HORIZON = "lqr_2_1", 0, 1000
 

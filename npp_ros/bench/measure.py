@@ -33,7 +33,7 @@ from npp_ros.tasks.lqr import LQRExpert, sample_initial_state
 from npp_ros.tasks.registry import ExpertOptions, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads
-from npp_ros.trajopt.ilqr import OptimizingExpert
+from npp_ros.trajopt.expert import OptimizingExpert
 
 try:  # the registry's fastest plain 1-NN tree; the benchmark still runs without it
     from pykdtree.kdtree import KDTree as PyKDTree

@@ -51,7 +51,7 @@ from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.tasks.lqr import TASKS
 from npp_ros.tasks.registry import by_task
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
+from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S
 
 
 def parser() -> argparse.ArgumentParser:

@@ -36,7 +36,7 @@ from npp_ros.run.setup import (
 from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
+from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S
 
 
 def parser() -> argparse.ArgumentParser:

@@ -31,13 +31,9 @@ from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
-from npp_ros.trajopt.ilqr import (
-    ILQR,
-    MujocoDynamics,
-    OptimizingExpert,
-    QuadraticCost,
-    replay_rewards,
-)
+from npp_ros.trajopt.dynamics import MujocoDynamics
+from npp_ros.trajopt.expert import OptimizingExpert, replay_rewards
+from npp_ros.trajopt.ilqr import ILQR, QuadraticCost
 
 TASK = "acrobot_swingup"
 DEFAULT_HORIZON = 1000

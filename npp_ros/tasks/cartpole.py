@@ -30,7 +30,8 @@ from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, MujocoDynamics, OptimizingExpert
+from npp_ros.trajopt.dynamics import MujocoDynamics
+from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
 TASK = "cartpole_swingup"
 DEFAULT_HORIZON = 1000

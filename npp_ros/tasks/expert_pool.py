@@ -24,7 +24,7 @@ import numpy as np
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.tasks.registry import Expert, ExpertOptions, StopsAtTimeBudget, get_task
 from npp_ros.trajopt.batch_steps import default_threads
-from npp_ros.trajopt.ilqr import OptimizingExpert
+from npp_ros.trajopt.expert import OptimizingExpert
 
 _EXPERT: Expert | None = None  # a worker process's own expert
 

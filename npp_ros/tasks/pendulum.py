@@ -35,7 +35,7 @@ from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
+from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
 TASK = "pendulum_swingup"
 DEFAULT_HORIZON = 1000

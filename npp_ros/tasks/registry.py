@@ -6,7 +6,7 @@ module re-exports). Nothing outside a task's own module names its plant or exper
 ``npp_ros.run.setup``, ``npp-learn``, ``npp-experiment`` and the nodes call :func:`get_task`.
 
 Adding a task is one module (plant, expert and one :class:`Task` instance, usually an
-:class:`OptimizerTask` around an :class:`~npp_ros.trajopt.ilqr.OptimizingExpert`) and one line in
+:class:`OptimizerTask` around an :class:`~npp_ros.trajopt.expert.OptimizingExpert`) and one line in
 :data:`REGISTRY`, or, outside npp_ros, an entry point in the group ``npp_ros.tasks`` of any installed
 package, or a task file (``.toml``, npp_ros.tasks.task_file); npp_ros.tasks.sources reads those. The
 registry holds import paths, so listing the names loads no plant, and a task module may import this one.

@@ -2,7 +2,7 @@
 
 Every source of tasks fills in this contract: npp_ros's own task modules, plug-in packages and task
 files. :class:`Task` is one task; :class:`OptimizerTask` fills it in for an expert built on the iLQR
-optimizer (:class:`~npp_ros.trajopt.ilqr.OptimizingExpert`). Which tasks exist, and the lookup every
+optimizer (:class:`~npp_ros.trajopt.expert.OptimizingExpert`). Which tasks exist, and the lookup every
 command and node uses, is npp_ros.tasks.registry; of npp_ros.tasks this module imports only the success
 criterion's type (npp_ros.tasks.success, which imports none).
 """
@@ -24,7 +24,7 @@ from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.tasks.success import SuccessCriterion
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
+from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
 MAX_HORIZON = 100_000
 DEFAULT_HORIZON = 1000  # the episode length of a task that names none
@@ -251,7 +251,7 @@ class Task:
 
 @dataclass(frozen=True)
 class OptimizerTask(Task):
-    """A task whose expert is an :class:`~npp_ros.trajopt.ilqr.OptimizingExpert` (iLQR on the plant's model).
+    """A task whose expert is an :class:`~npp_ros.trajopt.expert.OptimizingExpert` (iLQR on the plant's model).
 
     Its values are the expert's own true H-step returns, a local optimum of a smooth surrogate: a
     claim is relative to this expert, so the default check is ``oracle`` (V^E(s0) - R^pi(s0)).

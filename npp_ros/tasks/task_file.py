@@ -75,7 +75,7 @@ from npp_ros.tasks.task_file_cost import TermCost
 from npp_ros.tasks.task_file_reader import TaskFileError as TaskFileError  # re-exported: what a bad file raises
 from npp_ros.tasks.task_file_schema import DEFAULT_MAX_ITERATIONS, HASH_MARK, TaskDefinition, parse
 from npp_ros.tasks.task_file_terms import TermReward
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
+from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
 
 FINGERPRINT_FIELDS = (
     "opt.timestep", "opt.gravity", "opt.integrator", "opt.wind", "opt.density", "opt.viscosity", "dof_damping",

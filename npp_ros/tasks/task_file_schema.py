@@ -29,7 +29,8 @@ from npp_ros.tasks.task_file_model import load_model, read_actuators, read_rho, 
 from npp_ros.tasks.task_file_reader import Reader, TaskFileError
 from npp_ros.tasks.task_file_success import read_success
 from npp_ros.tasks.task_file_terms import FunctionReward, Term, TermReward, read_reward, read_terms
-from npp_ros.trajopt.ilqr import DEFAULT_VALUES, VALUE_MODES, check_time_budget
+from npp_ros.trajopt.expert import DEFAULT_VALUES, VALUE_MODES
+from npp_ros.trajopt.ilqr import check_time_budget
 
 HASH_MARK = "#sha256="  # a task file's name: its absolute path, this, and its content's SHA-256
 TOP_KEYS = {"name", "model", "control_timestep", "horizon", "epsilon", "lipschitz", "certify", "actuators", "state",

@@ -10,7 +10,7 @@ independent simulations of one model:
 - the line search's closed-loop rollouts of several step sizes (:class:`BatchClosedLoops`, one
   thread: a step of a few small simulations is shorter than handing it to a second thread).
 
-Both give the numbers of the one-at-a-time code in :mod:`npp_ros.trajopt.ilqr` bit for bit (every
+Both give the numbers of the one-at-a-time code in :mod:`npp_ros.trajopt.dynamics` bit for bit (every
 floating-point operation is the same operation on the same operands), so they change how fast a
 request is answered, never its answer.
 """

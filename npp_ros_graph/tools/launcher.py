@@ -46,7 +46,7 @@ from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import WriterLock
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros.tasks.sources import short_name
-from npp_ros.trajopt.ilqr import DEFAULT_TIME_BUDGET_S
+from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S
 from npp_ros_graph.graph.description import graph_parameters, node_argv
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, WARN, health_of
 from npp_ros_graph.runtime.node import node_name, publishers_of, release
