@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from npp_ros.policy.dataset import Trajectory
-from npp_ros.run.answer_check import AnswerCheck, AnswerError
+from npp_ros.tasks.answer_check import AnswerCheck, AnswerError
 from npp_ros.tasks.registry import ExpertOptions, get_task
 
 CASES = [

@@ -1,5 +1,5 @@
-"""npp-deploy's core (npp_ros/deploy.py), without ROS: the gate on real run folders, the robot's joints, the
-command limits, coverage, the watchdog, and the robot's model from its MJCF (npp_ros/run/robot_model.py)."""
+"""npp-deploy's core (npp_ros/deployment/), without ROS: the gate on real run folders, the robot's joints, the
+command limits, coverage, the watchdog, and the robot's model from its MJCF (robot_model.py)."""
 
 from __future__ import annotations
 
@@ -12,24 +12,15 @@ import numpy as np
 import pytest
 from deploy_runs import FINGERPRINT, HORIZON, SEED, TASK, altered_copy, bad_folders, edited_certificate, make_run
 
+from npp_ros.certificate.certifier import Certificate
+from npp_ros.deployment.commands import CommandLimits, check_command_interface, safe_command
+from npp_ros.deployment.coverage import Coverage
+from npp_ros.deployment.gate import Acceptance, GateRefusal, load_deployment
+from npp_ros.deployment.joints import JointLayout, NonFiniteState, RobotStateError, parse_vector, stored_state
+from npp_ros.deployment.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint, model_mjcf
+from npp_ros.deployment.timing import Watchdog
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.vectors import MAX_MAGNITUDE
-from npp_ros.run.deploy import (
-    Acceptance,
-    CommandLimits,
-    Coverage,
-    GateRefusal,
-    JointLayout,
-    NonFiniteState,
-    RobotStateError,
-    Watchdog,
-    check_command_interface,
-    load_deployment,
-    parse_vector,
-    safe_command,
-    stored_state,
-)
-from npp_ros.run.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint, model_mjcf
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import TASK_NAMES, get_task
 from npp_ros.tasks.rollout import rollout
@@ -128,6 +119,26 @@ def test_a_hand_edited_run_file_is_refused_with_a_reason_not_a_traceback(runs, t
     for folder in (garbled, without, missing):
         with pytest.raises(GateRefusal, match="altered"):
             load_deployment(folder, ACCEPT)
+
+
+def test_only_what_the_run_file_cannot_give_is_reported_as_damage(runs, tmp_path, monkeypatch) -> None:
+    """A file the store refuses (a dropped table, bytes that are no SQLite file) is damage; an error in the gate's
+    own reading is a bug, raised as itself, and never told to the operator as a damaged file."""
+    good, _ = runs
+    dropped = altered_copy(good, tmp_path / "dropped", ("DROP TABLE episodes", ()))
+    garbage = tmp_path / "garbage"
+    garbage.mkdir()
+    (garbage / "run.sqlite").write_bytes(b"not a run file" * 100)
+    for folder in (dropped, garbage):
+        with pytest.raises(GateRefusal, match="altered or damaged"):
+            load_deployment(folder, ACCEPT)
+
+    def broken_reader(record: object, spec: object) -> Certificate:
+        raise TypeError("a bug in the certificate's reader")
+
+    monkeypatch.setattr(Certificate, "from_record", broken_reader)
+    with pytest.raises(TypeError, match="a bug in the certificate's reader"):
+        load_deployment(good, ACCEPT)
 
 
 def test_the_gate_refuses_a_weaker_certificate_than_the_operator_accepts(runs) -> None:

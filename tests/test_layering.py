@@ -24,15 +24,17 @@ CORE_PARTS = (
     "npp_ros.trajopt",
     "npp_ros.tasks",
     "npp_ros.run",
+    "npp_ros.deployment",
     "npp_ros.experiment",
     "npp_ros.bench",
     "npp_ros.cli",
 )
 CORE = frozenset(CORE_PARTS)
 BELOW_RUN = frozenset({"npp_ros.policy", "npp_ros.certificate", "npp_ros.trajopt", "npp_ros.tasks"})
-NODE_PARTS = tuple(
-    f"npp_ros_graph.nodes.{node}" for node in ("sim", "expert", "policy", "supervisor", "deploy", "robot")
-)
+DEPLOYMENT = "npp_ros.deployment"
+LEARNING_NODES = tuple(f"npp_ros_graph.nodes.{node}" for node in ("sim", "expert", "policy", "supervisor"))
+ROBOT_NODES = ("npp_ros_graph.nodes.deploy", "npp_ros_graph.nodes.robot")
+NODE_PARTS = LEARNING_NODES + ROBOT_NODES
 TRANSPORT, RUNTIME, GRAPH = "npp_ros_graph.transport", "npp_ros_graph.runtime", "npp_ros_graph.graph"
 
 MAY_IMPORT: dict[str, frozenset[str]] = {
@@ -43,6 +45,7 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     "npp_ros.trajopt": frozenset({"npp_ros.policy", "npp_ros.certificate"}),
     "npp_ros.tasks": frozenset({"npp_ros.policy", "npp_ros.certificate", "npp_ros.trajopt"}),
     "npp_ros.run": BELOW_RUN,
+    DEPLOYMENT: BELOW_RUN | {"npp_ros.run"},  # a certified run on a robot: reads run files, never runs Algorithm 1
     "npp_ros.experiment": BELOW_RUN | {"npp_ros.run"},
     "npp_ros.bench": BELOW_RUN | {"npp_ros.run"},
     "npp_ros.cli": CORE - {"npp_ros.cli"},
@@ -51,9 +54,12 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     TRANSPORT: CORE,
     RUNTIME: CORE | {TRANSPORT},
     GRAPH: CORE | {TRANSPORT},
-    **{node: CORE | {TRANSPORT, RUNTIME} for node in NODE_PARTS},  # a node never imports another node
+    # a node never imports another node; the nodes of Algorithm 1's graph deploy nothing
+    **{node: (CORE - {DEPLOYMENT}) | {TRANSPORT, RUNTIME} for node in LEARNING_NODES},
+    **{node: CORE | {TRANSPORT, RUNTIME} for node in ROBOT_NODES},
     "npp_ros_graph.nodes": frozenset(),
-    "npp_ros_graph.tools": CORE | {TRANSPORT, RUNTIME, GRAPH},
+    "npp_ros_graph.client": CORE | {TRANSPORT, RUNTIME, GRAPH},  # GraphClient: the graph from Python
+    "npp_ros_graph.tools": CORE | {TRANSPORT, RUNTIME, GRAPH, "npp_ros_graph.client"},
     "npp_ros_graph.bench": CORE | {TRANSPORT, RUNTIME, GRAPH},
     # the thin scripts in nodes/
     "nodes": frozenset({*NODE_PARTS, "npp_ros_graph.tools"}),

@@ -37,7 +37,7 @@ def test_the_example_file_defines_a_task(task_dir: Path) -> None:
     task = get_task(str(task_dir / "task.toml"))
     assert task.name.startswith(f"{(task_dir / 'task.toml').resolve()}{HASH_MARK}")
     assert (task.state_dim, task.action_dim, task.default_horizon, task.default_certify) == (4, 2, 200, "oracle")
-    assert task.epsilon(None) == 20.0 and task.default_lipschitz_choice() == "paper"
+    assert task.epsilon(None) == 20.0 and task.default_lipschitz_choice() == 200.0
     assert get_task(task.name) is task  # the published name loads the same task
     plant = task.make_plant(0)
     assert plant.task == task.name

@@ -54,9 +54,9 @@ def test_lipschitz_choices_a_task_cannot_resolve_are_refused() -> None:
     with pytest.raises(ValueError, match=r"'analytic' is not available for pendulum_swingup: its 0/1 reward"):
         resolve_lipschitz("pendulum_swingup", "analytic", expert)
     cartpole = get_task("cartpole_swingup")
-    with pytest.raises(ValueError, match=r"no analytic or paper L; give a number"):
+    with pytest.raises(ValueError, match=r"no analytic, paper or own L: pass --lipschitz"):
         cartpole.default_lipschitz_choice()
-    with pytest.raises(ValueError, match=r"the paper gives no epsilon for cartpole_swingup"):
+    with pytest.raises(ValueError, match=r"the paper gives no epsilon for cartpole_swingup: pass --epsilon"):
         cartpole.epsilon(None)
 
 

@@ -9,11 +9,27 @@ from __future__ import annotations
 
 from npp_ros.policy.lipschitz import LipschitzConstant
 
-LIPSCHITZ_CHOICES = ("analytic", "paper")  # the named L choices, resolved once the plant is known (npp_ros.run.setup)
+# The named L choices, resolved once the plant is known (npp_ros.run.setup): 'analytic' (a bound the expert
+# computes), 'paper' (the paper's value) and 'data' (fixed from the run's first expert answers, see DATA_RULE).
+LIPSCHITZ_CHOICES = ("analytic", "paper", "data")
+DATA_ANSWERS = 3  # 'data': the expert's answers from the s0 of episodes 0 .. DATA_ANSWERS - 1 ...
+DATA_FACTOR = 2.0  # ... and L = this x the steepest value slope they show
+DATA_RULE = (
+    f"{DATA_FACTOR:g} x the steepest value slope seen on the expert's answers from the s0 of the run's first "
+    f"{DATA_ANSWERS} episodes (the stored values' slope between their points, and the iLQR expert's own |W_x|), "
+    "fixed when the run begins and kept in its run file"
+)
+LIPSCHITZ_HELP = (
+    "'analytic' (a bound on the expert's value slope, lqr only: the guarantee holds), 'paper' (the paper's "
+    f"value, not a bound on these tasks), 'data' (L = {DATA_RULE}; a choice, not a bound) or a number (a user's L, "
+    "in return per unit of state distance)"
+)
+LIPSCHITZ_FLAG = "pass --lipschitz (a node: the supervisor's lipschitz parameter)"
+EPSILON_FLAG = "pass --epsilon (a node: the supervisor's epsilon parameter)"
 
 
 def parse_lipschitz(choice: str | float) -> str | LipschitzConstant:
-    """'analytic' or 'paper' as they are; a number as a user's L (finite and > 0), else a ValueError."""
+    """A named choice as it is; a number as a user's L (finite and > 0), else a ValueError."""
     if choice in LIPSCHITZ_CHOICES:
         return str(choice)
     try:

@@ -9,6 +9,9 @@ command recomputes nothing and gives the same numbers.
 The runs go to a Dask cluster: by default a local one with --jobs single-threaded worker processes,
 or an existing one given by its scheduler's address. Each worker returns its run's record and this
 process writes the tables and figures from them.
+
+An option not given takes each task's own value: the paper's, or for a task file its keys horizon,
+epsilon, lipschitz, certify and [expert] time_budget.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from distributed import Client, Future, LocalCluster, get_worker
 
 import npp_ros
 from npp_ros.certificate.certifier import CERTIFY_MODES
+from npp_ros.certificate.choices import LIPSCHITZ_HELP
 from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints, task_name
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
@@ -50,7 +54,8 @@ from npp_ros.experiment.arms import HELD_OUT
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.tasks.lqr import TASKS
-from npp_ros.tasks.registry import by_task
+from npp_ros.tasks.registry import by_task, get_task
+from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S
 
 
@@ -67,10 +72,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--lipschitz",
         nargs="+",
-        default=list(LIPSCHITZ_SETTINGS),
-        help=f"L settings side by side: 'paper' ({by_task('paper_lipschitz', tuple(TASKS))}, not a bound here), "
-        "'analytic' (sup of the expert's "
-        "value slope |Px|, a true bound) or a number",
+        default=None,
+        help=f"L settings side by side, each one of {', '.join(LIPSCHITZ_SETTINGS)} or a number: {LIPSCHITZ_HELP}; "
+        f"paper is {by_task('paper_lipschitz', tuple(TASKS))}. Default: paper and analytic where a task has them "
+        "(the lqr tasks: both), else the task's own (a task file's key lipschitz, data when it gives none)",
     )
     ap.add_argument(
         "--experts",
@@ -100,7 +105,8 @@ def parser() -> argparse.ArgumentParser:
         help="what certifies, side by side: 'paper' (the surrogate gap V_ub - V_lb under the paper's one-shot "
         "rule, to reproduce it) or a mode under a sequentially valid rule (--rules): rollout (V_ub + tail - the "
         "policy's return), oracle (the expert's return - the policy's), surrogate; default: paper for the lqr "
-        "tasks, the task's own sound mode (oracle) for tasks with a suboptimal optimizer expert",
+        "tasks, the task's own sound mode for tasks with a suboptimal optimizer expert (oracle; a task file's key "
+        "certify)",
     )
     ap.add_argument(
         "--policies",
@@ -126,9 +132,14 @@ def parser() -> argparse.ArgumentParser:
         "--epsilon",
         type=float,
         default=None,
-        help=f"epsilon for every task (default: the paper's, {by_task('paper_epsilon', tuple(TASKS))})",
+        help=f"epsilon for every task; default: each task's, the paper's ({by_task('paper_epsilon', tuple(TASKS))}) "
+        "or a task file's key epsilon",
     )
-    ap.add_argument("--horizon", type=positive_int, default=1000, help="episode length H")
+    ap.add_argument(
+        "--horizon", type=positive_int, default=None,
+        help="episode length H for every task; default: the tasks' own (1000 for the built-in tasks, a task file's "
+        "key horizon), which must then agree",
+    )  # fmt: skip
     ap.add_argument("--p", type=float, default=0.9, help="condition (i): probability level p")
     ap.add_argument("--delta", type=float, default=0.1, help="condition (i): confidence delta")
     ap.add_argument(
@@ -138,7 +149,8 @@ def parser() -> argparse.ArgumentParser:
         "--time-budget",
         type=float,
         default=None,
-        help=f"seconds per expert request (optimizer experts; default {DEFAULT_TIME_BUDGET_S:g})",
+        help=f"seconds per expert request (optimizer experts); default: a task file's [expert] time_budget, else "
+        f"{DEFAULT_TIME_BUDGET_S:g}",
     )
     ap.add_argument(
         "--held-out", type=positive_int, default=HELD_OUT, help="fresh s0 on which each certificate is checked"
@@ -278,6 +290,15 @@ class Status:
         sys.stderr.flush()
 
 
+def common_horizon(tasks: list[str]) -> int:
+    """The tasks' own episode length, when they agree; else a ValueError naming them and the flag."""
+    own = {short_name(task): get_task(task).default_horizon for task in tasks}
+    if len(set(own.values())) > 1:
+        named = ", ".join(f"{name} {horizon}" for name, horizon in own.items())
+        raise ValueError(f"the tasks' own horizons differ ({named}): pass --horizon")
+    return next(iter(own.values()))
+
+
 def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
     """The settings and arms a command line asks for; ValueError names what is wrong."""
     if not 0 < args.p < 1 or not 0 < args.delta < 1:
@@ -286,7 +307,7 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
         max_episodes={task: args.max_episodes for task in args.tasks},
         evaluations=args.evaluate,
         checkpoints=args.checkpoints,
-        horizon=args.horizon,
+        horizon=args.horizon or common_horizon(args.tasks),
         p=args.p,
         delta=args.delta,
         control_weight=args.control_weight,

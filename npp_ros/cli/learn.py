@@ -2,6 +2,8 @@
 
 No ROS involved: the plant, the task's expert and the loop run here. The run is stored as it
 grows in RUN_DIR/run.sqlite and resumes from there when started again with the same settings.
+An option not given takes the task's value: for a task file, its keys horizon, epsilon, lipschitz,
+certify and [expert] time_budget and values.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
-from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
+from npp_ros.certificate.choices import LIPSCHITZ_HELP
 from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int, task_name
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzWarning
@@ -52,14 +54,14 @@ def parser() -> argparse.ArgumentParser:
         "--epsilon",
         type=float,
         default=None,
-        help=f"target suboptimality; default: the paper's ({by_task('paper_epsilon')})",
+        help=f"target gap, in the task's return; default: the paper's ({by_task('paper_epsilon')}) or a task "
+        "file's key epsilon (a task with neither needs this option)",
     )
     ap.add_argument(
         "--lipschitz",
         default=None,
-        help=f"L: one of {', '.join(LIPSCHITZ_CHOICES)} or a number. 'analytic' bounds the expert's value slope "
-        f"(the guarantee holds; lqr only); 'paper' ({by_task('paper_lipschitz')}) is NOT a bound on these tasks; "
-        "default: analytic where the task has it, else paper",
+        help=f"L: {LIPSCHITZ_HELP}; paper is {by_task('paper_lipschitz')}. Default: analytic where the task has "
+        "it, else a task file's key lipschitz (data when the file gives none), else paper",
     )
     ap.add_argument(
         "--certify",
@@ -68,7 +70,7 @@ def parser() -> argparse.ArgumentParser:
         help="what each episode checks: rollout (V_ub + tail - the policy's own return; sound when L bounds the "
         "value's slope), oracle (the expert's return - the policy's; needs no L, relative to the expert) or "
         "surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4). Default: the task's "
-        f"({by_task('default_certify')}; oracle where the expert is suboptimal)",
+        f"({by_task('default_certify')}; oracle where the expert is suboptimal; a task file's key certify)",
     )
     ap.add_argument(
         "--rule",
@@ -84,21 +86,28 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
     ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
-    ap.add_argument("--horizon", type=positive_int, default=None, help="episode length H; default: the task's (1000)")
+    ap.add_argument(
+        "--horizon",
+        type=positive_int,
+        default=None,
+        help="episode length H; default: the task's (1000; a task file's key horizon)",
+    )
     ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
     ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
     ap.add_argument(
         "--time-budget",
         type=float,
         default=None,
-        help=f"seconds per expert request (iLQR experts; default {DEFAULT_TIME_BUDGET_S:g})",
+        help=f"seconds per expert request (iLQR experts); default: a task file's [expert] time_budget, else "
+        f"{DEFAULT_TIME_BUDGET_S:g}",
     )
     ap.add_argument(
         "--values",
         choices=("window", "return-to-go"),
         default=None,
         help="what an iLQR expert stores as Q_t: window (the H-step return of s_t, the default: one value per "
-        "state) or return-to-go (depends on the time left, so rollout mode refuses it)",
+        "state) or return-to-go (depends on the time left, so rollout mode refuses it); default: a task file's "
+        "[expert] values, else window",
     )
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/learn-TASK-seedSEED")
     ap.add_argument(
@@ -122,8 +131,9 @@ def main(argv: list[str] | None = None) -> int:
             gamma=args.gamma, time_budget=args.time_budget, values=args.values, threads=default_threads()
         )
         expert = task.make_expert(args.seed, args.horizon, options)
-        choice = args.lipschitz or task.default_lipschitz_choice()
-        lipschitz = resolve_lipschitz(args.task, choice, expert)
+        lipschitz = resolve_lipschitz(
+            args.task, args.lipschitz, expert, seed=args.seed, horizon=args.horizon, run_file=run_dir / "run.sqlite"
+        )
         config = build_config(
             args.task, args.seed, lipschitz, epsilon,
             condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,

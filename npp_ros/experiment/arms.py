@@ -15,7 +15,7 @@ from npp_ros.tasks.registry import Expert, ExpertOptions, OptimizerTask, get_tas
 from npp_ros.tasks.sources import short_name
 
 EXPERTS = ("optimal", "detuned", "ilqr")  # every task's expert kinds (Task.experts)
-LIPSCHITZ_SETTINGS = ("paper", "analytic")
+LIPSCHITZ_SETTINGS = ("paper", "analytic", "data")  # named L settings (npp_ros.certificate.choices)
 DEFAULT_CHECKPOINTS = (10, 25, 50, 100, 250, 500, 1000)
 DETUNED_CONTROL_WEIGHT = 0.1
 EVALUATION_STREAM = 1 << 30  # rng stream for evaluation s0; the run's own s0 use [seed, episode]
@@ -30,7 +30,7 @@ class Arm:
 
     task: str
     expert: str  # "optimal" or "detuned"
-    lipschitz: str  # "paper", "analytic" or a number
+    lipschitz: str  # "paper", "analytic", "data" or a number
     certify: str = "surrogate"  # the paper's checked quantity ...
     rule: str = "paper"  # ... and its stopping rule, unless the arm says otherwise
     policy: str = PAPER_POLICY  # how the policy acts at its chosen point (npp_ros.policy.feedback)
@@ -81,7 +81,7 @@ class ExperimentSettings:
     max_episodes: dict[str, int]
     evaluations: int = 100  # N
     checkpoints: tuple[int, ...] = DEFAULT_CHECKPOINTS
-    horizon: int = 1000
+    horizon: int = 1000  # npp-experiment's default: the tasks' own (a task file's key horizon)
     p: float = 0.9
     delta: float = 0.1
     epsilon: dict[str, float] | None = None
@@ -97,9 +97,20 @@ class ExperimentSettings:
         return sorted({c for c in self.checkpoints if 0 < c <= budget} | {budget})
 
 
+def default_lipschitz_settings(task: str) -> tuple[str, ...]:
+    """The L settings a task runs with when none are asked for: the paper's and the analytic L side by side where
+    the task has them (the lqr tasks: both), else its own default (a task file's key lipschitz: a number or data)."""
+    definition = get_task(task)
+    named = tuple(s for s in ("paper", "analytic") if s in definition.lipschitz_choices())
+    if named and definition.own_lipschitz is None:
+        return named
+    choice = definition.default_lipschitz_choice()
+    return (choice if isinstance(choice, str) else f"{choice:g}",)
+
+
 def default_arms(
     tasks: Sequence[str],
-    lipschitz: Sequence[str],
+    lipschitz: Sequence[str] | None,
     experts: Sequence[str] | None,
     certify: Sequence[str] | None = ("paper",),
     rules: Sequence[str] | None = None,
@@ -108,7 +119,8 @@ def default_arms(
 ) -> list[Arm]:
     """Each task with the experts, L settings and modes it offers among those asked for.
 
-    ``experts`` None: every expert of each task. A named L setting a task cannot resolve is left
+    ``experts`` None: every expert of each task. ``lipschitz`` None: each task's own
+    (:func:`default_lipschitz_settings`). A named L setting a task cannot resolve is left
     out for it (no 'analytic' for the pendulum), and the detuned expert is not run with the paper's
     L: the paper gives none for it. ``certify`` lists "paper" (the surrogate gap under the paper's
     one-shot rule) and sound modes (rollout, oracle, surrogate) under the sequential rule; None is
@@ -122,8 +134,8 @@ def default_arms(
         spec = get_task(task)
         modes = certify or (("paper",) if spec.optimal_expert else (spec.default_certify,))
         for expert in spec.experts if experts is None else [e for e in experts if e in spec.experts]:
-            for setting in lipschitz:
-                if setting in LIPSCHITZ_SETTINGS and setting not in spec.lipschitz_choices():
+            for setting in default_lipschitz_settings(task) if lipschitz is None else lipschitz:
+                if setting in LIPSCHITZ_SETTINGS and setting not in (*spec.lipschitz_choices(), "data"):
                     continue
                 if expert == "detuned" and setting == "paper":
                     continue

@@ -74,7 +74,9 @@ def run_arm_seed(
     run_dir = out_dir / "runs" / f"{arm.name}-seed{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
     expert = make_expert(arm, seed, settings)
-    lipschitz = resolve_lipschitz(arm.task, arm.lipschitz, expert)
+    lipschitz = resolve_lipschitz(
+        arm.task, arm.lipschitz, expert, seed=seed, horizon=settings.horizon, run_file=run_dir / "run.sqlite"
+    )
     epsilon = settings.epsilon_for(arm.task)
     config = build_config(
         arm.task, seed, lipschitz, epsilon, p=settings.p, delta=settings.delta, horizon=settings.horizon,

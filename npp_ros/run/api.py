@@ -47,12 +47,12 @@ def learn(
     definition = get_task(task)
     steps = definition.default_horizon if horizon is None else horizon
     expert = definition.make_expert(seed, steps, ExpertOptions())
-    constant = resolve_lipschitz(task, lipschitz or definition.default_lipschitz_choice(), expert)
+    store_path = None if run_dir is None else Path(run_dir) / RUN_FILE
+    constant = resolve_lipschitz(task, lipschitz, expert, seed=seed, horizon=steps, run_file=store_path)
     config = build_config(
         task, seed, constant, definition.epsilon(epsilon), horizon=steps, certify=certify, rule=rule, policy=policy,
         explore=explore,
     )  # fmt: skip
-    store_path = None if run_dir is None else Path(run_dir) / RUN_FILE
     loop = build_loop(config, expert, store_path=store_path)
     try:
         return loop.run(max_episodes)

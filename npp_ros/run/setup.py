@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.certificate.certifier import DEFAULT_RULES, CertificationSpec, CheckedQuantity, Condition, StoppingRule
+from npp_ros.certificate.choices import DATA_ANSWERS, DATA_FACTOR, DATA_RULE, LIPSCHITZ_FLAG
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray
@@ -31,9 +32,63 @@ from npp_ros.tasks.registry import Expert, MeasuresValueSlope, control_space, ge
 from npp_ros.tasks.sources import short_name
 
 
-def resolve_lipschitz(task: str, choice: str | float, expert: Expert) -> LipschitzConstant:
-    """'analytic' (a true bound, where the expert computes one), 'paper' (the paper's, not a bound) or a number."""
-    return get_task(task).resolve_lipschitz(choice, expert)
+def resolve_lipschitz(
+    task: str,
+    choice: str | float | None,
+    expert: Expert,
+    *,
+    seed: int = 0,
+    horizon: int | None = None,
+    run_file: Path | None = None,
+) -> LipschitzConstant:
+    """'analytic' (a true bound, where the expert computes one), 'paper' (the paper's, not a bound), 'data'
+    (:func:`data_lipschitz`: the run's seed, horizon and run file decide it) or a number; None: the task's default
+    (Task.default_lipschitz_choice, a task file's key lipschitz)."""
+    definition = get_task(task)
+    choice = definition.default_lipschitz_choice() if choice is None else choice
+    if choice == "data":
+        return data_lipschitz(task, seed, expert, horizon, run_file)
+    return definition.resolve_lipschitz(choice, expert)
+
+
+def data_lipschitz(
+    task: str, seed: int, expert: Expert, horizon: int | None = None, run_file: Path | None = None
+) -> LipschitzConstant:
+    """L = 'data' (DATA_RULE): fixed from the expert's answers from the s0 of episodes 0 .. DATA_ANSWERS - 1.
+
+    A run file that already records a 'data' L gives it back, so a resumed run keeps the L it began with
+    whatever the expert answers now. The answers cost DATA_ANSWERS requests before the run starts (episode 0
+    asks for the first again). The slope is one the data shows, so L is a scale for the policy's bounds, never a
+    bound on the value's slope: in oracle mode a choice, in the other modes an assumption the certificate names.
+    """
+    recorded = _recorded_lipschitz(run_file)
+    if recorded is not None and recorded[1] == "data":  # another recorded L: the run file's resume check refuses
+        return LipschitzConstant(recorded[0], "data", f"{DATA_RULE}; read back from the run file")
+    definition = get_task(task)
+    answers = Dataset(definition.state_dim, definition.action_dim)
+    for episode in range(DATA_ANSWERS):
+        answers.append(expert.trajectory(definition.initial_state(seed, episode), horizon))
+    stored = estimate_global(answers)
+    own = expert.slope_floor() if isinstance(expert, MeasuresValueSlope) else 0.0
+    steepest = max(stored, own)
+    if not (math.isfinite(steepest) and steepest > 0):
+        raise ValueError(
+            f"L = 'data': the expert's first {DATA_ANSWERS} answers show no slope (their values do not change "
+            f"with the state): {LIPSCHITZ_FLAG} with a number"
+        )
+    measured = f"stored values {stored:.6g}" + (f", the expert's |W_x| {own:.6g}" if own else "")
+    return LipschitzConstant(DATA_FACTOR * steepest, "data", f"{DATA_RULE} ({measured})")
+
+
+def _recorded_lipschitz(run_file: Path | None) -> tuple[float, str] | None:
+    """The L and its source a run file records, or None when there is no readable run file there yet."""
+    if run_file is None or not run_file.is_file():
+        return None
+    try:
+        with RunStore.open(run_file) as store:
+            return float(store.metadata.lipschitz), str(store.metadata.lipschitz_source)  # type: ignore[arg-type]
+    except (RunFileError, ValueError, TypeError):
+        return None  # empty or damaged: opening it for the run says why
 
 
 def build_config(

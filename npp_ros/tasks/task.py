@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from npp_ros.certificate.certifier import CheckedQuantity
-from npp_ros.certificate.choices import LIPSCHITZ_CHOICES
+from npp_ros.certificate.choices import EPSILON_FLAG, LIPSCHITZ_CHOICES, LIPSCHITZ_FLAG
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
@@ -146,6 +146,10 @@ class Task:
     paper_lipschitz: float | None = None
     paper_epsilon: float | None = None
     paper_lipschitz_note: str = "the paper's choice (Section 5); not a bound on V*"
+    # The L the task states itself, a user's choice (a task file's key lipschitz): a number (source 'user') or 'data'
+    # (fixed from the run's first expert answers, npp_ros.run.setup); it is the default where no analytic L exists.
+    own_lipschitz: float | str | None = None
+    own_lipschitz_note: str = "the task's own choice; not a bound on its value"
     no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"
     optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
     default_horizon: int = DEFAULT_HORIZON  # the episode length when a command line gives none
@@ -167,7 +171,7 @@ class Task:
     def analytic_lipschitz(self, expert: Expert) -> LipschitzConstant:
         raise ValueError(
             f"L = 'analytic' is not available for {self.name}: {self.no_analytic_lipschitz}; "
-            f"use {'paper or ' if self.paper_lipschitz else ''}a number"
+            f"use {'paper, ' if self.paper_lipschitz else ''}data or a number"
         )
 
     def expert_value(self, expert: Expert) -> Callable[[FloatArray], float] | None:
@@ -214,39 +218,48 @@ class Task:
         return kind
 
     def epsilon(self, given: float | None) -> float:
-        """The given epsilon, or the paper's for this task when None."""
+        """The given epsilon, or the paper's for this task when None; refused naming the flag when there is none."""
         if given is not None:
             return float(given)
         if self.paper_epsilon is None:
-            raise ValueError(f"the paper gives no epsilon for {self.name}; give one")
+            raise ValueError(f"the paper gives no epsilon for {self.name}: {EPSILON_FLAG}")
         return self.paper_epsilon
 
     def lipschitz_choices(self) -> tuple[str, ...]:
-        """The named L choices this task resolves."""
+        """The named L choices this task resolves besides 'data' (which every task resolves)."""
         analytic = type(self).analytic_lipschitz is not Task.analytic_lipschitz
         return (("analytic",) if analytic else ()) + (("paper",) if self.paper_lipschitz is not None else ())
 
-    def default_lipschitz_choice(self) -> str:
-        """'analytic' where the expert computes a bound, else the paper's value; a task with neither needs a number."""
+    def default_lipschitz_choice(self) -> str | float:
+        """'analytic' where the expert computes a bound, else the task's own L (a number or 'data'), else the
+        paper's; a task with none of them is refused, naming the flag that gives one."""
         choices = self.lipschitz_choices()
+        if choices and choices[0] == "analytic":
+            return "analytic"
+        if self.own_lipschitz is not None:
+            return self.own_lipschitz
         if not choices:
-            raise ValueError(f"{self.name} has no analytic or paper L; give a number")
+            raise ValueError(f"{self.name} has no analytic, paper or own L: {LIPSCHITZ_FLAG} (a number or data)")
         return choices[0]
 
     def resolve_lipschitz(self, choice: str | float, expert: Expert) -> LipschitzConstant:
-        """'analytic' (where the expert computes a bound), 'paper' (the paper's value, a choice) or a number."""
+        """'analytic' (where the expert computes a bound), 'paper' (the paper's value, a choice) or a number (a
+        user's L). 'data' needs the run (its seed, horizon and run file): npp_ros.run.setup resolves it."""
         if choice == "analytic":
             return self.analytic_lipschitz(expert)
         if choice == "paper":
             if self.paper_lipschitz is None:
-                raise ValueError(f"the paper gives no L for {self.name}; use a number")
+                raise ValueError(f"the paper gives no L for {self.name}; use data or a number")
             return LipschitzConstant(self.paper_lipschitz, "paper", self.paper_lipschitz_note)
+        if choice == "data":
+            raise ValueError("L = 'data' is fixed from a run's first expert answers: resolve it with npp_ros.run.setup")
         try:
             value = float(choice)
         except ValueError:
             known = ", ".join(LIPSCHITZ_CHOICES)
             raise ValueError(f"the Lipschitz choice must be one of {known} or a number, got {choice!r}") from None
-        return LipschitzConstant(value, "user", "given on the command line")
+        own = isinstance(self.own_lipschitz, float) and value == self.own_lipschitz
+        return LipschitzConstant(value, "user", self.own_lipschitz_note if own else "given as a run setting")
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ describes every key. In short::
     control_timestep = 0.01        # optional; must equal the model's timestep (one MuJoCo step per control step)
     horizon = 200                  # default episode length
     epsilon = 40.0                 # default target gap
-    lipschitz = 100.0              # default L of the policy's bounds (a choice, not a bound on the value)
+    lipschitz = 100.0              # default L of the policy's bounds (a choice, not a bound); or "data" (the default)
     certify = "oracle"             # default certification mode
     actuators = ["shoulder_motor", "elbow_motor"]   # optional check: the model's actuators, in order
 
@@ -68,6 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
+from npp_ros.certificate.choices import EPSILON_FLAG
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.tasks.task import DEFAULT_OPTIONS, Expert, ExpertOptions, OptimizerTask, check_horizon
@@ -178,7 +179,7 @@ class FileTask(OptimizerTask):
         if given is not None:
             return float(given)
         if self.definition is None or self.definition.epsilon is None:
-            raise ValueError("the task file gives no epsilon; give one")
+            raise ValueError(f"the task file gives no epsilon: add `epsilon = ...` to it or {EPSILON_FLAG}")
         return self.definition.epsilon
 
 
@@ -218,8 +219,8 @@ def _task(path: Path, digest: str, content: bytes) -> FileTask:
         initial_state_diameter=definition.initial_state_diameter(),
         default_certify=definition.certify,  # type: ignore[arg-type]  # checked against CERTIFY_MODES
         no_analytic_lipschitz="its iLQR expert computes no bound on its value's slope",
-        paper_lipschitz=definition.lipschitz,
-        paper_lipschitz_note="the task file's choice (its key lipschitz); not a bound on the expert's value",
+        own_lipschitz=definition.lipschitz,
+        own_lipschitz_note="the task file's key lipschitz: a choice of the policy's bounds, not a bound on the value",
         default_time_budget=definition.expert.get("time_budget", DEFAULT_TIME_BUDGET_S),
         default_horizon=definition.horizon,
         reward_range=definition.reward.bounds() if isinstance(definition.reward, TermReward) else None,

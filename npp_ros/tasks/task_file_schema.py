@@ -53,7 +53,7 @@ class TaskDefinition:
     dt: float
     horizon: int
     epsilon: float | None
-    lipschitz: float | None
+    lipschitz: float | str  # a number (a user's L) or 'data'
     certify: str
     joint_names: tuple[str, ...]
     actuator_names: tuple[str, ...]
@@ -127,15 +127,22 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
     )  # fmt: skip
 
 
-def _run_defaults(reader: Reader, doc: dict[str, Any]) -> tuple[int, float | None, float | None, str]:
-    """The horizon, epsilon, L and certification mode a run takes when its command line gives none."""
+def _run_defaults(reader: Reader, doc: dict[str, Any]) -> tuple[int, float | None, float | str, str]:
+    """The horizon, epsilon, L and certification mode a run takes when its command line gives none.
+
+    epsilon has no default (a gap in the task's own return units: the file or the command line says it); L
+    defaults to 'data' (npp_ros.certificate.choices.DATA_RULE)."""
     horizon = int(reader.number(doc.get("horizon", DEFAULT_HORIZON), "horizon", positive=True))
     try:
         check_horizon(horizon)
     except ValueError as exc:
         raise reader.fail("horizon", str(exc)) from None
     epsilon = reader.number(doc["epsilon"], "epsilon", positive=True) if "epsilon" in doc else None
-    lipschitz = reader.number(doc["lipschitz"], "lipschitz", positive=True) if "lipschitz" in doc else None
+    lipschitz = doc.get("lipschitz", "data")
+    if isinstance(lipschitz, str) and lipschitz != "data":
+        raise reader.fail("lipschitz", f'must be a number > 0 or "data", got {lipschitz!r}')
+    if lipschitz != "data":
+        lipschitz = reader.number(lipschitz, "lipschitz", positive=True)
     certify = doc.get("certify", DEFAULT_CERTIFY)
     if certify not in CERTIFY_MODES:
         raise reader.fail("certify", f"must be one of {', '.join(CERTIFY_MODES)}, got {certify!r}")

@@ -43,7 +43,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from npp_ros.bench.report import write_report
-from npp_ros.run.deploy import percentiles
+from npp_ros.deployment.timing import percentiles
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
 from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for

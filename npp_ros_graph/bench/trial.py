@@ -41,7 +41,8 @@ from sensor_msgs.msg import JointState
 
 from npp_ros.bench.measure import POLE_ANGLE, UPRIGHT_DEGREES, worst_angle_degrees
 from npp_ros.bench.report import write_report
-from npp_ros.run.deploy import Acceptance, Deployment, JointLayout, load_deployment, stored_state
+from npp_ros.deployment.gate import Acceptance, Deployment, load_deployment
+from npp_ros.deployment.joints import JointLayout, stored_state
 from npp_ros.tasks.rollout import rollout
 from npp_ros_graph.bench.deploy import transition
 from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
@@ -256,6 +257,8 @@ def main(argv: list[str] | None = None) -> int:
         meta = store.metadata
     fingerprint = plant_fingerprint(meta.task, meta.seed)
     deployment = load_deployment(args.run_dir, Acceptance(model_fingerprint=fingerprint))
+    certificate = deployment.certificate
+    assert certificate is not None  # the gate passed without an override: the run's own certificate
     horizon = args.horizon or meta.horizon
     logs = args.logs or args.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
@@ -265,8 +268,8 @@ def main(argv: list[str] | None = None) -> int:
         "load_average_start": list(os.getloadavg()),
         "run": str(args.run_dir), "task": meta.task, "seed": meta.seed, "horizon": horizon,
         "control_period_ms": deployment.plant.dt * 1e3,
-        "certificate": {k: deployment.certificate[k] for k in ("epsilon", "p", "delta", "certify", "rule",
-                                                               "policy_trajectories")},
+        "certificate": {k: certificate.record()[k] for k in ("epsilon", "p", "delta", "certify", "rule",
+                                                             "policy_trajectories")},
         "policy": deployment.policy.kind,
     }  # fmt: skip
     rows: list[TrialEpisode] = []
@@ -292,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
             node.destroy_node()
             executor.shutdown()
     out["load_average_end"] = list(os.getloadavg())
-    out["summary"] = summary(rows, float(deployment.certificate["epsilon"]))
+    out["summary"] = summary(rows, certificate.spec.epsilon)
     out["episodes"] = [asdict(r) | {"gap": r.gap} for r in rows]
     figures, tables = write_report(args.out, "trial", out, markdown(out))
     log(f"wrote {figures} and {tables}")

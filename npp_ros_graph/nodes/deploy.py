@@ -1,6 +1,6 @@
 """npp-deploy: a managed (lifecycle) node that drives a robot with one certified run's policy, on ros2_control topics.
 
-`configure` passes the run folder through the gate (npp_ros.deploy.load_deployment: checksums, the
+`configure` passes the run folder through the gate (npp_ros.deployment.gate.load_deployment: checksums, the
 certificate, what the operator accepts, the robot's model) and builds exactly the policy the
 certificate names; `activate` starts commanding; `deactivate` sends the safe command and stops;
 `cleanup` lets the run go. A refused transition returns failure, logs the reason and shows it on
@@ -44,25 +44,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from npp_ros.run.deploy import (
-    COMMAND_INTERFACES,
-    Acceptance,
-    CommandLimits,
-    Coverage,
-    Deployment,
-    GateRefusal,
-    JointLayout,
-    NonFiniteState,
-    RobotStateError,
-    Watchdog,
-    check_command_interface,
-    load_deployment,
-    parse_names,
-    percentiles,
-    safe_command,
-    stored_state,
-)
-from npp_ros.run.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
+from npp_ros.deployment.commands import COMMAND_INTERFACES, CommandLimits, check_command_interface, safe_command
+from npp_ros.deployment.coverage import Coverage
+from npp_ros.deployment.gate import Acceptance, Deployment, GateRefusal, load_deployment
+from npp_ros.deployment.joints import JointLayout, NonFiniteState, RobotStateError, parse_names, stored_state
+from npp_ros.deployment.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
+from npp_ros.deployment.timing import Watchdog, percentiles
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, WARN, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, request_stop, run_node
 from npp_ros_graph.transport.convert import float64_array

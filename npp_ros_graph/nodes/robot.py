@@ -36,9 +36,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 
+from npp_ros.deployment.joints import JointLayout, parse_names, parse_vector
+from npp_ros.deployment.robot_model import mjcf_fingerprint, model_mjcf
 from npp_ros.policy.vectors import finite_vector
-from npp_ros.run.deploy import JointLayout, parse_names, parse_vector
-from npp_ros.run.robot_model import mjcf_fingerprint, model_mjcf
 from npp_ros.tasks.registry import TASK_NAMES, Plant, get_task
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, run_node

@@ -201,9 +201,10 @@ def release(executor: Executor | None, node: Node | None) -> None:
                 timer.cancel()
     if executor is not None:
         executor.shutdown(timeout_sec=SPIN_ONCE_S)
+    context = None if node is None else node.context  # a client's own context, or the default one
     if node is not None:
         node.destroy_node()
-    rclpy.try_shutdown()
+    rclpy.try_shutdown(context=context)
 
 
 def leave_if_teardown_hangs(program: str, seconds: float, code: int = 0) -> threading.Timer:

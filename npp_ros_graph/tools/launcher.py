@@ -75,23 +75,33 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--task", default="lqr_2_1", type=task_name, help=TASK_HELP)
     ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
     ap.add_argument("--seed", type=int, default=0, help="task seed")
-    ap.add_argument("--horizon", type=int, default=None, help="episode length; default: the task's (1000)")
     ap.add_argument(
-        "--epsilon", type=float, default=0.0, help=f"target gap > 0; 0: the paper's ({by_task('paper_epsilon')})"
+        "--horizon",
+        type=int,
+        default=None,
+        help="episode length; default: the task's (1000; a task file's key horizon)",
     )
     ap.add_argument(
-        "--lipschitz", default="task", help="'analytic' (lqr), 'paper' (not a bound) or a number; task: the task's"
-    )
+        "--epsilon", type=float, default=0.0,
+        help=f"target gap > 0; 0: the paper's ({by_task('paper_epsilon')}) or a task file's key epsilon",
+    )  # fmt: skip
+    ap.add_argument(
+        "--lipschitz", default="task",
+        help="'analytic' (lqr), 'paper' (not a bound), 'data' (fixed from the run's first expert answers; a choice, "
+        "not a bound) or a number; task: the task's (analytic, else a task file's key lipschitz, else paper)",
+    )  # fmt: skip
     ap.add_argument(
         "--certify",
         default="task",
-        help=f"rollout, oracle or surrogate; task: the task's ({by_task('default_certify')})",
+        help=f"rollout, oracle or surrogate; task: the task's ({by_task('default_certify')}; a task file's key "
+        "certify)",
     )
     ap.add_argument(
         "--time-budget",
         type=float,
         default=0.0,
-        help=f"seconds per iLQR expert request; 0: the task's ({DEFAULT_TIME_BUDGET_S:g})",
+        help=f"seconds per iLQR expert request; 0: the task's ({DEFAULT_TIME_BUDGET_S:g}; a task file's [expert] "
+        "time_budget)",
     )
     ap.add_argument(
         "--rule", default="mode", choices=("mode", *STOPPING_RULES),

@@ -31,8 +31,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
+from npp_ros.deployment.robot_model import model_mjcf
 from npp_ros.policy.bounds import NonparametricPolicy
-from npp_ros.run.robot_model import model_mjcf
 from npp_ros.run.setup import policy_for, spec_of
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import get_task

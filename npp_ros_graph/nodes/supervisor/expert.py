@@ -14,7 +14,7 @@ from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.task import Future
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
-from npp_ros.run.answer_check import AnswerCheck
+from npp_ros.tasks.answer_check import AnswerCheck
 from npp_ros_graph.runtime.deadlines import RESEND_S, call_with_deadline
 from npp_ros_graph.transport.convert import float64_array, trajectory_from_response
 from npp_ros_graph.transport.seal import RunSeal, SealError

@@ -40,11 +40,11 @@ from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.run.answer_check import AnswerCheck
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
 from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
 from npp_ros.run.store import RunStore
+from npp_ros.tasks.answer_check import AnswerCheck
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros_graph.nodes.supervisor.expert import RosExpert
 from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
@@ -80,11 +80,11 @@ TASK_DEFAULT = "task"  # a choice the task decides, once the sim names it
 MODE_DEFAULT = "mode"  # the stopping rule the checked quantity defaults to (DEFAULT_RULES)
 
 PARAMETERS = (
-    Param("epsilon", 0.0, f"target gap; 0 = the paper's value for the task ({by_task('paper_epsilon')})",
+    Param("epsilon", 0.0, f"target gap; 0 = the task's: the paper's ({by_task('paper_epsilon')}) or a task file's",
           0.0),
     Param("lipschitz", TASK_DEFAULT, "L: analytic (bounds V*'s slope on the expert's states; lqr), paper ("
-          f"{by_task('paper_lipschitz')}; not a bound) or a number > 0; task = analytic where the task has it, "
-          "else paper",
+          f"{by_task('paper_lipschitz')}; not a bound), data (fixed from the run's first expert answers; a choice) or "
+          "a number > 0; task = analytic where the task has it, else a task file's lipschitz, else paper",
           choices=(TASK_DEFAULT, *LIPSCHITZ_CHOICES, "a number > 0")),
     Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
     Param("policy", DEFAULT_POLICY, POLICY_HELP, choices=POLICY_KINDS),
@@ -298,8 +298,11 @@ class SupervisorNode(Node):
         if isinstance(s.lipschitz, LipschitzConstant):
             lipschitz = s.lipschitz
         else:
-            choice = spec.default_lipschitz_choice() if s.lipschitz == TASK_DEFAULT else s.lipschitz
-            lipschitz = resolve_lipschitz(task, choice, expert)
+            choice = None if s.lipschitz == TASK_DEFAULT else s.lipschitz
+            run_file = Path(s.run_dir) / "run.sqlite"
+            lipschitz = resolve_lipschitz(
+                task, choice, expert, seed=plant.seed, horizon=plant.horizon, run_file=run_file
+            )
         certify = None if s.certify == TASK_DEFAULT else s.certify
         rule = None if s.rule == MODE_DEFAULT else s.rule
         config = build_config(

@@ -14,7 +14,6 @@ from __future__ import annotations
 import copy
 import importlib
 import os
-import sqlite3
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from pathlib import Path
@@ -23,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from npp_ros.run.deploy import RUN_FILE
+from npp_ros.deployment.stored_run import RUN_FILE, checked_metadata, task_of
 from npp_ros.run.records import RunFileError
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.registry import Plant, UnknownTaskError, get_task
+from npp_ros.tasks.registry import Plant, UnknownTaskError
 
 
 class DescriptionError(ValueError):
@@ -120,8 +119,8 @@ def described_fingerprint(run_dir: str | Path, mjcf: str) -> str | None:
     run_file = path if path.is_file() else path / RUN_FILE
     try:
         with RunStore.open(run_file) as store:
-            metadata = store.metadata
-        plant = get_task(str(metadata.task)).make_plant(int(metadata.seed))
-    except (RunFileError, UnknownTaskError, sqlite3.Error, KeyError, TypeError, ValueError, OSError):
+            metadata = checked_metadata(store.metadata, run_file)
+        task = task_of(metadata, run_file)
+    except (RunFileError, UnknownTaskError):
         return None
-    return mjcf_fingerprint(plant, mjcf)
+    return mjcf_fingerprint(task.make_plant(metadata.seed), mjcf)

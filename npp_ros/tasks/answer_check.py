@@ -16,6 +16,9 @@ and refuses, with the reason, an answer that
   r_t - (Q_t - Q_{t+1}) = r_{t+H}, lies in the task's reward range, where the task states one.
 
 Tolerances are for rounding only: an expert whose own model of the plant differs passes no check.
+The check lives with the tasks because what a right answer is follows from the task alone: its plant, its
+reward range and the value convention every expert fills in (task.py). In one process the task's own expert
+answers, and nothing checks it.
 """
 
 from __future__ import annotations

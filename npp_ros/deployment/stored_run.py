@@ -1,0 +1,136 @@
+"""A run file read for deployment, typed: its metadata and spec, its data, its episode log and its certificate.
+
+The certificate is read as the loop reads its own on resume (``Certificate.from_record`` for the spec the
+run's metadata records), after every stored value it rests on has been checked to be of its type. What
+the file cannot give (a refusal of the store itself: no readable file, a failed checksum, a missing table,
+values of another type, a recorded spec that is no spec) is a :class:`RunFileError`: damage or an edit.
+Anything else raised here is a bug, and is raised as itself.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import types
+from collections.abc import Mapping
+from dataclasses import MISSING, dataclass, fields
+from pathlib import Path
+from typing import Any, Union, get_args, get_origin, get_type_hints
+
+from npp_ros.certificate.certifier import Certificate, CertificationSpec
+from npp_ros.policy.dataset import Dataset
+from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.setup import spec_of
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.registry import Task, get_task
+
+RUN_FILE = "run.sqlite"
+
+# The metadata the gate reads, with the type each must have (RunConfig.metadata() writes them).
+METADATA_TYPES: dict[str, type] = {
+    "task": str, "seed": int, "horizon": int, "state_dim": int, "action_dim": int,
+    "condition": str, "epsilon": float, "p": float, "delta": float, "certify": str, "rule": str, "policy": str,
+    "lipschitz": float, "lipschitz_source": str,
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class StoredRun:
+    """What a run file holds, typed. ``claimed`` is what its certificate record says it certifies (the spec's
+    fields as it stores them), which the gate compares with the run's own ``spec``."""
+
+    path: Path
+    metadata: RunMetadata
+    task: Task
+    spec: CertificationSpec
+    dataset: Dataset
+    rows: list[EpisodeRow]
+    certificate: Certificate | None
+    claimed: dict[str, object]
+
+
+def read_run(run_file: Path) -> StoredRun:
+    """The run file's contents, typed; a RunFileError for what the file cannot give, an UnknownTaskError for a
+    task that does not load here."""
+    store = RunStore.open(run_file)
+    try:
+        with store.snapshot():
+            metadata = checked_metadata(store.metadata, run_file)
+            task = task_of(metadata, run_file)
+            try:
+                record = store.certificate()
+                rows = store.episodes()
+            except (sqlite3.DatabaseError, json.JSONDecodeError) as exc:
+                raise RunFileError(f"{run_file} cannot be read: {exc}") from exc
+            dataset = store.load_dataset()
+    finally:
+        store.close()
+    try:
+        spec = spec_of(metadata, task.initial_state_diameter)
+    except ValueError as exc:  # CertificationSpec's refusal of recorded values
+        raise RunFileError(f"{run_file} records no valid specification: {exc}") from None
+    if record is None:
+        return StoredRun(run_file, metadata, task, spec, dataset, rows, None, {})
+    if not isinstance(record, Mapping):
+        raise RunFileError(f"{run_file}'s certificate is {type(record).__name__}, not a record")
+    claimed = {name: record.get(name, RunMetadata.BEFORE_RECORDED.get(name)) for name in spec.record()}
+    certificate = certificate_of(record, spec, run_file)
+    return StoredRun(run_file, metadata, task, spec, dataset, rows, certificate, claimed)
+
+
+def checked_metadata(metadata: RunMetadata, run_file: Path) -> RunMetadata:
+    """``metadata`` once every value the gate reads is present (a MissingMetadata otherwise) and of its type."""
+    for name, kind in METADATA_TYPES.items():
+        value = getattr(metadata, name)
+        if not holds(value, kind):
+            raise RunFileError(f"{run_file}'s metadata has {name} {value!r}, not {_KIND_NAMES[kind]}")
+    return metadata
+
+
+def task_of(metadata: RunMetadata, run_file: Path) -> Task:
+    """The run's task, whose dimensions must be the ones the file stores."""
+    task = get_task(str(metadata.task))
+    if (metadata.state_dim, metadata.action_dim) != (task.state_dim, task.action_dim):
+        raise RunFileError(
+            f"{run_file} stores {metadata.state_dim}-D states and {metadata.action_dim}-D actions, but {task.name} "
+            f"has {task.state_dim} and {task.action_dim}"
+        )
+    return task
+
+
+def certificate_of(record: Mapping[str, Any], spec: CertificationSpec, run_file: Path) -> Certificate:
+    """The typed certificate of a stored record, for the run's ``spec``, as a resumed run reads it; a RunFileError
+    naming the first field the record lacks or holds as another type."""
+    hints = get_type_hints(Certificate)
+    for item in fields(Certificate):
+        if item.name == "spec" or (item.name not in record and item.default is not MISSING):
+            continue
+        if item.name not in record:
+            raise RunFileError(f"{run_file}'s certificate has no {item.name}")
+        if not holds(record[item.name], hints[item.name]):
+            value, kind = record[item.name], hints[item.name]
+            raise RunFileError(f"{run_file}'s certificate has {item.name} {value!r}, not {_KIND_NAMES.get(kind, kind)}")
+    return Certificate.from_record(record, spec)
+
+
+_KIND_NAMES = {str: "text", int: "an integer", float: "a number", bool: "true or false"}
+
+
+def holds(value: object, kind: Any) -> bool:
+    """Whether a value read from JSON is of a field's type (a whole number counts as a float, a list as a tuple)."""
+    if kind is bool:
+        return isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is str:
+        return isinstance(value, str)
+    if kind is type(None):
+        return value is None
+    origin, args = get_origin(kind), get_args(kind)
+    if origin is tuple and args[1:] == (Ellipsis,):
+        return isinstance(value, (list, tuple)) and all(holds(v, args[0]) for v in value)
+    if origin in (Union, types.UnionType):
+        return any(holds(value, arg) for arg in args)
+    raise TypeError(f"no check of a stored value for the type {kind!r}")  # a field of a new type: add it here

@@ -1,0 +1,472 @@
+"""GraphClient: the four-node graph from Python, as npp-run, npp-monitor and npp-dashboard use it.
+
+A script starts a graph (``GraphClient.start``: npp-run with the same options, so the same node
+processes, logs, refusals and clean stops) or joins one already running (``GraphClient(domain_id=...)``),
+asks its expert for a trajectory, follows the run's gaps, episodes, health and certificate as iterators
+or callbacks, and stops it.
+
+Why it is shaped so: the client's node spins in a thread of its own (the synchros2 model the nodes
+follow, npp_ros_graph/runtime/node.py), so every call here is synchronous with a timeout and safe from
+the caller's thread, and nothing waits in a constructor. It has its own rclpy context on its own
+domain: closing it never shuts down a context the caller uses. Reports are shown only when they are
+this run's (npp_ros_graph/runtime/reports.py): given the run's key, the reports of the run the live
+supervisor runs; without it, every report on the domain, which ``mark`` says is not verified.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import suppress
+from pathlib import Path
+from typing import IO, Any, TypeVar
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from npp_interfaces.msg import Certificate, EpisodeResult, GapReport, PlantDescription
+from npp_interfaces.srv import ExpertTrajectory
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+
+from npp_ros.policy.dataset import Trajectory
+from npp_ros.tasks.sources import short_name
+from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
+from npp_ros_graph.runtime.node import release
+from npp_ros_graph.runtime.reports import RunReports
+from npp_ros_graph.transport.convert import float64_array, trajectory_from_response
+from npp_ros_graph.transport.seal import KEY_ENV, RunSeal, SealError
+from npp_ros_graph.transport.topics import (
+    BUSY,
+    CERTIFICATE,
+    EPISODE,
+    EXPERT_SERVICE,
+    GAP,
+    LATCHED_READER_QOS,
+    NOT_READY,
+    PLANT,
+    REPORT_HISTORY_QOS,
+    REPORT_QOS,
+    SERVICE_QOS,
+)
+
+Report = GapReport | EpisodeResult | Certificate
+R = TypeVar("R", GapReport, EpisodeResult)
+
+SPIN_S = 0.2  # the client's thread checks this often whether it is asked to close
+KEPT_REPORTS = 10_000  # reports an iterator may still read after they arrived (a run's last 5,000 episodes)
+START_TIMEOUT_S = 60.0  # npp-run listens 2 s for another graph, then starts the nodes: well within this
+STOP_TIMEOUT_S = 30.0  # npp-run gives its nodes 15 s to stop on SIGINT before it kills them
+ATTEMPT_S = 5.0  # an unanswered expert request is sent again (Fast DDS drops a new client's first responses)
+STARTED = "npp-run: started"  # the line npp-run prints once its nodes run
+LAUNCHER = "npp_ros_graph.tools.launcher"
+
+
+class GraphError(RuntimeError):
+    """The graph refused to start, stopped without what was asked of it, or its expert refused an answer."""
+
+
+def default_run_dir(task: str, seed: int) -> Path:
+    """Where npp-run keeps a run it is given no folder for: runs/graph-TASK-seedSEED."""
+    return Path("runs") / f"graph-{short_name(task)}-seed{seed}"
+
+
+def npp_run_argv(task: str, seed: int, run_dir: Path, domain_id: int | None, options: dict[str, Any]) -> list[str]:
+    """npp-run's command line for a run: each option as its flag (horizon=50: --horizon 50; record=True: --record).
+
+    npp-run's own parser reads it, so an unknown option or a bad value is refused as npp-run refuses it.
+    """
+    argv = [sys.executable, "-m", LAUNCHER, "--task", task, "--seed", str(seed), "--run-dir", str(run_dir)]
+    if domain_id is not None:
+        argv += ["--domain-id", str(domain_id)]
+    for name, value in options.items():
+        flag = "--" + name.replace("_", "-")
+        if value is True:
+            argv.append(flag)
+        elif value is not False and value is not None:
+            argv += [flag, *(map(str, value) if isinstance(value, (list, tuple)) else [str(value)])]
+    return argv
+
+
+_PR_SET_PDEATHSIG = 1
+_prctl: Callable[..., int] | None = None
+
+
+def _load_prctl() -> None:
+    """Loaded in the parent itself: a child between fork and exec must not load libraries."""
+    global _prctl
+    if _prctl is None and sys.platform.startswith("linux"):
+        _prctl = ctypes.CDLL(None, use_errno=True).prctl
+
+
+def child_setup(parent: int) -> Callable[[], None]:
+    """What each child runs before exec: it dies with its parent (npp-run, or a script's GraphClient).
+
+    SIGINT is restored (started from a background job, a child would inherit an ignored SIGINT and
+    never stop). PR_SET_PDEATHSIG has the kernel send SIGTERM to the child when the parent dies, even by
+    SIGKILL, which no handler can catch; the child turns SIGTERM into a clean shutdown. If the parent
+    died before the call, the child is already orphaned and stops itself.
+    """
+    _load_prctl()
+
+    def setup() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        if _prctl is not None:
+            _prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+            if os.getppid() != parent:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    return setup
+
+
+class GraphClient:
+    """One run's graph, seen from Python: its reports, health, plant and expert; started here or joined.
+
+    Callbacks (``on_gap`` and the others) run on the client's thread, in arrival order, and must not
+    block; iterators (``reports``, ``gaps``, ``episodes``) and the waiting calls run on the caller's.
+    """
+
+    def __init__(
+        self,
+        *,
+        domain_id: int | None = None,
+        key: str | None = None,
+        name: str = "npp_graph_client",
+        namespace: str = "",
+        past_reports: bool = True,
+        ros_args: Sequence[str] = (),
+    ) -> None:
+        """Join the graph on ``domain_id`` (None: ROS_DOMAIN_ID's) and ``namespace``; returns at once.
+
+        ``key``: the run's key (None: NPP_RUN_KEY's; without one, reports are not verified).
+        ``past_reports``: also the episodes the supervisor reported before this client joined (it keeps
+        its last 1,000); False: new ones only, as npp-run and npp-monitor print them.
+        ``ros_args``: ROS arguments for the client's node (e.g. ``["--ros-args", "-r", "__ns:=/robot1"]``).
+        """
+        self.seal = RunSeal.from_environment() if key is None else RunSeal.from_environment({KEY_ENV: key})
+        self.context = Context()
+        rclpy.init(
+            args=[name, *ros_args], context=self.context, domain_id=domain_id,
+            signal_handler_options=SignalHandlerOptions.NO,  # the caller's signals stay the caller's
+        )  # fmt: skip
+        self.node = rclpy.create_node(name, namespace=namespace or None, context=self.context)
+        self._cond = threading.Condition()
+        self._kept: deque[Report] = deque(maxlen=KEPT_REPORTS)
+        self._received = 0  # reports received so far; the kept ones are the last len(_kept) of them
+        self._certificate: Certificate | None = None
+        self._plant: PlantDescription | None = None
+        self._health: dict[str, Health] = {}
+        self._callbacks: dict[type, list[Callable[[Any], None]]] = {}
+        self._notices: list[Callable[[str], None]] = []
+        self._process: subprocess.Popen[bytes] | None = None
+        self._output: threading.Thread | None = None
+        self._last_lines: deque[str] = deque(maxlen=20)
+        self._started = threading.Event()
+        self.log: Path | None = None  # npp-run's own output, for a graph started here
+        self.reports_of_run = RunReports(self.node, self._on_report, self._on_notice, seal=self.seal)
+        report_qos = REPORT_HISTORY_QOS if past_reports else REPORT_QOS
+        self.node.create_subscription(GapReport, GAP, self.reports_of_run.take, report_qos)
+        self.node.create_subscription(EpisodeResult, EPISODE, self.reports_of_run.take, report_qos)
+        self.node.create_subscription(Certificate, CERTIFICATE, self.reports_of_run.take, LATCHED_READER_QOS)
+        self.node.create_subscription(PlantDescription, PLANT, self._on_plant, LATCHED_READER_QOS)
+        self.node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS_QOS)
+        self._expert = self.node.create_client(ExpertTrajectory, EXPERT_SERVICE, qos_profile=SERVICE_QOS)
+        self._closing = threading.Event()
+        self._executor = SingleThreadedExecutor(context=self.context)
+        self._executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name=f"{name} executor", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------------- start and stop
+    @classmethod
+    def start(
+        cls,
+        task: str = "lqr_2_1",
+        *,
+        seed: int = 0,
+        run_dir: Path | str | None = None,
+        domain_id: int | None = None,
+        timeout: float = START_TIMEOUT_S,
+        **options: Any,
+    ) -> GraphClient:
+        """Start a run's graph with npp-run and follow it; returns once its four nodes are started.
+
+        ``options`` are npp-run's (horizon=50, epsilon=10, max_episodes=200, policy="open-loop", record=True...).
+        The run's key is NPP_RUN_KEY's, or a fresh one that only this client and the nodes know. npp-run's
+        own output goes to RUN_DIR/logs/npp-run.log. Raises GraphError with npp-run's reason when it refuses
+        (a run folder in use, another graph on the domain, a bad option).
+        """
+        folder = Path(run_dir) if run_dir is not None else default_run_dir(task, seed)
+        folder = folder.resolve()
+        key = os.environ.get(KEY_ENV) or RunSeal.new_key()
+        env = {**os.environ, KEY_ENV: key}
+        env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # as npp-run starts its nodes
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # and the client, which joins them
+        client = cls(domain_id=domain_id, key=key)
+        try:
+            client._launch(npp_run_argv(task, seed, folder, domain_id, options), env, folder, timeout)
+        except BaseException:
+            client.stop()
+            raise
+        return client
+
+    def _launch(self, argv: list[str], env: dict[str, str], run_dir: Path, timeout: float) -> None:
+        (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        self.log = run_dir / "logs" / "npp-run.log"
+        self._process = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, preexec_fn=child_setup(os.getpid())
+        )
+        self._output = threading.Thread(target=self._copy_output, args=(self._process.stdout, self.log), daemon=True)
+        self._output.start()
+        if not self._started.wait(timeout):
+            raise TimeoutError(f"npp-run did not start the nodes within {timeout:g} s (log: {self.log})")
+        if not self.running:
+            raise GraphError(f"npp-run did not start the graph: {self._reason()} (log: {self.log})")
+
+    def _copy_output(self, stream: IO[bytes], log: Path) -> None:
+        """npp-run's output into its log, line by line; notes when the nodes started and when npp-run ended."""
+        with log.open("ab") as out:
+            for raw in stream:
+                out.write(raw)
+                out.flush()
+                line = raw.decode(errors="replace").strip()
+                if line:
+                    self._last_lines.append(line)
+                if line.startswith(STARTED):
+                    self._started.set()
+        if self._process is not None:
+            self._process.wait()
+        self._started.set()
+        with self._cond:
+            self._cond.notify_all()  # iterators waiting for reports learn that the graph is gone
+
+    def _reason(self) -> str:
+        lines = [line for line in self._last_lines if line.startswith("npp-run:")] or list(self._last_lines)
+        return lines[-1].removeprefix("npp-run: ") if lines else "no output"
+
+    @property
+    def running(self) -> bool:
+        """Whether the graph this client started still runs (npp-run stops it once certified); True when joined."""
+        return self._process is None or (self._process.poll() is None and not self._output_done())
+
+    def _output_done(self) -> bool:
+        return self._output is not None and not self._output.is_alive()
+
+    def stop(self, timeout: float = STOP_TIMEOUT_S) -> int | None:
+        """Stop the graph this client started, as Ctrl-C stops npp-run (its nodes in order, the run kept in its
+        folder), then close the client; npp-run's exit code (0 once certified), None for a joined graph.
+
+        A joined graph is left running: only the process that started it stops it.
+        """
+        code = None
+        if self._process is not None:
+            deadline = time.monotonic() + timeout
+            if self._certificate is not None:  # certified: npp-run stops its nodes itself, and a signal would cut it
+                with suppress(subprocess.TimeoutExpired):
+                    self._process.wait(timeout)
+            if self._process.poll() is None:
+                self._process.send_signal(signal.SIGINT)
+            try:
+                code = self._process.wait(max(deadline - time.monotonic(), 1.0))
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+                code = self._process.wait()
+            if self._output is not None:
+                self._output.join(timeout)
+        self.close()
+        return code
+
+    def close(self) -> None:
+        """Leave the graph: the client's thread ends, then its node and context go (release's order)."""
+        if self._closing.is_set():
+            return
+        self._closing.set()
+        self._thread.join()
+        release(self._executor, self.node)
+
+    def __enter__(self) -> GraphClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _spin(self) -> None:
+        try:
+            while self.context.ok() and not self._closing.is_set():
+                self._executor.spin_once(timeout_sec=SPIN_S)
+        except ExternalShutdownException:
+            pass
+
+    # ------------------------------------------------------------------------- callbacks
+    def on_gap(self, callback: Callable[[GapReport], None]) -> None:
+        """Call ``callback`` with each of this run's gap reports (one per episode), on the client's thread."""
+        self._callbacks.setdefault(GapReport, []).append(callback)
+
+    def on_episode(self, callback: Callable[[EpisodeResult], None]) -> None:
+        """Call ``callback`` with each of this run's episode results, on the client's thread."""
+        self._callbacks.setdefault(EpisodeResult, []).append(callback)
+
+    def on_certificate(self, callback: Callable[[Certificate], None]) -> None:
+        """Call ``callback`` with the run's certificate once it is issued, on the client's thread."""
+        self._callbacks.setdefault(Certificate, []).append(callback)
+
+    def on_health(self, callback: Callable[[DiagnosticArray], None]) -> None:
+        """Call ``callback`` with each /diagnostics message (every node's health; ``health`` reads them)."""
+        self._callbacks.setdefault(DiagnosticArray, []).append(callback)
+
+    def on_plant(self, callback: Callable[[PlantDescription], None]) -> None:
+        """Call ``callback`` with the sim's plant description (this run's key's, when the client has a key)."""
+        self._callbacks.setdefault(PlantDescription, []).append(callback)
+
+    def on_notice(self, callback: Callable[[str], None]) -> None:
+        """Call ``callback`` with a line for each other run whose reports are left out (see runtime/reports.py)."""
+        self._notices.append(callback)
+
+    def _call(self, msg: Any) -> None:
+        for callback in list(self._callbacks.get(type(msg), ())):
+            try:
+                callback(msg)
+            except Exception as exc:  # a caller's bug must not stop the client's thread
+                self.node.get_logger().error(f"a {type(msg).__name__} callback failed: {type(exc).__name__}: {exc}")
+
+    def _on_report(self, msg: Report) -> None:
+        with self._cond:
+            self._kept.append(msg)
+            self._received += 1
+            if isinstance(msg, Certificate):
+                self._certificate = msg
+            self._cond.notify_all()
+        self._call(msg)
+
+    def _on_notice(self, line: str) -> None:
+        for callback in list(self._notices):
+            callback(line)
+
+    def _on_plant(self, msg: PlantDescription) -> None:
+        if self.seal.private:
+            try:
+                self.seal.check(msg, "a plant description")
+            except SealError:
+                return  # another run's plant, under another key
+        with self._cond:
+            self._plant = msg
+            self._cond.notify_all()
+        self._call(msg)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        with self._cond:
+            for status in msg.status:
+                self._health[status.name] = health_of(status)
+        self._call(msg)
+
+    # ------------------------------------------------------------------------- what the run says
+    @property
+    def verified(self) -> bool:
+        """Whether reports are checked as this run's (the client has the run's key)."""
+        return self.reports_of_run.verified
+
+    def mark(self, msg: Report) -> str:
+        """What a viewer adds to a report: "" when verified, else that it is not and the run it names."""
+        return self.reports_of_run.mark(msg)
+
+    def health(self) -> dict[str, Health]:
+        """Each node's latest health from /diagnostics, by its full name (/npp_sim...)."""
+        with self._cond:
+            return dict(self._health)
+
+    def plant(self, timeout: float = 30.0) -> PlantDescription:
+        """The sim's plant description (task, seed, horizon, dimensions), once it is here."""
+        return self._wait(lambda: self._plant, timeout, "the sim's plant description")
+
+    def certificate(self, timeout: float = 600.0) -> Certificate:
+        """The run's certificate, once issued; GraphError if the graph started here stops without one."""
+        return self._wait(lambda: self._certificate, timeout, "the certificate")
+
+    def reports(self, timeout: float = 120.0) -> Iterator[Report]:
+        """This run's reports in arrival order (gaps, episodes, the certificate last), from the first this
+        client kept; ends after the certificate, or when the graph started here has stopped.
+
+        TimeoutError when nothing new comes for ``timeout`` seconds while the graph runs.
+        """
+        seen = 0
+        while True:
+            with self._cond:
+                if not self._cond.wait_for(lambda seen=seen: self._received > seen or not self.running, timeout):
+                    raise TimeoutError(f"no report of the run for {timeout:g} s")
+                first = self._received - len(self._kept)  # older ones are no longer kept
+                new = list(self._kept)[max(seen - first, 0) :]
+                seen = self._received
+                over = not new and not self.running
+            for msg in new:
+                yield msg
+                if isinstance(msg, Certificate):
+                    return
+            if over:
+                return
+
+    def gaps(self, timeout: float = 120.0) -> Iterator[GapReport]:
+        """This run's gap reports, one per episode (see ``reports``)."""
+        return self._only(GapReport, timeout)
+
+    def episodes(self, timeout: float = 120.0) -> Iterator[EpisodeResult]:
+        """This run's episode results (see ``reports``)."""
+        return self._only(EpisodeResult, timeout)
+
+    def _only(self, kind: type[R], timeout: float) -> Iterator[R]:
+        return (msg for msg in self.reports(timeout) if isinstance(msg, kind))
+
+    def _wait(self, get: Callable[[], Any], timeout: float, what: str) -> Any:
+        with self._cond:
+            if not self._cond.wait_for(lambda: get() is not None or not self.running, timeout):
+                raise TimeoutError(f"no {what} within {timeout:g} s")
+            value = get()
+        if value is None:
+            raise GraphError(f"the graph stopped without {what}: {self._reason()} (log: {self.log})")
+        return value
+
+    # ------------------------------------------------------------------------- the expert
+    def ask_expert(self, state: Sequence[float], horizon: int = 0, timeout: float = 60.0) -> Trajectory:
+        """The expert's trajectory from ``state`` over ``horizon`` steps (0: the run's horizon).
+
+        The answer is checked like the supervisor checks it: sealed under the run's key for the plant the
+        sim describes (GraphError otherwise, or when the expert refuses the request). An expert that is busy
+        or not ready yet is asked again until ``timeout``.
+        """
+        deadline = time.monotonic() + timeout
+        if not self._expert.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f"no expert serves /{EXPERT_SERVICE} within {timeout:g} s")
+        request = ExpertTrajectory.Request(state=float64_array(state), horizon=horizon)
+        while True:
+            response = self._call_expert(request, deadline)
+            if response.success or not response.message.startswith((BUSY, NOT_READY)):
+                break
+            time.sleep(min(0.5, max(deadline - time.monotonic(), 0.0)))
+        if not response.success:
+            raise GraphError(f"the expert refused the request: {response.message}")
+        plant = self._plant
+        if plant is not None and response.plant != plant.model_sha256:
+            raise GraphError(f"the expert's answer is about another plant ({response.plant[:12]}), not the sim's")
+        try:
+            self.seal.for_plant(response.plant).check(response, "the expert's answer", answering=request)
+        except SealError as exc:
+            raise GraphError(str(exc)) from None
+        return trajectory_from_response(response)
+
+    def _call_expert(self, request: ExpertTrajectory.Request, deadline: float) -> ExpertTrajectory.Response:
+        while True:
+            answered = threading.Event()
+            future = self._expert.call_async(request)
+            future.add_done_callback(lambda _, answered=answered: answered.set())
+            left = deadline - time.monotonic()
+            if answered.wait(max(min(ATTEMPT_S, left), 0.0)) and future.result() is not None:
+                return future.result()
+            self._expert.remove_pending_request(future)
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"no answer from /{EXPERT_SERVICE} in time")
