@@ -6,9 +6,13 @@ import numpy as np
 import pytest
 
 from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.registry import ExpertOptions, get_task
 from npp_ros.tasks.rollout import rollout
 from npp_ros.trajopt.dynamics import MujocoDynamics
 from npp_ros.trajopt.expert import (
+    DEFAULT_GUARD_S,
+    DEFAULT_STOP,
+    DEFAULT_TIME_BUDGET_S,
     OptimizingExpert,
     replay_return_to_go,
     replay_rewards,
@@ -371,3 +375,71 @@ def test_a_machine_too_slow_for_the_budget_still_gets_an_iteration() -> None:
     assert solution.optimization.iterations == 1
     assert solution.optimization.stop_reason == "time budget"
     assert expert.budget_stops == 1  # counted: npp-learn and the expert node say such answers depend on the machine
+
+
+# ----------------------------------------------------------------------------- what ends a request
+class SlowClock:
+    """A machine slowed down: every reading of the clock finds ``step`` more seconds gone."""
+
+    def __init__(self, step: float) -> None:
+        self.now, self.step = 0.0, step
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now
+
+
+def test_a_slowed_machine_gives_the_same_answer_under_the_iteration_stop() -> None:
+    """Under the default stop a request ends by convergence or its cap, so a machine where every phase takes
+    half a second more answers bit for bit what a fast one answers; under stop = "time" the same slowed
+    machine cuts iLQR short, and the expert counts that answer as machine-dependent."""
+    s0 = start_of("pendulum", 0)
+    fast = swingup_expert("pendulum", "window", time_budget=None).solve(s0)
+    slowed = swingup_expert("pendulum", "window", time_budget=None)
+    slowed.clock = SlowClock(0.5)
+    answer = slowed.solve(s0)
+    assert slowed.stop == "iterations" and slowed.budget_stops == 0
+    assert answer.optimization.iterations == fast.optimization.iterations == 5
+    np.testing.assert_array_equal(answer.trajectory.states, fast.trajectory.states)
+    np.testing.assert_array_equal(answer.trajectory.actions, fast.trajectory.actions)
+    np.testing.assert_array_equal(answer.trajectory.values, fast.trajectory.values)
+    np.testing.assert_array_equal(answer.optimization.value_gradient, fast.optimization.value_gradient)
+
+    timed = swingup_expert("pendulum", "window", time_budget=None, stop="time")
+    timed.clock = SlowClock(0.5)
+    cut = timed.solve(s0)
+    assert timed.time_budget == DEFAULT_TIME_BUDGET_S
+    assert cut.optimization.timed_out and cut.optimization.iterations < 5 and timed.budget_stops == 1
+
+
+def test_the_guard_stops_a_runaway_request_and_says_so() -> None:
+    """The iteration stop keeps the time budget as a guard: a request it stops is counted in budget_stops,
+    which npp-learn and the expert node report as answers that depend on the machine's speed."""
+    expert = swingup_expert("pendulum", "window", time_budget=3.0, max_iterations=50)
+    expert.clock = SlowClock(0.5)
+    solution = expert.solve(start_of("pendulum", 0))
+    assert solution.optimization.stop_reason == "time budget"
+    assert expert.budget_stops == 1
+
+
+@pytest.mark.parametrize(
+    ("task", "options", "budget"),
+    [
+        ("pendulum_swingup", ExpertOptions(), DEFAULT_GUARD_S),
+        ("pendulum_swingup", ExpertOptions(stop="time"), DEFAULT_TIME_BUDGET_S),
+        ("acrobot_swingup", ExpertOptions(stop="time"), 10.0),
+        ("cartpole_swingup", ExpertOptions(stop="time", time_budget=2.0), 2.0),
+    ],
+)
+def test_the_stop_sets_the_default_time_budget(task: str, options: ExpertOptions, budget: float) -> None:
+    """The iteration stop is the default; its time budget is the guard, the time stop's the task's budget."""
+    expert = get_task(task).make_expert(0, 50, options)
+    assert isinstance(expert, OptimizingExpert)
+    assert expert.stop == (options.stop or DEFAULT_STOP) and expert.time_budget == budget
+
+
+def test_an_unknown_stop_is_refused_in_one_line() -> None:
+    with pytest.raises(ValueError, match=r"^stop must be one of iterations, time; got 'clock'$"):
+        get_task("pendulum_swingup").make_expert(0, 50, ExpertOptions(stop="clock"))
+    with pytest.raises(ValueError, match=r"lqr_2_1 expert is closed form: stop do not apply"):
+        get_task("lqr_2_1").make_expert(0, 50, ExpertOptions(stop="time"))

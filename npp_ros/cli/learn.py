@@ -38,7 +38,7 @@ from npp_ros.run.setup import (
 from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads
-from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S
+from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_HELP, STOP_MODES
 
 
 def parser() -> argparse.ArgumentParser:
@@ -98,9 +98,11 @@ def parser() -> argparse.ArgumentParser:
         "--time-budget",
         type=float,
         default=None,
-        help=f"seconds per expert request (iLQR experts); default: a task file's [expert] time_budget, else "
-        f"{DEFAULT_TIME_BUDGET_S:g}",
+        help=f"seconds per expert request (iLQR experts): a guard under --expert-stop iterations (default "
+        f"{DEFAULT_GUARD_S:g}), the budget iLQR works within under time (default {DEFAULT_TIME_BUDGET_S:g}); "
+        "default: a task file's [expert] time_budget, else those",
     )
+    ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=STOP_HELP)
     ap.add_argument(
         "--values",
         choices=("window", "return-to-go"),
@@ -128,8 +130,9 @@ def main(argv: list[str] | None = None) -> int:
         epsilon = task.epsilon(args.epsilon)
         # one expert, alone in this process: its derivatives may take every core
         options = ExpertOptions(
-            gamma=args.gamma, time_budget=args.time_budget, values=args.values, threads=default_threads()
-        )
+            gamma=args.gamma, time_budget=args.time_budget, values=args.values, stop=args.expert_stop,
+            threads=default_threads(),
+        )  # fmt: skip
         expert = task.make_expert(args.seed, args.horizon, options)
         lipschitz = resolve_lipschitz(
             args.task, args.lipschitz, expert, seed=args.seed, horizon=args.horizon, run_file=run_dir / "run.sqlite"

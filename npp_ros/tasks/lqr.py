@@ -361,7 +361,8 @@ class LQRTask(Task):
 
     def make_expert(self, seed: int, horizon: int, options: ExpertOptions = DEFAULT_OPTIONS) -> LQRExpert:
         kind = self.expert_kind(options)
-        given = [name for name in ("time_budget", "max_iterations", "values") if getattr(options, name) is not None]
+        optimizer_options = ("time_budget", "max_iterations", "stop", "values")
+        given = [name for name in optimizer_options if getattr(options, name) is not None]
         if given:
             raise ValueError(f"the {self.name} expert is closed form: {', '.join(given)} do not apply to it")
         if kind == "detuned":

@@ -24,7 +24,7 @@ from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.tasks.success import SuccessCriterion
-from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
+from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
 
 MAX_HORIZON = 100_000
 DEFAULT_HORIZON = 1000  # the episode length of a task that names none
@@ -114,8 +114,9 @@ class ExpertOptions:
 
     kind: str | None = None  # which of the task's experts (Task.experts); None = the first
     gamma: float = 1.0
-    time_budget: float | None = None  # seconds per request (optimizer experts)
+    time_budget: float | None = None  # seconds per request (optimizer experts); a guard under stop "iterations"
     max_iterations: int | None = None  # iLQR iterations per request (optimizer experts)
+    stop: str | None = None  # what ends an optimizer expert's request: "iterations" (reproducible) or "time"
     values: str | None = None  # value mode (optimizer experts, see OptimizingExpert)
     threads: int | None = None  # iLQR derivative threads (mujoco.batch, same answers at any count); None = 1
     control_weight: float = 0.1  # the detuned lqr expert's control-cost scale
@@ -276,7 +277,7 @@ class OptimizerTask(Task):
     expert_factory: Callable[..., Expert] | None = None
     sampler: Callable[[np.random.Generator], FloatArray] | None = None
     default_values: str = DEFAULT_VALUES
-    default_time_budget: float = DEFAULT_TIME_BUDGET_S
+    default_time_budget: float | None = None  # the task's own time budget; None: its expert's default for the stop
 
     def make_plant(self, seed: int) -> Plant:
         assert self.plant_factory is not None
@@ -295,6 +296,7 @@ class OptimizerTask(Task):
             horizon=check_horizon(horizon),
             time_budget=self.default_time_budget if options.time_budget is None else options.time_budget,
             values=options.values or self.default_values,
+            stop=options.stop or DEFAULT_STOP,
             **extra,
         )
         if options.threads is not None and isinstance(expert, OptimizingExpert):

@@ -27,9 +27,10 @@ describes every key. In short::
     sigmoid = "gaussian"           # and value_at_margin, weight (sum only)
     # or: function = "my_module:reward", called as reward(physics) -> float after each step
 
-    [expert]                       # the iLQR expert (npp_ros.trajopt.OptimizingExpert)
-    max_iterations = 30
-    time_budget = 5.0
+    [expert]                       # the iLQR expert (npp_ros.trajopt.expert.OptimizingExpert)
+    max_iterations = 30            # a request ends by convergence or this cap: the same answer on any machine
+    stop = "iterations"            # or "time": iLQR within time_budget, fewer iterations on a loaded machine
+    time_budget = 60.0             # s per request: under "iterations" a guard against a runaway request
     warm_start = "zero"
 
     [success]                      # optional: when an episode did the task (npp_ros.tasks.task_file_success)
@@ -76,7 +77,7 @@ from npp_ros.tasks.task_file_cost import TermCost
 from npp_ros.tasks.task_file_reader import TaskFileError as TaskFileError  # re-exported: what a bad file raises
 from npp_ros.tasks.task_file_schema import DEFAULT_MAX_ITERATIONS, HASH_MARK, TaskDefinition, parse
 from npp_ros.tasks.task_file_terms import TermReward
-from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S, DEFAULT_VALUES, OptimizingExpert
+from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
 
 FINGERPRINT_FIELDS = (
     "opt.timestep", "opt.gravity", "opt.integrator", "opt.wind", "opt.density", "opt.viscosity", "dof_damping",
@@ -122,9 +123,10 @@ class FileExpert(OptimizingExpert):
         definition: TaskDefinition,
         seed: int = 0,
         horizon: int | None = None,
-        time_budget: float = DEFAULT_TIME_BUDGET_S,
+        time_budget: float | None = None,
         max_iterations: int = DEFAULT_MAX_ITERATIONS,
         values: str = DEFAULT_VALUES,
+        stop: str = DEFAULT_STOP,
     ) -> None:
         plant = FilePlant(definition, seed)
         zero = np.zeros(plant.action_dim)
@@ -137,6 +139,7 @@ class FileExpert(OptimizingExpert):
             time_budget=time_budget,
             max_iterations=max_iterations,
             values=values,
+            stop=stop,
         )
         self.seed = int(seed)
         self.task = definition.name
@@ -166,6 +169,7 @@ class FileTask(OptimizerTask):
             time_budget=options.time_budget or own.get("time_budget", self.default_time_budget),
             max_iterations=options.max_iterations or own.get("max_iterations", DEFAULT_MAX_ITERATIONS),
             values=options.values or own.get("values", DEFAULT_VALUES),
+            stop=options.stop or own.get("stop", DEFAULT_STOP),
         )  # fmt: skip
         if options.threads is not None:
             expert.optimizer.dynamics.threads = options.threads
@@ -221,7 +225,7 @@ def _task(path: Path, digest: str, content: bytes) -> FileTask:
         no_analytic_lipschitz="its iLQR expert computes no bound on its value's slope",
         own_lipschitz=definition.lipschitz,
         own_lipschitz_note="the task file's key lipschitz: a choice of the policy's bounds, not a bound on the value",
-        default_time_budget=definition.expert.get("time_budget", DEFAULT_TIME_BUDGET_S),
+        default_time_budget=definition.expert.get("time_budget"),
         default_horizon=definition.horizon,
         reward_range=definition.reward.bounds() if isinstance(definition.reward, TermReward) else None,
         success=definition.success,

@@ -95,7 +95,21 @@ class ExpertSolution:
 
 VALUE_MODES = ("return-to-go", "window")
 DEFAULT_VALUES = "window"  # one value per visited state, as the lqr expert's: what every optimizer expert stores
-DEFAULT_TIME_BUDGET_S = 5.0  # wall-clock seconds per request, for every optimizer expert and its task
+STOP_MODES = ("iterations", "time")
+DEFAULT_STOP = "iterations"  # a request ends by convergence or max_iterations: the same answer on any machine
+DEFAULT_TIME_BUDGET_S = 5.0  # stop = "time": wall-clock seconds per request (a task may set its own)
+DEFAULT_GUARD_S = 60.0  # stop = "iterations": a guard, 3x the slowest default request measured (AcrobotExpert)
+STOP_HELP = (
+    "what ends an iLQR expert's request: iterations (convergence or max_iterations: the same answer on any machine; "
+    "the default) or time (within the time budget: fewer iterations on a loaded machine, not reproducible)"
+)
+
+
+def check_stop(stop: str) -> str:
+    """What ends a request: ``iterations`` (reproducible) or ``time`` (a wall-clock budget, machine-dependent)."""
+    if stop not in STOP_MODES:
+        raise ValueError(f"stop must be one of {', '.join(STOP_MODES)}; got {stop!r}")
+    return stop
 
 
 class OptimizingExpert:
@@ -116,6 +130,13 @@ class OptimizingExpert:
 
     Stored states are ``represent(raw state)``.
 
+    What ends a request (``stop``): under ``"iterations"`` (the default) iLQR runs to convergence
+    or ``max_iterations``, so the same request gives the same answer bit for bit on any machine;
+    ``time_budget`` (default :data:`DEFAULT_GUARD_S`) is then only a guard against a runaway
+    request. Under ``"time"`` iLQR works within ``time_budget`` (default ``time_stop_budget_s``),
+    so a loaded machine answers with fewer iterations. Either way a request the budget stopped is
+    counted in ``budget_stops``: its answer depends on the machine's speed.
+
     The time budget covers the whole request and is wall-clock, so it is met when the machine
     leaves iLQR at least ``min_optimizer_share`` of it; on a slower machine iLQR still gets that
     share and ``min_iterations`` iterations, and the request overruns by them. No timing carries
@@ -124,6 +145,7 @@ class OptimizingExpert:
 
     min_optimizer_share = 0.2  # of time_budget: iLQR's at least, whatever the warm start and replays take
     min_iterations = 1  # iLQR iterations the budget cannot cut (convergence and max_iterations can)
+    time_stop_budget_s = DEFAULT_TIME_BUDGET_S  # the budget under stop = "time" when none is given
 
     def __init__(
         self,
@@ -133,9 +155,10 @@ class OptimizingExpert:
         represent: Callable[[FloatArray], FloatArray],
         *,
         horizon: int,
-        time_budget: float,
+        time_budget: float | None = None,
         max_iterations: int = 50,
         values: str = DEFAULT_VALUES,
+        stop: str = DEFAULT_STOP,
     ) -> None:
         if values not in VALUE_MODES:
             raise ValueError(f"values must be one of {', '.join(VALUE_MODES)}; got {values!r}")
@@ -143,6 +166,9 @@ class OptimizingExpert:
             raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
         self.values = values
         self.horizon = int(horizon)
+        self.stop = check_stop(stop)
+        if time_budget is None:
+            time_budget = self.time_stop_budget_s if stop == "time" else DEFAULT_GUARD_S
         self.time_budget = check_time_budget(time_budget)
         self.max_iterations = int(max_iterations)
         self.plant = plant
@@ -154,11 +180,19 @@ class OptimizingExpert:
         self.max_transition_norm = 0.0
         self.requests = 0
         self.budget_stops = 0  # requests the time budget stopped (their answers depend on the machine's speed)
-        self.clock: Callable[[], float] = time.perf_counter  # times the request's phases (a test may fake it)
         self.task = "mujoco"
         self.reward_lipschitz = math.inf  # a task that knows its reward's slope says so
         self.reward_lipschitz_detail = "not known for this task"
         self.no_lipschitz_bound = ""  # a task whose true values are discontinuous in the state says why
+
+    @property
+    def clock(self) -> Callable[[], float]:
+        """The clock the request's phases and iLQR's budget are read on (a test may slow it)."""
+        return self.optimizer.clock
+
+    @clock.setter
+    def clock(self, clock: Callable[[], float]) -> None:
+        self.optimizer.clock = clock
 
     def solve(self, initial_state: ArrayLike, horizon: int | None = None) -> ExpertSolution:
         """One request. The answer is never worse than the warm start under the true reward: when

@@ -33,6 +33,7 @@ from npp_ros.policy.vectors import finite_vector, state_digest
 from npp_ros.tasks.expert_pool import ExpertPool, PooledAnswer, default_workers
 from npp_ros.tasks.registry import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
 from npp_ros.trajopt.batch_steps import default_threads
+from npp_ros.trajopt.expert import STOP_HELP
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
@@ -54,6 +55,7 @@ PARAMETERS = (
     Param("max_queue", 100, "requests that may wait for the worker; more are refused at once with 'busy:'", 1),
     Param("time_budget", 0.0, "seconds per request for an optimizer (iLQR) expert; 0 = the task's default", 0.0),
     Param("max_iterations", 0, "iLQR iterations per request for an optimizer expert; 0 = the task's default", 0),
+    Param("stop", "", f"{STOP_HELP}; '' = the task's default"),
     Param("workers", 0, "processes computing an optimizer expert's requests at once (answers are the one-at-a-time "
           "answers); 0 = one per core; a closed-form expert answers in the node", 0),
     Param("threads", 0, "threads of each worker's iLQR derivatives (mujoco.batch; answers are the same at any "
@@ -70,6 +72,7 @@ class ExpertSettings:
     max_queue: int
     time_budget: float
     max_iterations: int
+    stop: str
     workers: int
     threads: int
 
@@ -82,6 +85,7 @@ class ExpertSettings:
             gamma=self.gamma,
             time_budget=self.time_budget or None,
             max_iterations=self.max_iterations or None,
+            stop=self.stop or None,
             threads=self.threads or default_threads(workers),
         )
 

@@ -46,7 +46,7 @@ from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import WriterLock
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros.tasks.sources import short_name
-from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S
+from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_HELP, STOP_MODES
 from npp_ros_graph.graph.description import graph_parameters, node_argv
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, WARN, health_of
 from npp_ros_graph.runtime.node import node_name, publishers_of, release
@@ -100,9 +100,10 @@ def parser() -> argparse.ArgumentParser:
         "--time-budget",
         type=float,
         default=0.0,
-        help=f"seconds per iLQR expert request; 0: the task's ({DEFAULT_TIME_BUDGET_S:g}; a task file's [expert] "
-        "time_budget)",
+        help=f"seconds per iLQR expert request: a guard under --expert-stop iterations, the budget under time; 0: "
+        f"the task's ({DEFAULT_GUARD_S:g} and {DEFAULT_TIME_BUDGET_S:g}; a task file's [expert] time_budget)",
     )
+    ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=STOP_HELP)
     ap.add_argument(
         "--rule", default="mode", choices=("mode", *STOPPING_RULES),
         help="when to stop: a streak per policy (sequential), a screen then a failure-tolerant test (mixture), or "
@@ -363,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", KEY_ENV) if k in env})
     params = graph_parameters(
         args.task, args.seed, get_task(args.task).default_horizon if args.horizon is None else args.horizon, run_dir,
-        expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations},
+        expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations,
+                "stop": args.expert_stop or ""},
         supervisor={"epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
                     "rule": args.rule, "policy": args.policy, "explore": float(args.explore),
                     "max_episodes": args.max_episodes, "rollouts": not args.no_rollouts},
