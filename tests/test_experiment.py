@@ -61,7 +61,7 @@ def reduced_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_bad_options_get_a_clear_error(tmp_path: Path) -> None:
     run = subprocess.run([*EXPERIMENT, "--lipschitz", "huge", "--out", str(tmp_path)], capture_output=True, text=True)
-    assert run.returncode == 2 and "L setting must be one of paper, analytic or a number > 0, got 'huge'" in run.stderr
+    assert run.returncode == 2 and "L setting must be one of paper, analytic, data or a number > 0, got 'huge'" in run.stderr
     run = subprocess.run([*EXPERIMENT, "--p", "1.2", "--out", str(tmp_path)], capture_output=True, text=True)
     assert run.returncode == 2 and "p and delta must lie in (0, 1)" in run.stderr
 
@@ -178,7 +178,7 @@ def test_arms_and_settings_reject_unknown_names() -> None:
         Arm("lqr_9_9", "optimal", "paper")
     with pytest.raises(ValueError, match="unknown expert 'ppo'"):
         Arm("lqr_2_1", "ppo", "paper")
-    with pytest.raises(ValueError, match="L setting must be one of paper, analytic or a number > 0, got '-5'"):
+    with pytest.raises(ValueError, match="L setting must be one of paper, analytic, data or a number > 0, got '-5'"):
         Arm("lqr_2_1", "optimal", "-5")
     assert Arm("lqr_2_1", "optimal", "300").name == "lqr_2_1-optimal-L300"
     settings = ExperimentSettings(max_episodes={"lqr_2_1": 150}, checkpoints=(10, 100, 200))
