@@ -135,11 +135,12 @@ class TermCost:
         grad = self.control_weight * actions.copy()
         hess = np.broadcast_to(self.control_weight * np.eye(m), (count, m, m)).copy()
         for term in self.control_terms_list:
-            j = term.target[0]
-            scale = term.margin if term.margin > 0 else 1.0
-            low, high = term.bounds
-            e = (actions[:, j] - np.clip(actions[:, j], low, high)) / scale
-            value += 0.5 * term.weight * e * e
-            grad[:, j] += term.weight * e / scale
-            hess[:, j, j] += np.where(e != 0.0, term.weight / (scale * scale), 0.0)
+            weight = term.weight / len(term.target)  # a mean over several actuators: each its share
+            for j in term.target:
+                scale = term.margin if term.margin > 0 else 1.0
+                low, high = term.bounds
+                e = (actions[:, j] - np.clip(actions[:, j], low, high)) / scale
+                value += 0.5 * weight * e * e
+                grad[:, j] += weight * e / scale
+                hess[:, j, j] += np.where(e != 0.0, weight / (scale * scale), 0.0)
         return value, grad, hess

@@ -2,9 +2,11 @@
 
 A term is dm_control.utils.rewards.tolerance of one quantity: ``joint_position``, ``joint_velocity``
 (a joint), ``site_position`` (a site, with ``axis`` x, y or z), ``site_distance`` (two sites) or
-``control`` (an actuator). The reward combines the terms as a weighted sum or a product, computed from
-the physics after each step with the applied (clamped) control, as dm_control's suite does. The same
-terms give the iLQR expert its smooth cost (npp_ros.tasks.task_file_cost).
+``control`` (an actuator, or a list of actuators: the mean of their tolerances, as dm_control's
+``tolerance(physics.control(), ...).mean()``). A term's ``floor`` lifts its value to floor + (1 - floor) x
+tolerance, dm_control's ``(4 + small_control) / 5`` with floor 0.8. The reward combines the terms as a
+weighted sum or a product, computed from the physics after each step with the applied (clamped) control, as
+dm_control's suite does. The same terms give the iLQR expert its smooth cost (npp_ros.tasks.task_file_cost).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ SIGMOIDS = ("gaussian", "hyperbolic", "long_tail", "reciprocal", "cosine", "line
 BOUNDED_SIGMOIDS = ("linear", "quadratic", "cosine")  # reach 0 at the margin: any value_at_margin will do
 COMBINES = ("sum", "product")
 REWARD_KEYS = {"combine", "terms", "function"}
-TERM_KEYS = {*QUANTITIES, "axis", "bounds", "margin", "sigmoid", "value_at_margin", "weight"}
+TERM_KEYS = {*QUANTITIES, "axis", "bounds", "margin", "sigmoid", "value_at_margin", "weight", "floor"}
 AXES = ("x", "y", "z")
 DEFAULT_COMBINE = "product"
 # dm_control's tolerance defaults
@@ -33,6 +35,7 @@ DEFAULT_MARGIN = 0.0
 DEFAULT_SIGMOID = "gaussian"
 DEFAULT_VALUE_AT_MARGIN = 0.1
 DEFAULT_WEIGHT = 1.0
+DEFAULT_FLOOR = 0.0  # a term's value is floor + (1 - floor) x its tolerance
 
 
 @dataclass(frozen=True)
@@ -40,7 +43,7 @@ class Term:
     """One tolerance term: which quantity, and dm_control's tolerance parameters."""
 
     quantity: str
-    target: tuple[int, ...]  # joint, site or actuator ids (two sites for a distance)
+    target: tuple[int, ...]  # joint, site or actuator ids (two sites for a distance; a control term's mean: several)
     axis: int
     bounds: tuple[float, float]
     margin: float
@@ -48,6 +51,7 @@ class Term:
     value_at_margin: float
     weight: float
     label: str
+    floor: float = DEFAULT_FLOOR
 
     @property
     def on_control(self) -> bool:
@@ -79,9 +83,12 @@ def _read_term(reader: Reader, entry: Any, where: str, ids: dict[str, dict[str, 
     weight = reader.number(entry.get("weight", DEFAULT_WEIGHT), f"{where}.weight", positive=True)
     if not weighted and "weight" in entry:
         raise reader.fail(f"{where}.weight", 'weights apply to combine = "sum" only')
+    floor = reader.non_negative(entry.get("floor", DEFAULT_FLOOR), f"{where}.floor")
+    if floor >= 1:
+        raise reader.fail(f"{where}.floor", f"must lie in [0, 1), got {floor!r}")
     target = tuple(ids[kind][name] for name in wanted)
     label = f"{quantity} {'-'.join(wanted)}"
-    return Term(quantity, target, axis, bounds, margin, sigmoid, at_margin, weight, label)
+    return Term(quantity, target, axis, bounds, margin, sigmoid, at_margin, weight, label, floor)
 
 
 def _quantity_and_names(
@@ -96,6 +103,11 @@ def _quantity_and_names(
     quantity = named[0]
     kind = {"control": "actuator", "site_position": "site", "site_distance": "site"}.get(quantity, "joint")
     key = f"{where}.{quantity}"
+    if quantity == "control" and isinstance(entry[quantity], list):  # the mean over these actuators
+        names = reader.names(entry[quantity], key)
+        if not names:
+            raise reader.fail(key, "must name at least one actuator")
+        return quantity, kind, [named_objects(reader, name, key, ids[kind], kind, pair=False)[0] for name in names]
     wanted = named_objects(reader, entry[quantity], key, ids[kind], kind, pair=quantity == "site_distance")
     return quantity, kind, wanted
 
@@ -128,6 +140,18 @@ def quantity(term: Term, physics: Any) -> float:
     return float(data.ctrl[term.target[0]])
 
 
+def term_value(term: Term, physics: Any) -> float:
+    """The term's tolerance (a control term over several actuators: their mean), lifted by its floor."""
+    from dm_control.utils.rewards import tolerance
+
+    if term.on_control:
+        values = np.asarray(physics.data.ctrl)[list(term.target)]
+    else:
+        values = np.array([quantity(term, physics)])
+    tol = float(np.mean(tolerance(values, term.bounds, term.margin, term.sigmoid, term.value_at_margin)))
+    return term.floor + (1.0 - term.floor) * tol
+
+
 @dataclass(frozen=True)
 class TermReward:
     """The file's reward: a sum (weighted) or product of tolerance terms, read from the physics after a step."""
@@ -136,11 +160,7 @@ class TermReward:
     combine: str
 
     def get_reward(self, physics: Any) -> float:
-        from dm_control.utils.rewards import tolerance
-
-        values = [
-            float(tolerance(quantity(t, physics), t.bounds, t.margin, t.sigmoid, t.value_at_margin)) for t in self.terms
-        ]
+        values = [term_value(t, physics) for t in self.terms]
         if self.combine == "product":
             return float(np.prod(values))
         return float(sum(t.weight * v for t, v in zip(self.terms, values, strict=True)))
