@@ -65,6 +65,43 @@ QUANTITY = {
 }
 
 
+def check_spec_choices(
+    condition: str,
+    p: float,
+    delta: float,
+    policy: str,
+    *,
+    epsilon: float | None,
+    certify: str | None,
+    rule: str | None,
+) -> None:
+    """Refuse, with one line naming the field, what a CertificationSpec may not hold (its constructor checks its
+    fields here). None is a value the task decides (epsilon, certify, rule): it is checked when the spec is built,
+    so a node can check its parameters here before it knows the task, with the same code and no stand-ins."""
+    if policy not in POLICY_KINDS:
+        raise ValueError(f"policy must be one of {', '.join(POLICY_KINDS)}, got {policy!r}")
+    if condition not in CONDITIONS:
+        raise ValueError(f"condition must be 'i' or 'ii', got {condition!r}")
+    if certify is not None and certify not in CERTIFY_MODES:
+        raise ValueError(f"certify must be one of {', '.join(CERTIFY_MODES)}, got {certify!r}")
+    if rule is not None and rule not in STOPPING_RULES:
+        raise ValueError(f"rule must be one of {', '.join(STOPPING_RULES)}, got {rule!r}")
+    if epsilon is not None and not (math.isfinite(epsilon) and epsilon > 0):
+        raise ValueError(f"epsilon must be finite and > 0, got {epsilon!r}")
+    if not 0 < p < 1:
+        raise ValueError(f"p must lie in (0, 1), got {p!r}")
+    if not 0 < delta < 1:
+        raise ValueError(f"delta must lie in (0, 1), got {delta!r}")
+    if condition == "ii" and rule == "mixture":
+        raise ValueError("the mixture rule tests condition (i): it counts passed and failed checks")
+    if condition == "ii" and certify is not None and certify != "surrogate":
+        raise ValueError(
+            f"condition (ii) cannot certify with certify={certify}: Hoeffding's bound needs a checked "
+            "quantity of known range, and a policy's return has none (a bad policy can lose without limit); "
+            "use condition (i), or certify=surrogate (range 2 L diam(S0))"
+        )
+
+
 @dataclass(frozen=True)
 class CertificationSpec:
     """What the run must certify, about which policy, and the L it rests on.
@@ -84,30 +121,11 @@ class CertificationSpec:
     policy: PolicyKind = PAPER_POLICY
 
     def __post_init__(self) -> None:
-        if self.policy not in POLICY_KINDS:
-            raise ValueError(f"policy must be one of {', '.join(POLICY_KINDS)}, got {self.policy!r}")
-        if self.condition not in CONDITIONS:
-            raise ValueError(f"condition must be 'i' or 'ii', got {self.condition!r}")
-        if self.certify not in CERTIFY_MODES:
-            raise ValueError(f"certify must be one of {', '.join(CERTIFY_MODES)}, got {self.certify!r}")
-        if self.rule not in STOPPING_RULES:
-            raise ValueError(f"rule must be one of {', '.join(STOPPING_RULES)}, got {self.rule!r}")
-        if not (math.isfinite(self.epsilon) and self.epsilon > 0):
-            raise ValueError(f"epsilon must be finite and > 0, got {self.epsilon!r}")
-        if not 0 < self.p < 1:
-            raise ValueError(f"p must lie in (0, 1), got {self.p!r}")
-        if not 0 < self.delta < 1:
-            raise ValueError(f"delta must lie in (0, 1), got {self.delta!r}")
+        check_spec_choices(
+            self.condition, self.p, self.delta, self.policy, epsilon=self.epsilon, certify=self.certify, rule=self.rule
+        )
         if self.condition == "ii" and (self.diameter is None or not self.diameter > 0):
             raise ValueError("condition (ii) needs diam(S0) > 0")
-        if self.condition == "ii" and self.rule == "mixture":
-            raise ValueError("the mixture rule tests condition (i): it counts passed and failed checks")
-        if self.condition == "ii" and self.certify != "surrogate":
-            raise ValueError(
-                f"condition (ii) cannot certify with certify={self.certify}: Hoeffding's bound needs a checked "
-                "quantity of known range, and a policy's return has none (a bad policy can lose without limit); "
-                "use condition (i), or certify=surrogate (range 2 L diam(S0))"
-            )
 
     def passes(self, checked: float | None) -> bool:
         """Whether one check passed: the checked quantity is known and at most epsilon (inf and NaN fail)."""

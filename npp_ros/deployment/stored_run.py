@@ -32,6 +32,7 @@ METADATA_TYPES: dict[str, type] = {
     "condition": str, "epsilon": float, "p": float, "delta": float, "certify": str, "rule": str, "policy": str,
     "lipschitz": float, "lipschitz_source": str,
 }  # fmt: skip
+_KIND_NAMES = {str: "text", int: "an integer", float: "a number", bool: "true or false"}
 
 
 @dataclass(frozen=True)
@@ -111,9 +112,6 @@ def certificate_of(record: Mapping[str, Any], spec: CertificationSpec, run_file:
             value, kind = record[item.name], hints[item.name]
             raise RunFileError(f"{run_file}'s certificate has {item.name} {value!r}, not {_KIND_NAMES.get(kind, kind)}")
     return Certificate.from_record(record, spec)
-
-
-_KIND_NAMES = {str: "text", int: "an integer", float: "a number", bool: "true or false"}
 
 
 def holds(value: object, kind: Any) -> bool:

@@ -54,6 +54,7 @@ from npp_ros_graph.runtime.reports import RunReports
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
+from npp_ros_graph.transport.parameters import task_or_number_value
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_READER_QOS, PLANT, REPORT_QOS
 
@@ -82,8 +83,9 @@ def parser() -> argparse.ArgumentParser:
         help="episode length; default: the task's (1000; a task file's key horizon)",
     )
     ap.add_argument(
-        "--epsilon", type=float, default=0.0,
-        help=f"target gap > 0; 0: the paper's ({by_task('paper_epsilon')}) or a task file's key epsilon",
+        "--epsilon", type=float, default=None,
+        help=f"target gap > 0; default: the task's, the paper's ({by_task('paper_epsilon')}) or a task file's key "
+        "epsilon",
     )  # fmt: skip
     ap.add_argument(
         "--lipschitz", default="task",
@@ -366,7 +368,8 @@ def main(argv: list[str] | None = None) -> int:
         args.task, args.seed, get_task(args.task).default_horizon if args.horizon is None else args.horizon, run_dir,
         expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations,
                 "stop": args.expert_stop or ""},
-        supervisor={"epsilon": float(args.epsilon), "lipschitz": str(args.lipschitz), "certify": args.certify,
+        supervisor={"epsilon": task_or_number_value(args.epsilon), "lipschitz": str(args.lipschitz),
+                    "certify": args.certify,
                     "rule": args.rule, "policy": args.policy, "explore": float(args.explore),
                     "max_episodes": args.max_episodes, "rollouts": not args.no_rollouts},
     )  # fmt: skip

@@ -5,6 +5,10 @@ The table is the only place a parameter is named: its descriptor (description, r
 declared; everything else (a task's name, p and delta, the choice of L) by the core constructors the
 settings feed, in the settings' ``__post_init__``. Any refusal becomes a StartupError with the reason.
 
+A parameter whose ROS value is not the core's type names a ``read`` that converts it, the one place that
+conversion happens: a value the task decides is the text ``task`` on the ROS side (a parameter cannot be
+unset), None in the core (:func:`task_or_number`).
+
 Overrides are read before they are declared, so that an unknown name is refused with the closest known
 one, and a whole number given for a float (``-p epsilon:=30``) or for a text-or-number choice
 (``-p lipschitz:=300``) is taken for what it means instead of being refused as the wrong type.
@@ -14,7 +18,7 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from typing import Any, TypeVar
 
@@ -28,6 +32,22 @@ Settings = TypeVar("Settings")
 
 # Declared by rclpy itself on every node; never ours to refuse.
 RCLPY_PARAMETERS = ("use_sim_time", "start_type_description_service")
+TASK_CHOICE = "task"  # a parameter's value for "the task's own", which the core spells None
+
+
+def task_or_number(text: str) -> float | None:
+    """A task-or-number parameter in the core's type: None for ``task`` (the task decides), else the number."""
+    return None if text.strip() == TASK_CHOICE else float(text)
+
+
+def task_or_choice(text: str) -> str | None:
+    """A choice parameter in the core's type: None for ``task`` (the task decides), else the choice."""
+    return None if text == TASK_CHOICE else text
+
+
+def task_or_number_value(value: float | None) -> str | float:
+    """The parameter value that :func:`task_or_number` reads back as ``value`` (what a launcher passes)."""
+    return TASK_CHOICE if value is None else float(value)
 
 
 class StartupError(RuntimeError):
@@ -45,6 +65,7 @@ class Param:
     high: float | None = None
     choices: tuple[str, ...] = ()
     read_only: bool = True  # False: a node that reads it again later (a lifecycle node, at configure)
+    read: Callable[[Any], Any] | None = None  # the ROS value in the settings' type; a ValueError refuses it
 
     def allowed(self) -> str:
         """The allowed values in words ("an integer in [1, 100000]", "one of: i, ii")."""
@@ -128,8 +149,9 @@ def declare_settings(node: Node, params: Sequence[Param], settings: type[Setting
         if param.name in overrides:
             overrides[param.name] = _accepted_override(param, overrides[param.name])
         try:
-            values[param.name] = node.declare_parameter(param.name, param.default, param.descriptor()).value
-        except ParameterException:
+            value = node.declare_parameter(param.name, param.default, param.descriptor()).value
+            values[param.name] = value if param.read is None else param.read(value)
+        except (ParameterException, ValueError):
             given = overrides[param.name].value if param.name in overrides else param.default
             raise StartupError(f"parameter {param.name} must be {param.allowed()}, got {given!r}") from None
     try:

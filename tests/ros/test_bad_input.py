@@ -341,7 +341,7 @@ BAD_EXPERT_PARAMS = st.one_of(
     st.integers(-1000, 0).map(lambda q: ({"max_queue": q}, "parameter max_queue must be an integer in [1, inf]")),
 )
 BAD_SUPERVISOR_PARAMS = st.one_of(
-    NEGATIVE.map(lambda e: ({"epsilon": e}, "parameter epsilon must be a number in [0, inf]")),
+    NEGATIVE.map(lambda e: ({"epsilon": e}, "epsilon must be finite and > 0")),
     st.one_of(NEGATIVE, st.just(0.0)).map(lambda v: ({"lipschitz": quoted(repr(v))}, "lipschitz must be")),
     OUTSIDE_UNIT.map(lambda v: ({"p": v}, "p must")),
     OUTSIDE_UNIT.map(lambda v: ({"delta": v}, "delta must")),

@@ -158,7 +158,7 @@ def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp
         f" (log: {run_dir / 'logs' / 'sim.log'})" in first.stderr
     )
     assert second.returncode == 1
-    assert "npp-supervisor exited with code 2: parameter epsilon must be a number in [0, inf], got -1.0" in (
+    assert "npp-supervisor exited with code 2: bad parameter: epsilon must be finite and > 0, got -1.0" in (
         second.stderr
     )
     # Each start has its own log: the second start's is sim.log, the first's is kept as sim.1.log.

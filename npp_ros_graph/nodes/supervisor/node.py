@@ -29,12 +29,11 @@ from std_msgs.msg import UInt32
 from npp_ros.certificate.certifier import (
     CERTIFY_MODES,
     CONDITIONS,
-    DEFAULT_RULES,
     STOPPING_RULES,
-    CertificationSpec,
     CheckedQuantity,
     Condition,
     StoppingRule,
+    check_spec_choices,
 )
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
 from npp_ros.policy.dataset import FloatArray, Trajectory
@@ -56,7 +55,14 @@ from npp_ros_graph.runtime.reports import report_context
 from npp_ros_graph.transport.convert import (
     trajectory_to_msg,
 )
-from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
+from npp_ros_graph.transport.parameters import (
+    TASK_CHOICE,
+    Param,
+    declare_settings,
+    parameter_help,
+    task_or_choice,
+    task_or_number,
+)
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
     CERTIFICATE,
@@ -76,25 +82,25 @@ from npp_ros_graph.transport.topics import (
     SERVICE_QOS,
 )
 
-TASK_DEFAULT = "task"  # a choice the task decides, once the sim names it
 MODE_DEFAULT = "mode"  # the stopping rule the checked quantity defaults to (DEFAULT_RULES)
 
 PARAMETERS = (
-    Param("epsilon", 0.0, f"target gap; 0 = the task's: the paper's ({by_task('paper_epsilon')}) or a task file's",
-          0.0),
-    Param("lipschitz", TASK_DEFAULT, "L: analytic (bounds V*'s slope on the expert's states; lqr), paper ("
+    Param("epsilon", TASK_CHOICE, f"target gap > 0; task = the task's: the paper's ({by_task('paper_epsilon')}) or a "
+          "task file's", choices=(TASK_CHOICE, "a number > 0"), read=task_or_number),
+    Param("lipschitz", TASK_CHOICE, "L: analytic (bounds V*'s slope on the expert's states; lqr), paper ("
           f"{by_task('paper_lipschitz')}; not a bound), data (fixed from the run's first expert answers; a choice) or "
           "a number > 0; task = analytic where the task has it, else a task file's lipschitz, else paper",
-          choices=(TASK_DEFAULT, *LIPSCHITZ_CHOICES, "a number > 0")),
+          choices=(TASK_CHOICE, *LIPSCHITZ_CHOICES, "a number > 0")),
     Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
     Param("policy", DEFAULT_POLICY, POLICY_HELP, choices=POLICY_KINDS),
     Param("explore", 0.0, EXPLORE_HELP, 0.0),
-    Param("certify", TASK_DEFAULT, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
+    Param("certify", TASK_CHOICE, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
           "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
-          choices=(TASK_DEFAULT, *CERTIFY_MODES)),
+          choices=(TASK_CHOICE, *CERTIFY_MODES), read=task_or_choice),
     Param("rule", MODE_DEFAULT, "stopping rule: sequential (a streak per policy) or mixture (a screen, then a "
           "failure-tolerant test), both valid however often they look, or the paper's; mode = the checked "
-          "quantity's default", choices=(MODE_DEFAULT, *STOPPING_RULES)),
+          "quantity's default", choices=(MODE_DEFAULT, *STOPPING_RULES),
+          read=lambda rule: None if rule == MODE_DEFAULT else rule),
     Param("p", 0.9, "condition (i): share of initial states within epsilon, in (0, 1)", 0.0, 1.0),
     Param("delta", 0.1, "the claim holds with probability >= 1 - delta, in (0, 1)", 0.0, 1.0),
     Param("max_episodes", 1000, "stop uncertified after this many episodes", 1),
@@ -113,18 +119,19 @@ PARAMETERS = (
 
 @dataclass(frozen=True)
 class SupervisorSettings:
-    """The supervisor's parameters, checked at start by the constructors the run uses.
+    """The supervisor's parameters, checked at start by the code the run's spec is built with.
 
-    CertificationSpec checks condition, certify, rule, p, delta and epsilon (stand-ins for what the
-    task the sim will name decides: epsilon 0, certify and L "task", diam(S0)); parse_lipschitz
-    reads L once.
+    check_spec_choices (what CertificationSpec checks its fields with) checks condition, p, delta, the policy and
+    those of epsilon, certify and rule the parameters give; what the task decides (None here: epsilon, certify,
+    rule, and L's diam(S0)) is checked when the sim names the task and the spec is built. parse_lipschitz reads L
+    once.
     """
 
-    epsilon: float
+    epsilon: float | None  # None: the task's
     lipschitz: str | LipschitzConstant
     condition: Condition
-    certify: CheckedQuantity | str
-    rule: StoppingRule | str
+    certify: CheckedQuantity | None  # None: the task's
+    rule: StoppingRule | None  # None: the checked quantity's default
     policy: str
     explore: float
     p: float
@@ -141,15 +148,12 @@ class SupervisorSettings:
         if not self.run_dir.strip():
             raise ValueError("run_dir must name a folder")
         lipschitz = self.lipschitz
-        if isinstance(lipschitz, str) and lipschitz != TASK_DEFAULT:
+        if isinstance(lipschitz, str) and lipschitz != TASK_CHOICE:
             lipschitz = parse_lipschitz(lipschitz)
         object.__setattr__(self, "lipschitz", lipschitz)
-        certify = "rollout" if self.certify == TASK_DEFAULT else self.certify
-        CertificationSpec(
-            self.condition, self.epsilon or 1.0, self.p, self.delta,
-            lipschitz if isinstance(lipschitz, LipschitzConstant) else LipschitzConstant(1.0, "user"),
-            1.0, certify=certify, rule=DEFAULT_RULES[certify] if self.rule == MODE_DEFAULT else self.rule,  # type: ignore[arg-type]
-        )  # fmt: skip
+        check_spec_choices(
+            self.condition, self.p, self.delta, self.policy, epsilon=self.epsilon, certify=self.certify, rule=self.rule
+        )
 
 
 USAGE = f"""npp-supervisor: Algorithm 1 over the ROS graph (ROS 2 node "npp_supervisor").
@@ -294,20 +298,18 @@ class SupervisorNode(Node):
         expert = spec.make_expert(plant.seed, plant.horizon)
         if expert.plant.model_sha256() != plant.model_sha256:
             raise RuntimeError("the sim's plant differs from the task's model: refusing to certify")
-        epsilon = spec.epsilon(s.epsilon or None)
+        epsilon = spec.epsilon(s.epsilon)
         if isinstance(s.lipschitz, LipschitzConstant):
             lipschitz = s.lipschitz
         else:
-            choice = None if s.lipschitz == TASK_DEFAULT else s.lipschitz
+            choice = None if s.lipschitz == TASK_CHOICE else s.lipschitz
             run_file = Path(s.run_dir) / "run.sqlite"
             lipschitz = resolve_lipschitz(
                 task, choice, expert, seed=plant.seed, horizon=plant.horizon, run_file=run_file
             )
-        certify = None if s.certify == TASK_DEFAULT else s.certify
-        rule = None if s.rule == MODE_DEFAULT else s.rule
         config = build_config(
             task, plant.seed, lipschitz, epsilon,
-            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=certify, rule=rule,  # type: ignore[arg-type]
+            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=s.certify, rule=s.rule,  # type: ignore[arg-type]
             policy=s.policy, explore=s.explore,  # type: ignore[arg-type]  # the parameter's choices are the kinds
         )  # fmt: skip
         run_dir = Path(s.run_dir)
