@@ -100,7 +100,7 @@ BAD = [
     ("elbow = { position = [-2.0, 2.0] }", "elbow = { position = [2.0, -2.0] }", "rho.elbow.position: is empty"),
     ('site_distance = ["fingertip", "target"]', 'site_distance = ["fingertip", "goal"]',
      "reward.terms[0].site_distance: unknown site 'goal'"),
-    ("control_timestep = 0.01", "control_timestep = 0.02", "control_timestep: 0.02 s differs from the model's"),
+    ("control_timestep = 0.01", "control_timestep = 0.015", "control_timestep: 0.015 s is not a whole multiple"),
     ('wrap = ["shoulder", "elbow"]', 'wrap = ["shoulder", "knee"]', "state.wrap: unknown joint 'knee'"),
     ("horizon = 200", "horizon = 200\nhorizn = 3", "horizn: unknown key"),
     ("horizon = 200", "horizon = [", "not valid TOML"),

@@ -1,8 +1,10 @@
-"""A dm_control suite task as a plant: one MuJoCo step per control step, an explicit horizon, no termination.
+"""A dm_control suite task as a plant: ``substeps`` MuJoCo steps per control step, an explicit horizon, no termination.
 
 Every swing-up plant is the same machine around its suite task: reset to a given [qpos, qvel],
-step with the control clamped to ctrlrange (as MuJoCo does for a ctrllimited actuator), read
-dm_control's own reward from the physics after the step, fingerprint the compiled model. A task
+step with the control clamped to ctrlrange (as MuJoCo does for a ctrllimited actuator) and held for
+``substeps`` MuJoCo steps (dm_control's n_sub_steps: one for the suite's swing-ups, k for a task
+file whose control_timestep is k model timesteps), read dm_control's own reward from the physics
+after the last of them, fingerprint the compiled model. A task
 module says only which suite task it wraps, what its state's entries are, how a state is stored
 (:meth:`SuitePlant.represent`) and which model arrays define its dynamics.
 """
@@ -11,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import math
 import operator
 import os
 from typing import ClassVar
@@ -22,6 +25,12 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.vectors import finite_vector
 
 
+def substeps_per_control_step(control_timestep: float, timestep: float) -> int | None:
+    """k such that control_timestep = k x timestep (to rounding), k >= 1; None when no whole k fits."""
+    k = round(control_timestep / timestep)
+    return k if k >= 1 and math.isclose(k * timestep, control_timestep, rel_tol=1e-9) else None
+
+
 class SuitePlant:
     """One dm_control suite task driven step by step; subclasses fill in the class attributes."""
 
@@ -30,6 +39,7 @@ class SuitePlant:
     state_entries: ClassVar[str]  # what the state's entries are, in order (named in refusals)
     fingerprint_fields: ClassVar[tuple[str, ...]]  # model attributes (dotted) that define its dynamics
     angles: tuple[int, ...] = ()  # the state entries that represent() wraps to (-pi, pi]
+    substeps: int = 1  # MuJoCo steps per control step, the control held (the optimizer's dynamics read it too)
 
     def __init__(self, seed: int = 0) -> None:
         os.environ.setdefault("MUJOCO_GL", "disable")
@@ -96,10 +106,11 @@ class SuitePlant:
     def step(self, action: ArrayLike) -> float:
         """Apply u (clamped to ctrlrange, as MuJoCo does) for one control step; return dm_control's reward.
 
-        The reward is computed from the physics after the step, with the applied (clamped) control.
+        The control is held for ``substeps`` MuJoCo steps, as dm_control's control.Environment does; the
+        reward is computed from the physics after the last of them, with the applied (clamped) control.
         """
         u = np.clip(self.check_action(action), self.action_low, self.action_high)
         self.physics.set_control(u)
-        self.physics.step()
+        self.physics.step(self.substeps)
         self.steps += 1
         return float(self._task.get_reward(self.physics))

@@ -4,7 +4,7 @@
 describes every key. In short::
 
     model = "arm.xml"              # MJCF, relative to this file
-    control_timestep = 0.01        # optional; must equal the model's timestep (one MuJoCo step per control step)
+    control_timestep = 0.01        # optional; k x the model's timestep: k MuJoCo steps per control step (default 1)
     horizon = 200                  # default episode length
     epsilon = 40.0                 # default target gap
     lipschitz = 100.0              # default L of the policy's bounds (a choice, not a bound); or "data" (the default)
@@ -71,7 +71,7 @@ import numpy as np
 
 from npp_ros.certificate.choices import EPSILON_FLAG
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.tasks.suite_plant import SuitePlant
+from npp_ros.tasks.suite_plant import SuitePlant, substeps_per_control_step
 from npp_ros.tasks.task import DEFAULT_OPTIONS, Expert, ExpertOptions, OptimizerTask, check_horizon
 from npp_ros.tasks.task_file_cost import TermCost
 from npp_ros.tasks.task_file_reader import TaskFileError as TaskFileError  # re-exported: what a bad file raises
@@ -88,7 +88,8 @@ FINGERPRINT_FIELDS = (
 
 
 class FilePlant(SuitePlant):
-    """The file's model stepped one MuJoCo step per control step, its reward from the file."""
+    """The file's model, ``control_timestep`` / the model's timestep MuJoCo steps per control step, its reward
+    from the file, computed after the last of them."""
 
     def __init__(self, definition: TaskDefinition, seed: int = 0) -> None:
         os.environ.setdefault("MUJOCO_GL", "disable")
@@ -104,7 +105,10 @@ class FilePlant(SuitePlant):
         self.physics = dm_mujoco.Physics.from_xml_path(str(definition.model_path))
         self._task = definition.reward
         model = self.physics.model
-        self.dt = float(model.opt.timestep)
+        self.dt = definition.dt  # the control step, a whole multiple of the model's timestep (read_timestep)
+        substeps = substeps_per_control_step(self.dt, float(model.opt.timestep))
+        assert substeps is not None  # read_timestep refused any other
+        self.substeps = substeps
         self.positions = int(model.nq)
         self.state_dim = int(model.nq + model.nv)
         self.action_dim = int(model.nu)

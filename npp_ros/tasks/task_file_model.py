@@ -7,13 +7,13 @@ The stored state is [qpos, qvel] of every joint, so the model may hold hinge and
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.tasks.suite_plant import substeps_per_control_step
 from npp_ros.tasks.task_file_reader import Reader
 
 STATE_KEYS = {"joints", "wrap"}
@@ -81,14 +81,16 @@ def _check_state_is_qpos_qvel(reader: Reader, model: Any) -> None:
 
 
 def read_timestep(reader: Reader, doc: dict[str, Any], model: Any) -> float:
-    """The control step: the model's timestep, which ``control_timestep``, if given, must equal."""
+    """The control step: ``control_timestep``, a whole multiple k of the model's timestep (k MuJoCo steps per
+    control step, the action held, as dm_control's n_sub_steps); the model's timestep when not given."""
     dt = float(model.opt.timestep)
-    if "control_timestep" in doc:
-        given = reader.number(doc["control_timestep"], "control_timestep", positive=True)
-        if not math.isclose(given, dt, rel_tol=1e-9):
-            raise reader.fail("control_timestep", f"{given:g} s differs from the model's timestep {dt:g} s: one "
-                              "control step is one MuJoCo step; set <option timestep> in the model")  # fmt: skip
-    return dt
+    if "control_timestep" not in doc:
+        return dt
+    given = reader.number(doc["control_timestep"], "control_timestep", positive=True)
+    if substeps_per_control_step(given, dt) is None:
+        raise reader.fail("control_timestep", f"{given:g} s is not a whole multiple of the model's timestep {dt:g} s: "
+                          "a control step is k MuJoCo steps; set <option timestep> in the model")  # fmt: skip
+    return given
 
 
 def read_state(reader: Reader, doc: dict[str, Any], model: Any) -> tuple[tuple[str, ...], tuple[int, ...]]:

@@ -68,9 +68,10 @@ class BatchDifferences:
     (each from a reset MjData), so the same Jacobians bit for bit.
     """
 
-    def __init__(self, model: Any, threads: int) -> None:
+    def __init__(self, model: Any, threads: int, substeps: int = 1) -> None:
         self.model = model
         self.threads = check_threads(threads)
+        self.substeps = substeps  # MuJoCo steps per control step, the control held
         self._rows: _Rows | None = None  # sized to the last trajectory's simulations
 
     def jacobians(
@@ -101,7 +102,7 @@ class BatchDifferences:
         for j in range(m):
             ctrl[:, 2 * (n + j), j] = up[:, j]
             ctrl[:, 2 * (n + j) + 1, j] = down[:, j]
-        rows.batch.step()
+        rows.batch.step(nstep=self.substeps)
         return centred_quotients(np.concatenate([qpos, qvel], axis=2), up, down, eps)
 
 
@@ -130,8 +131,9 @@ class BatchClosedLoops:
     product with the same BLAS call as a single one.
     """
 
-    def __init__(self, model: Any) -> None:
+    def __init__(self, model: Any, substeps: int = 1) -> None:
         self.model = model
+        self.substeps = substeps  # MuJoCo steps per control step, the control held
         self._rows: dict[int, _Rows] = {}  # by the number of step sizes searched at once
 
     def rollouts(
@@ -150,7 +152,7 @@ class BatchClosedLoops:
         if rows is None:
             rows = self._rows[count] = _Rows(self.model, count, 1)
         rows.reset()
-        step, qpos, qvel, ctrl = rows.batch.step, rows.qpos, rows.qvel, rows.ctrl
+        step, qpos, qvel, ctrl, substeps = rows.batch.step, rows.qpos, rows.qvel, rows.ctrl, self.substeps
         states = np.empty((count, horizon + 1, n))
         actions = np.empty((count, horizon, m))
         states[:, 0] = ref_states[0]
@@ -162,7 +164,7 @@ class BatchClosedLoops:
             u = np.minimum(np.maximum(u, lower), upper)
             actions[:, t] = u
             ctrl[:] = u
-            step()
+            step(nstep=substeps)
             states[:, t + 1, :nq] = qpos
             states[:, t + 1, nq:] = qvel
         return states, actions

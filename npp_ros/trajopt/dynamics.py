@@ -1,9 +1,11 @@
 """One control step of the plant's own MuJoCo model, rolled out and differenced.
 
 The optimizer works on the plant's own compiled model (``plant.physics.model.ptr``), with its own
-``MjData``, so the dynamics it optimises are the dynamics the sim runs: one control step is one
-``mj_step`` from (qpos, qvel, ctrl), and the linearisation of that step is
-``mujoco.mjd_transitionFD`` with centred differences. There is no second model.
+``MjData``, so the dynamics it optimises are the dynamics the sim runs: one control step is the
+plant's ``substeps`` ``mj_step`` calls from (qpos, qvel, ctrl), the control held (one, unless the
+plant says otherwise), and the linearisation of that step is ``mujoco.mjd_transitionFD`` with
+centred differences (for one Euler substep; otherwise the same centred differences of whole control
+steps, simulated). There is no second model.
 """
 
 from __future__ import annotations
@@ -27,6 +29,14 @@ class PhysicsPlant(Protocol):
     physics: object
     state_dim: int
     action_dim: int
+
+
+def substeps_of(plant: object) -> int:
+    """MuJoCo steps per control step, the control held (dm_control's n_sub_steps); a plant that says nothing: 1."""
+    substeps = getattr(plant, "substeps", 1)
+    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+        raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
+    return int(substeps)
 
 
 class MujocoDynamics:
@@ -72,15 +82,16 @@ class MujocoDynamics:
         ranges = np.asarray(m.actuator_ctrlrange, dtype=np.float64).reshape(-1, 2)
         self.lower = np.where(limited, ranges[:, 0], -np.inf)
         self.upper = np.where(limited, ranges[:, 1], np.inf)
-        # mjd_transitionFD does not support RK4 (dm_control's cartpole); the same centred
-        # differences are then taken by batched one-step rollouts in MuJoCo's C rollout.
-        self.batched_fd = int(m.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_RK4)
+        self.substeps = substeps_of(plant)
+        # mjd_transitionFD does not support RK4 (dm_control's cartpole) and differences one MuJoCo step; the
+        # same centred differences of a whole control step are then taken by simulating it, batched.
+        self.batched_fd = int(m.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_RK4) or self.substeps > 1
         self._spec = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
         self._qpos_at = int(mujoco.mj_stateSize(m, int(mujoco.mjtState.mjSTATE_TIME)))
         self.reference = bool(reference)
         self._threads = batch_steps.check_threads(threads)
-        self._differences = batch_steps.BatchDifferences(m, self._threads)
-        self._closed_loops = batch_steps.BatchClosedLoops(m)
+        self._differences = batch_steps.BatchDifferences(m, self._threads, self.substeps)
+        self._closed_loops = batch_steps.BatchClosedLoops(m, self.substeps)
 
     @property
     def threads(self) -> int:
@@ -90,16 +101,17 @@ class MujocoDynamics:
     @threads.setter
     def threads(self, threads: int) -> None:
         self._threads = batch_steps.check_threads(threads)
-        self._differences = batch_steps.BatchDifferences(self.model, self._threads)
+        self._differences = batch_steps.BatchDifferences(self.model, self._threads, self.substeps)
 
     @property
     def derivatives_by(self) -> str:
         """How :meth:`jacobians` takes its centred differences, for reports."""
         if not self.batched_fd:
             return "mujoco.mjd_transitionFD"
+        why = "RK4" if self.substeps == 1 else f"{self.substeps} MuJoCo steps per control step"
         if self.reference:
-            return "batched one-step rollouts (mujoco.rollout, RK4)"
-        return f"one-step simulations on mujoco.batch, {self._threads} thread{'s' * (self._threads > 1)} (RK4)"
+            return f"batched one-step rollouts (mujoco.rollout, {why})"
+        return f"one-step simulations on mujoco.batch, {self._threads} thread{'s' * (self._threads > 1)} ({why})"
 
     def _start(self, x: FloatArray, u: FloatArray) -> None:
         """Fresh data at (x, u), as the plant's reset leaves it: no solver warm start or time carried
@@ -114,7 +126,7 @@ class MujocoDynamics:
 
     def step(self, x: FloatArray, u: FloatArray) -> FloatArray:
         self._load(x, u)
-        self._mujoco.mj_step(self.model, self.data)
+        self._mujoco.mj_step(self.model, self.data, self.substeps)
         return np.concatenate([self._qpos, self._qvel])
 
     def rollout(
@@ -138,7 +150,7 @@ class MujocoDynamics:
     def _advance(self, u: FloatArray, out: FloatArray) -> None:
         """One step from the state already in ``data`` (the previous step's result, as on the plant)."""
         self._ctrl[:] = u
-        self._mujoco.mj_step(self.model, self.data)
+        self._mujoco.mj_step(self.model, self.data, self.substeps)
         out[: self.nq] = self._qpos
         out[self.nq :] = self._qvel
 
@@ -188,7 +200,7 @@ class MujocoDynamics:
         return a, b
 
     def _rollout_jacobians(self, states: FloatArray, actions: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Centred differences from 2 (n + m) one-step rollouts per step, all in one C call.
+        """Centred differences from 2 (n + m) one-control-step rollouts per step, all in one C call.
 
         A control at its bound is differenced one-sidedly (MuJoCo clamps ctrl, so a step past the
         bound would halve the slope), as mjd_transitionFD does.
@@ -215,13 +227,14 @@ class MujocoDynamics:
         initial = np.repeat(template[None, :], horizon * width, axis=0)
         lo = self._qpos_at
         initial[:, lo : lo + n] = xs.reshape(-1, n)
+        k = self.substeps
         out, _ = mj_rollout.rollout(
             self.model,
             self.data,
             initial,
-            us.reshape(-1, 1, m),
+            np.repeat(us.reshape(-1, 1, m), k, axis=1),  # the control held over the control step's substeps
             control_spec=int(self._mujoco.mjtState.mjSTATE_CTRL),
-            nstep=1,
+            nstep=k,
         )
-        nxt = out[:, 0, lo : lo + n].reshape(horizon, width, n)
+        nxt = out[:, k - 1, lo : lo + n].reshape(horizon, width, n)
         return batch_steps.centred_quotients(nxt, up, down, eps)
