@@ -54,47 +54,65 @@ class Plant(Protocol):
     actuator range) are what the feedback policy needs; a plant without them has no angles and no limits.
     """
 
-    task: str
-    seed: int
-    dt: float
-    state_dim: int
-    action_dim: int
-    joint_names: list[str]
-    actuated_joint_names: list[str]
+    task: str  # the task's name, as the registry knows it (a task file's: its path and content hash)
+    seed: int  # the seed the plant was made for
+    dt: float  # seconds per control step
+    state_dim: int  # entries of a stored state
+    action_dim: int  # entries of an action (one per actuator)
+    joint_names: list[str]  # the model's joints, in the state's order
+    actuated_joint_names: list[str]  # the joint each actuator drives, in the action's order
 
-    def model_sha256(self) -> str: ...
+    def model_sha256(self) -> str:
+        """The compiled model's fingerprint: the sim publishes it and the expert and supervisor check theirs."""
+        ...
 
-    def clone(self) -> Any: ...
+    def clone(self) -> Any:
+        """An independent copy at the same state (a local rollout must not step the original)."""
+        ...
 
-    def reset(self, state: ArrayLike) -> FloatArray: ...
+    def reset(self, state: ArrayLike) -> FloatArray:
+        """Set the plant to ``state`` (a stored state); return it as stored."""
+        ...
 
-    def state(self) -> FloatArray: ...
+    def state(self) -> FloatArray:
+        """The current state as the dataset stores it (angles wrapped where the task wraps them)."""
+        ...
 
-    def step(self, action: ArrayLike) -> float: ...
+    def step(self, action: ArrayLike) -> float:
+        """Apply ``action`` for one control step; return that step's reward."""
+        ...
 
 
 class Expert(Protocol):
     """The TrajectoryOptimizer of Algorithm 1, with what a certificate needs to know about its values."""
 
-    task: str
-    seed: int
-    horizon: int
+    task: str  # the task it answers for
+    seed: int  # the plant seed it models
+    horizon: int  # H, the steps of an answer when a request names none
     plant: Any  # its own Plant instance; its fingerprint must match the sim's
 
-    def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory: ...
+    def trajectory(self, initial_state: ArrayLike, horizon: int | None = None) -> Trajectory:
+        """One answer: the states, actions and values Q_t of an H-step trajectory from ``initial_state``."""
+        ...
 
-    def value_basis(self) -> ValueBasis: ...
+    def value_basis(self) -> ValueBasis:
+        """What its stored values are (V*, or the expert's own return) and the tail a rollout check adds."""
+        ...
 
-    def theorem_34_condition(self, lipschitz: float) -> tuple[bool, str]: ...
+    def theorem_34_condition(self, lipschitz: float) -> tuple[bool, str]:
+        """Whether Theorem 3.4's condition holds for this L on its plant, and in words why (surrogate mode)."""
+        ...
 
 
 @runtime_checkable
 class MeasuresValueSlope(Protocol):
     """An expert that sees the slope of its own value as it works (an optimizer's backward pass)."""
 
-    requests: int
+    requests: int  # requests answered so far
 
-    def slope_floor(self) -> float: ...
+    def slope_floor(self) -> float:
+        """The steepest slope of its value seen over its requests so far: a floor for L, never a bound."""
+        ...
 
 
 @runtime_checkable
@@ -113,7 +131,7 @@ class ExpertOptions:
     """How to build a task's expert; None means the task's default. A task refuses what it cannot honour."""
 
     kind: str | None = None  # which of the task's experts (Task.experts); None = the first
-    gamma: float = 1.0
+    gamma: float = 1.0  # the discount; 1: undiscounted H-step values (the only one an optimizer expert takes)
     time_budget: float | None = None  # seconds per request (optimizer experts); a guard under stop "iterations"
     max_iterations: int | None = None  # iLQR iterations per request (optimizer experts)
     stop: str | None = None  # what ends an optimizer expert's request: "iterations" (reproducible) or "time"
@@ -137,21 +155,21 @@ DEFAULT_OPTIONS = ExpertOptions()
 class Task:
     """One task: its plant, its expert, rho, what is stored, and the constants the paper gives for it."""
 
-    name: str
-    state_dim: int
-    action_dim: int
+    name: str  # the registry's name (a plug-in's: its entry point's name)
+    state_dim: int  # entries of a stored state
+    action_dim: int  # entries of an action
     stored_state: str  # what one stored state's entries are
     initial_state_diameter: float | None  # diam(S0) in the stored metric; condition (ii) needs it
-    default_certify: CheckedQuantity
+    default_certify: CheckedQuantity  # what each episode checks when a run names nothing: rollout, oracle or surrogate
     experts: tuple[str, ...]  # expert kinds; the first is the default
-    paper_lipschitz: float | None = None
-    paper_epsilon: float | None = None
-    paper_lipschitz_note: str = "the paper's choice (Section 5); not a bound on V*"
+    paper_lipschitz: float | None = None  # the paper's L for this task, where it gives one (the choice 'paper')
+    paper_epsilon: float | None = None  # the paper's epsilon, where it gives one: the default epsilon
+    paper_lipschitz_note: str = "the paper's choice (Section 5); not a bound on V*"  # what the certificate says of it
     # The L the task states itself, a user's choice (a task file's key lipschitz): a number (source 'user') or 'data'
     # (fixed from the run's first expert answers, npp_ros.run.setup); it is the default where no analytic L exists.
     own_lipschitz: float | str | None = None
-    own_lipschitz_note: str = "the task's own choice; not a bound on its value"
-    no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"
+    own_lipschitz_note: str = "the task's own choice; not a bound on its value"  # what the certificate says of it
+    no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"  # why 'analytic' is refused
     optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
     default_horizon: int = DEFAULT_HORIZON  # the episode length when a command line gives none
     reward_range: tuple[float, float] | None = None  # what one step's reward can be, where known (answer checks)
@@ -161,15 +179,19 @@ class Task:
 
     # ------------------------------------------------------------------ what each task provides
     def make_plant(self, seed: int) -> Plant:
+        """A new plant for ``seed`` (the sim's, and each local copy a run steps)."""
         raise NotImplementedError
 
     def make_expert(self, seed: int, horizon: int, options: ExpertOptions = DEFAULT_OPTIONS) -> Expert:
+        """A new expert on its own plant; a ValueError for options it cannot honour (ExpertOptions)."""
         raise NotImplementedError
 
     def sample_initial_state(self, rng: np.random.Generator) -> FloatArray:
+        """One s0 ~ rho, drawn from ``rng`` only (so a seed and episode give the same s0 everywhere)."""
         raise NotImplementedError
 
     def analytic_lipschitz(self, expert: Expert) -> LipschitzConstant:
+        """A bound on the expert's value slope it computes (the choice 'analytic'); by default refused, saying why."""
         raise ValueError(
             f"L = 'analytic' is not available for {self.name}: {self.no_analytic_lipschitz}; "
             f"use {'paper, ' if self.paper_lipschitz else ''}data or a number"
@@ -271,12 +293,13 @@ class OptimizerTask(Task):
     claim is relative to this expert, so the default check is ``oracle`` (V^E(s0) - R^pi(s0)).
     """
 
-    default_certify: CheckedQuantity = "oracle"
+    default_certify: CheckedQuantity = "oracle"  # claims relative to the expert's own return
     experts: tuple[str, ...] = ("ilqr",)
-    plant_factory: Callable[[int], Plant] | None = None
+    plant_factory: Callable[[int], Plant] | None = None  # seed -> a new plant (make_plant)
+    # called as expert_factory(seed=, horizon=, time_budget=, values=, stop=, [max_iterations=]) -> an Expert
     expert_factory: Callable[..., Expert] | None = None
-    sampler: Callable[[np.random.Generator], FloatArray] | None = None
-    default_values: str = DEFAULT_VALUES
+    sampler: Callable[[np.random.Generator], FloatArray] | None = None  # rng -> one s0 ~ rho (sample_initial_state)
+    default_values: str = DEFAULT_VALUES  # what the expert stores as Q_t: window (H-step return) or return-to-go
     default_time_budget: float | None = None  # the task's own time budget; None: its expert's default for the stop
 
     def make_plant(self, seed: int) -> Plant:
