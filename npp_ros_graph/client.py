@@ -16,6 +16,7 @@ supervisor runs; without it, every report on the domain, which ``mark`` says is 
 from __future__ import annotations
 
 import ctypes
+import itertools
 import os
 import signal
 import subprocess
@@ -67,6 +68,7 @@ STOP_TIMEOUT_S = 30.0  # npp-run gives its nodes 15 s to stop on SIGINT before i
 ATTEMPT_S = 5.0  # an unanswered expert request is sent again (Fast DDS drops a new client's first responses)
 STARTED = "npp-run: started"  # the line npp-run prints once its nodes run
 LAUNCHER = "npp_ros_graph.tools.launcher"
+_CLIENTS = itertools.count(1)  # numbers the default node names of a process's clients
 
 
 class GraphError(RuntimeError):
@@ -138,7 +140,7 @@ class GraphClient:
         *,
         domain_id: int | None = None,
         key: str | None = None,
-        name: str = "npp_graph_client",
+        name: str = "",
         namespace: str = "",
         past_reports: bool = True,
         ros_args: Sequence[str] = (),
@@ -148,8 +150,10 @@ class GraphClient:
         ``key``: the run's key (None: NPP_RUN_KEY's; without one, reports are not verified).
         ``past_reports``: also the episodes the supervisor reported before this client joined (it keeps
         its last 1,000); False: new ones only, as npp-run and npp-monitor print them.
+        ``name``: the client's node name ("": npp_graph_client_PID_N, one of its own for each client).
         ``ros_args``: ROS arguments for the client's node (e.g. ``["--ros-args", "-r", "__ns:=/robot1"]``).
         """
+        name = name or f"npp_graph_client_{os.getpid()}_{next(_CLIENTS)}"
         self.seal = RunSeal.from_environment() if key is None else RunSeal.from_environment({KEY_ENV: key})
         self.context = Context()
         rclpy.init(
@@ -193,19 +197,21 @@ class GraphClient:
         seed: int = 0,
         run_dir: Path | str | None = None,
         domain_id: int | None = None,
+        key: str | None = None,
         timeout: float = START_TIMEOUT_S,
         **options: Any,
     ) -> GraphClient:
         """Start a run's graph with npp-run and follow it; returns once its four nodes are started.
 
         ``options`` are npp-run's (horizon=50, epsilon=10, max_episodes=200, policy="open-loop", record=True...).
-        The run's key is NPP_RUN_KEY's, or a fresh one that only this client and the nodes know. npp-run's
+        ``key``: the run's key, which a client that joins the run needs (None: NPP_RUN_KEY's, else a fresh one
+        that only this client and the nodes know). npp-run's
         own output goes to RUN_DIR/logs/npp-run.log. Raises GraphError with npp-run's reason when it refuses
         (a run folder in use, another graph on the domain, a bad option).
         """
         folder = Path(run_dir) if run_dir is not None else default_run_dir(task, seed)
         folder = folder.resolve()
-        key = os.environ.get(KEY_ENV) or RunSeal.new_key()
+        key = key or os.environ.get(KEY_ENV) or RunSeal.new_key()
         env = {**os.environ, KEY_ENV: key}
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # as npp-run starts its nodes
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # and the client, which joins them
@@ -314,8 +320,11 @@ class GraphClient:
         self._callbacks.setdefault(EpisodeResult, []).append(callback)
 
     def on_certificate(self, callback: Callable[[Certificate], None]) -> None:
-        """Call ``callback`` with the run's certificate once it is issued, on the client's thread."""
+        """Call ``callback`` with the run's certificate once it is issued, on the client's thread (at once, on the
+        caller's, when it is already here: it is issued once)."""
         self._callbacks.setdefault(Certificate, []).append(callback)
+        if self._certificate is not None:
+            callback(self._certificate)
 
     def on_health(self, callback: Callable[[DiagnosticArray], None]) -> None:
         """Call ``callback`` with each /diagnostics message (every node's health; ``health`` reads them)."""

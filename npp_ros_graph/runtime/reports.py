@@ -31,7 +31,7 @@ from npp_ros_graph.transport.topics import DATASET_SERVICE, SERVICE_QOS
 
 ASK_EVERY_S = 1.0  # while reports wait, the supervisor is asked at most this often
 ANSWER_TIMEOUT_S = 5.0  # an unanswered question is withdrawn and asked again
-HELD = 1000  # reports held until the supervisor names its run (a late viewer gets up to 1000 kept reports)
+HELD = 2000  # reports held until the supervisor names its run: the 1000 gaps and 1000 episodes it keeps
 UNVERIFIED = f"not verified: no run key ({KEY_ENV})"
 ORIGIN = "/"  # between the plant's fingerprint and the run's identity in a report's context
 

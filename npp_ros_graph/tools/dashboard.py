@@ -182,52 +182,38 @@ def load_bag(folder: Path, hub: Hub) -> None:
 
 
 def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> None:
-    """Subscribe to the run's topics and watch the graph's nodes until Ctrl-C."""
-    import rclpy
+    """Follow the run through a GraphClient and watch the graph's nodes until Ctrl-C."""
     from diagnostic_msgs.msg import DiagnosticArray
-    from npp_interfaces.msg import Certificate, GapReport, PlantDescription
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.node import Node
+    from npp_interfaces.msg import Certificate, PlantDescription
 
-    from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, LEVEL_NAMES, health_of
-    from npp_ros_graph.runtime.node import release
-    from npp_ros_graph.runtime.reports import RunReports
-    from npp_ros_graph.transport.seal import SealError
-    from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_READER_QOS, PLANT, REPORT_HISTORY_QOS
+    from npp_ros_graph.client import GraphClient
+    from npp_ros_graph.runtime.diagnostics import LEVEL_NAMES, health_of
 
-    class DashboardNode(Node):
-        """Feeds the hub: GapReports, the latched plant and certificate, the graph's node names and every
-        node's health from /diagnostics."""
+    class Dashboard:
+        """Feeds the hub: this run's GapReports (those the supervisor kept from before it joined too), the
+        latched plant and certificate, the graph's node names and every node's health from /diagnostics."""
 
         def __init__(self) -> None:
-            super().__init__("npp_dashboard")
             # Given NPP_RUN_KEY (npp-run --dashboard), only the reports of the run its supervisor runs.
-            self.reports = RunReports(self, self.on_report, lambda line: print(f"npp-dashboard: {line}", flush=True))
-            hub.set("verified", self.reports.verified)
-            if not self.reports.verified:
+            self.client = GraphClient(name="npp_dashboard", past_reports=True, ros_args=ros_args)
+            self.client.on_notice(lambda line: print(f"npp-dashboard: {line}", flush=True))
+            hub.set("verified", self.client.verified)
+            if not self.client.verified:
                 hub.set("source", f"{hub.state['source']}; reports not verified: no run key (NPP_RUN_KEY), so any "
                         "run on the domain, or a replayed bag, may have sent them")  # fmt: skip
-            self.create_subscription(GapReport, GAP, self.reports.take, REPORT_HISTORY_QOS)
-            self.create_subscription(Certificate, CERTIFICATE, self.reports.take, LATCHED_READER_QOS)
-            self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_READER_QOS)
-            self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_diagnostics, DIAGNOSTICS_QOS)
             self.health: dict[str, dict[str, str]] = {}
-            self.create_timer(1.0, self.look_at_nodes)
+            self.client.on_gap(lambda msg: hub.add_episode(episode_entry(msg)))
+            self.client.on_certificate(self.on_certificate)
+            self.client.on_plant(self.on_plant)
+            self.client.on_health(self.on_diagnostics)
+            self.client.node.create_timer(1.0, self.look_at_nodes)
             self.look_at_nodes()
 
-        def on_report(self, msg: GapReport | Certificate) -> None:
-            """A report of this run (RunReports), or any report while unverified."""
-            if isinstance(msg, Certificate):
-                hub.set("certificate", certificate_entry(msg) | {"verified": self.reports.mark(msg) or "yes"})
-            else:
-                hub.add_episode(episode_entry(msg))
+        def on_certificate(self, msg: Certificate) -> None:
+            """The run's certificate (any run's, marked so, while unverified)."""
+            hub.set("certificate", certificate_entry(msg) | {"verified": self.client.mark(msg) or "yes"})
 
         def on_plant(self, msg: PlantDescription) -> None:
-            if self.reports.verified:
-                try:
-                    self.reports.seal.check(msg, "a plant description")
-                except SealError:
-                    return  # another run's plant, under another key
             hub.set("plant", {"task": msg.task, "seed": int(msg.seed), "horizon": int(msg.horizon)})
 
         def on_diagnostics(self, msg: DiagnosticArray) -> None:
@@ -242,27 +228,27 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
             hub.set("health", dict(self.health))
 
         def look_at_nodes(self) -> None:
-            ns = self.get_namespace()
-            present = {name for name, namespace in self.get_node_names_and_namespaces() if namespace == ns}
+            node = self.client.node
+            ns = node.get_namespace()
+            present = {name for name, namespace in node.get_node_names_and_namespaces() if namespace == ns}
             others = sorted(
-                n for n in present if n.startswith("npp_") and n not in GRAPH_NODES and n != self.get_name()
+                n for n in present if n.startswith("npp_") and n not in GRAPH_NODES and n != node.get_name()
             )
             nodes = [{"name": n, "alive": n in present, "role": "graph"} for n in GRAPH_NODES]
             nodes += [{"name": n, "alive": True, "role": "tool"} for n in others]
             hub.set("nodes", nodes)
 
-    rclpy.init(args=["npp-dashboard", *ros_args])
-    node: Node | None = None
-    executor = SingleThreadedExecutor()
+    dashboard: Dashboard | None = None
     try:
-        node = DashboardNode()
-        executor.add_node(node)
+        dashboard = Dashboard()
         serve()
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
         pass
     finally:
-        release(executor, node)
+        if dashboard is not None:
+            dashboard.client.close()
 
 
 # ----------------------------------------------------------------------------- HTTP

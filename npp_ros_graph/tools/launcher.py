@@ -16,26 +16,21 @@ within the first seconds after the start stops this run with the same reason.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import os
 import re
 import shlex
 import signal
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable
 from contextlib import suppress
 from datetime import datetime
 from pathlib import Path
 from typing import IO
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from npp_interfaces.msg import Certificate, GapReport
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 
 from npp_ros.certificate.certifier import STOPPING_RULES
 from npp_ros.cli.args import TASK_HELP, ListTasks, task_name
@@ -45,18 +40,17 @@ from npp_ros.run.records import RunFileError
 from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import WriterLock
 from npp_ros.tasks.registry import by_task, get_task
-from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_HELP, STOP_MODES
+from npp_ros_graph.client import GraphClient, child_setup, default_run_dir
 from npp_ros_graph.graph.description import graph_parameters, node_argv
-from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, WARN, health_of
-from npp_ros_graph.runtime.node import node_name, publishers_of, release
-from npp_ros_graph.runtime.reports import RunReports
+from npp_ros_graph.runtime.diagnostics import WARN, health_of
+from npp_ros_graph.runtime.node import node_name, publishers_of
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
 from npp_ros_graph.transport.parameters import task_or_number_value
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
-from npp_ros_graph.transport.topics import CERTIFICATE, GAP, LATCHED_READER_QOS, PLANT, REPORT_QOS
+from npp_ros_graph.transport.topics import GAP, PLANT
 
 DISCOVERY_S = 2.0  # listened for before starting: discovery on one machine takes well under a second
 SECOND_GRAPH_WINDOW_S = 30.0  # a second graph seen this soon after the start stops this run
@@ -126,16 +120,20 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
-class Follower(Node):
+class Follower:
+    """npp-run's view of its run, through a GraphClient: a progress line per gap report, the certificate that
+    ends the run, and what a node waits for or failed at."""
+
     def __init__(self) -> None:
-        super().__init__("npp_run")
         self.last: GapReport | None = None
         self.certificate: Certificate | None = None
+        self.certified = threading.Event()
         # Only this run's reports: main() has set the run's key, and the run's supervisor names its run.
-        self.reports = RunReports(self, self.on_report, lambda line: say(f"\nnpp-run: {line}"))
-        self.create_subscription(GapReport, GAP, self.reports.take, REPORT_QOS)
-        self.create_subscription(Certificate, CERTIFICATE, self.reports.take, LATCHED_READER_QOS)
-        self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_health, DIAGNOSTICS_QOS)
+        self.client = GraphClient(name="npp_run", past_reports=False)
+        self.client.on_gap(self.on_report)
+        self.client.on_certificate(self.on_report)
+        self.client.on_health(self.on_health)
+        self.client.on_notice(lambda line: say(f"\nnpp-run: {line}"))
         self.tty = sys.stderr.isatty()
         self._printed = 0.0
         self._worried: dict[str, str] = {}  # node -> what it last warned of, while it does
@@ -158,6 +156,7 @@ class Follower(Node):
         """A report of this run (RunReports): the progress line, or the certificate that ends the run."""
         if isinstance(msg, Certificate):
             self.certificate = msg
+            self.certified.set()
             return
         self.last = msg
         now = time.monotonic()
@@ -174,13 +173,14 @@ class Follower(Node):
         ``ours`` is how many of those publishers this run owns on each topic: 0 before its nodes start,
         1 after. Two graphs on one domain answer each other's service calls, so either is refused.
         """
+        node = self.client.node
         found = []
         for topic in GRAPH_TOPICS:
-            if self.count_publishers(topic) > ours:
-                found.append(f"/{topic} is published by {publishers_of(self, topic)}")
+            if node.count_publishers(topic) > ours:
+                found.append(f"/{topic} is published by {publishers_of(node, topic)}")
         if not found:
             return None
-        names = [node_name(ns, n) for n, ns in self.get_node_names_and_namespaces() if n.startswith("npp_")]
+        names = [node_name(ns, n) for n, ns in node.get_node_names_and_namespaces() if n.startswith("npp_")]
         seen = ", ".join(f"{n} x{names.count(n)}" if names.count(n) > 1 else n for n in sorted(set(names)))
         return f"{'; '.join(found)} (npp nodes on the domain: {seen})"
 
@@ -213,37 +213,6 @@ def _raise_stopped(signum: int, _frame: object) -> None:
 
 def _ignore_further(signum: int, _frame: object) -> None:
     """While the nodes are being stopped, a second SIGHUP or SIGTERM must not cut the shutdown short."""
-
-
-_PR_SET_PDEATHSIG = 1
-_prctl: Callable[..., int] | None = None
-
-
-def _load_prctl() -> None:
-    """Loaded in npp-run itself: a child between fork and exec must not load libraries."""
-    global _prctl
-    if _prctl is None and sys.platform.startswith("linux"):
-        _prctl = ctypes.CDLL(None, use_errno=True).prctl
-
-
-def child_setup(parent: int) -> Callable[[], None]:
-    """What each child runs before exec: it dies with npp-run, however npp-run ends.
-
-    SIGINT is restored (started from a background job, a child would inherit an ignored SIGINT and
-    never stop). PR_SET_PDEATHSIG has the kernel send SIGTERM to the child when npp-run dies, even by
-    SIGKILL, which no handler in npp-run can catch; rclpy turns SIGTERM into a clean shutdown. If npp-run
-    died before the call, the child is already orphaned and stops itself.
-    """
-    _load_prctl()
-
-    def setup() -> None:
-        signal.signal(signal.SIGINT, signal.SIG_DFL)
-        if _prctl is not None:
-            _prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
-            if os.getppid() != parent:
-                os.kill(os.getpid(), signal.SIGTERM)
-
-    return setup
 
 
 def stop_all(procs: dict[str, subprocess.Popen]) -> None:
@@ -352,7 +321,7 @@ def _stopped(pid: int) -> bool:
 # --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    run_dir = (args.run_dir or Path("runs") / f"graph-{short_name(args.task)}-seed{args.seed}").resolve()
+    run_dir = (args.run_dir or default_run_dir(args.task, args.seed)).resolve()
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     in_use = folder_in_use(run_dir)
     if in_use is not None:  # before any node: a second graph would only be refused by its supervisor
@@ -381,17 +350,11 @@ def main(argv: list[str] | None = None) -> int:
     procs: dict[str, subprocess.Popen] = {}
     extras: dict[str, subprocess.Popen] = {}  # started first and stopped last, so that they see the whole run
     follower: Follower | None = None
-    executor: SingleThreadedExecutor | None = None
     code = 0
     try:
         # SIGINT stays Python's (KeyboardInterrupt); SIGTERM and SIGHUP raise Stopped.
-        rclpy.init(args=["npp-run"], signal_handler_options=SignalHandlerOptions.NO)
         follower = Follower()
-        executor = SingleThreadedExecutor()
-        executor.add_node(follower)
-        deadline = time.monotonic() + DISCOVERY_S
-        while time.monotonic() < deadline:  # time for discovery: is another graph on this domain?
-            executor.spin_once(timeout_sec=0.1)
+        time.sleep(DISCOVERY_S)  # time for discovery: is another graph on this domain?
         other = follower.other_graph(ours=0)
         if other is not None:
             say(f"npp-run: another graph is running on {where()}: {other}; not starting. {TWO_GRAPHS}")
@@ -407,11 +370,9 @@ def main(argv: list[str] | None = None) -> int:
                 procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=setup)
                 log.write(f"{LOG_HEADER} {datetime.now().isoformat(timespec='seconds')}: pid {procs[name].pid}\n")
         say(f"npp-run: started sim, expert, policy, supervisor on {where()} (logs in {run_dir / 'logs'})")
-        code = follow(follower, executor, procs, run_dir, args.max_episodes)
+        code = follow(follower, procs, run_dir, args.max_episodes)
     except KeyboardInterrupt:
         say("\nnpp-run: interrupted; stopping the nodes (the run resumes from its folder)")
-        code = 130
-    except ExternalShutdownException:
         code = 130
     except Stopped as exc:
         say(f"\nnpp-run: {exc} received; stopping the nodes (the run resumes from its folder)")
@@ -427,24 +388,21 @@ def main(argv: list[str] | None = None) -> int:
                 with suppress(OSError):
                     print(("\n" if follower.tty else "") + certificate_line(follower.certificate))
                     print(f"run folder: {run_dir}")
-        release(executor, follower)
+        if follower is not None:
+            follower.client.close()
         stop_all({name: proc for name, proc in procs.items() if name not in extras})
         stop_all(extras)
     return code
 
 
-def follow(
-    follower: Follower, executor: SingleThreadedExecutor, procs: dict[str, subprocess.Popen], run_dir: Path,
-    max_episodes: int,
-) -> int:  # fmt: skip
-    """Spin until the certificate, the episode budget, a dead node or a second graph; the exit code."""
+def follow(follower: Follower, procs: dict[str, subprocess.Popen], run_dir: Path, max_episodes: int) -> int:
+    """Watch until the certificate, the episode budget, a dead node or a second graph; the exit code."""
     started = time.monotonic()
     budget_reached_at: float | None = None
     checked = 0.0
     warned: str | None = None
     stalls = StallWatch(procs)
-    while follower.certificate is None:
-        executor.spin_once(timeout_sec=0.1)
+    while not follower.certified.wait(0.1):
         dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
         if dead:
             for name, rc in dead.items():

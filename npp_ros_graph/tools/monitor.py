@@ -15,21 +15,20 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import sys
 import threading
 import time
 from pathlib import Path
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from npp_interfaces.msg import Certificate, EpisodeResult, GapReport
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
 
-from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_lines
-from npp_ros_graph.runtime.node import leave_if_teardown_hangs, release
-from npp_ros_graph.runtime.reports import UNVERIFIED, RunReports, report_origin
-from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_READER_QOS, REPORT_QOS
+from npp_ros_graph.client import GraphClient
+from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, health_lines
+from npp_ros_graph.runtime.node import leave_if_teardown_hangs
+from npp_ros_graph.runtime.reports import UNVERIFIED, report_origin
+from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP
 
 TOPICS = {"gap": GAP, "episode": EPISODE, "health": DIAGNOSTICS.lstrip("/")}  # --topics; the certificate always
 FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
@@ -71,26 +70,28 @@ def certificate_line(msg: Certificate) -> str:
     )
 
 
-class MonitorNode(Node):
-    def __init__(self, topics: set[str], exit_on_certificate: bool) -> None:
-        super().__init__("npp_monitor")
+class Monitor:
+    """npp-monitor's lines, from a GraphClient that follows the live run (new reports only, as they come)."""
+
+    def __init__(self, topics: set[str], exit_on_certificate: bool, ros_args: list[str]) -> None:
         self.exit_on_certificate = exit_on_certificate
-        self.certified = False
+        self.certified = threading.Event()
         self.leaving: threading.Timer | None = None
         self.topics = [TOPICS[name] for name in TOPICS if name in topics] + [CERTIFICATE]
         self.last_message = self.last_notice = time.monotonic()
         self.notices = 0
-        self.reports = RunReports(self, self.show, lambda line: say(f"npp-monitor: {line}"))
         self.unverified_run: str | None = None  # the run the unverified reports shown last name
-        if "gap" in topics:
-            self.create_subscription(GapReport, GAP, self.reports.take, REPORT_QOS)
-        if "episode" in topics:
-            self.create_subscription(EpisodeResult, EPISODE, self.reports.take, REPORT_QOS)
-        self.create_subscription(Certificate, CERTIFICATE, self.reports.take, LATCHED_READER_QOS)
         self._health_shown: dict[str, str] = {}  # each node's /diagnostics line, printed when it changes
+        self.client = GraphClient(name="npp_monitor", past_reports=False, ros_args=ros_args)
+        self.client.on_notice(lambda line: say(f"npp-monitor: {line}"))
+        if "gap" in topics:
+            self.client.on_gap(self.show)
+        if "episode" in topics:
+            self.client.on_episode(self.show)
+        self.client.on_certificate(self.show)
         if "health" in topics:
-            self.create_subscription(DiagnosticArray, DIAGNOSTICS, self.on_diagnostics, DIAGNOSTICS_QOS)
-        self.create_timer(1.0, self.notice_if_silent)
+            self.client.on_health(self.on_diagnostics)
+        self.client.node.create_timer(1.0, self.notice_if_silent)
 
     def show(self, msg: GapReport | EpisodeResult | Certificate) -> None:
         """A report to print (RunReports: this run's, or any while unverified, then marked so).
@@ -99,7 +100,7 @@ class MonitorNode(Node):
         too; the report lines themselves stay as `--bag` prints them.
         """
         self.last_message = time.monotonic()
-        mark = self.reports.mark(msg)
+        mark = self.client.mark(msg)
         if mark:
             origin = report_origin(msg)
             run = origin[1][:12] if origin else "none"
@@ -109,7 +110,7 @@ class MonitorNode(Node):
                       "replayed bag, may have sent them", flush=True)  # fmt: skip
         if isinstance(msg, Certificate):
             print(certificate_line(msg) + (f"\n              {mark}" if mark else ""), flush=True)
-            self.certified = True
+            self.certified.set()
             if self.exit_on_certificate:  # from here on, the exit is due
                 self.start_leaving()
             return
@@ -136,13 +137,15 @@ class MonitorNode(Node):
         print(f"npp-monitor: {self.waiting_line(now - self.last_message)}", file=sys.stderr, flush=True)
 
     def waiting_line(self, silent_s: float) -> str:
-        publishers = ", ".join(f"/{t} {self.count_publishers(t)}" for t in self.topics)
+        node = self.client.node
+        publishers = ", ".join(f"/{t} {node.count_publishers(t)}" for t in self.topics)
         nodes = sorted(
-            f"{ns.rstrip('/')}/{n}" for n, ns in self.get_node_names_and_namespaces() if n.startswith("npp_")
+            f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces() if n.startswith("npp_")
         )
         others = [n for n in nodes if n != "/npp_monitor"]
         seen = ", ".join(others) if others else "none (no graph on this domain, or not discoverable from here)"
-        held = self.reports.waiting() or ("" if self.reports.verified else f"Reports will be shown {UNVERIFIED}")
+        unverified = "" if self.client.verified else f"Reports will be shown {UNVERIFIED}"
+        held = self.client.reports_of_run.waiting() or unverified
         return (
             f"nothing received for {silent_s:.0f} s; waiting for {', '.join('/' + t for t in self.topics)} "
             f"on {listening_on()}. Publishers: {publishers}. npp nodes seen: {seen}" + (f". {held}" if held else "")
@@ -203,18 +206,21 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(own)
     if args.bag:
         return print_bag(args.bag, args.topics)
-    rclpy.init(args=["npp-monitor", *ros_args])
-    node = MonitorNode(args.topics, args.exit_on_certificate)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
+    # Ctrl-C and SIGTERM stop it, the client leaving in order, even when started in the background (where
+    # SIGINT comes in ignored).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    monitor: Monitor | None = None
     try:
-        while rclpy.ok() and not (args.exit_on_certificate and node.certified):
-            executor.spin_once(timeout_sec=0.2)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        monitor = Monitor(args.topics, args.exit_on_certificate, ros_args)
+        while not (args.exit_on_certificate and monitor.certified.is_set()):
+            time.sleep(0.2)
+    except KeyboardInterrupt:
         pass
     finally:
-        node.start_leaving()
-        release(executor, node)
+        if monitor is not None:
+            monitor.start_leaving()
+            monitor.client.close()
     return 0
 
 

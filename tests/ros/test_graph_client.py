@@ -1,0 +1,48 @@
+"""GraphClient against real graphs: docs/tutorials/graph-client.md runs as written (start, ask the expert, join,
+follow gaps and episodes, the certificate, the stop, on lqr_2_1 with 50-step episodes), and a start npp-run
+refuses raises its reason."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from npp_ros_graph.client import GraphClient, GraphError
+from npp_ros_graph.transport.seal import KEY_ENV
+
+PAGE = Path(__file__).resolve().parents[2] / "docs" / "tutorials" / "graph-client.md"
+
+
+def test_the_graph_client_tutorial_runs_as_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], ros_domain: int
+) -> None:
+    blocks = re.findall(r"```python\n(.*?)```", PAGE.read_text(), flags=re.S)
+    assert len(blocks) == 5
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv(KEY_ENV, raising=False)
+    namespace: dict[str, object] = {}
+    try:
+        for block in blocks:
+            exec(compile(block, str(PAGE), "exec"), namespace)  # the page's own code, on the session's domain
+    finally:
+        for name in ("watcher", "client"):  # a failed block leaves no graph behind
+            if isinstance(namespace.get(name), GraphClient):
+                namespace[name].stop()  # type: ignore[union-attr]
+    out = capsys.readouterr().out
+    # What the page says it prints.
+    assert "lqr_2_1 50 4 1" in out
+    assert "5 [47.07, 47.1, 47.12, 47.14, 47.16] 4.89" in out
+    assert "the expert was asked in episodes [0, 1, 2]..." in out
+    assert "True 100.0 With probability at least 0.9" in out
+    assert "True True" in out
+    assert "['/npp_expert', '/npp_policy', '/npp_sim', '/npp_supervisor']" in out
+    assert namespace["code"] == 0
+    assert (tmp_path / "runs" / "client-lqr_2_1" / "run.sqlite").is_file()
+    assert "npp-run: started" in (tmp_path / "runs" / "client-lqr_2_1" / "logs" / "npp-run.log").read_text()
+
+
+def test_a_start_npp_run_refuses_raises_its_reason(tmp_path: Path, ros_domain: int) -> None:
+    with pytest.raises(GraphError, match=r"unrecognized arguments: --epsilonn 3"):
+        GraphClient.start("lqr_2_1", run_dir=tmp_path / "run", epsilonn=3)
