@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from npp_ros.certificate.choices import DATA_ANSWERS, DATA_FACTOR
-from npp_ros.cli import experiment, learn
+from npp_ros.cli import bench, experiment, learn
 from npp_ros.experiment.arms import default_arms
 from npp_ros.policy.dataset import Dataset
 from npp_ros.policy.lipschitz import estimate_global
@@ -127,3 +127,10 @@ def test_help_says_where_task_file_values_come_from(command: object) -> None:
     text = " ".join(command().format_help().split())  # type: ignore[operator]
     for key in ("key horizon", "key epsilon", "key lipschitz", "key certify", "[expert] time_budget"):
         assert key in text, key
+
+
+def test_npp_bench_help_says_which_task_file_values_it_uses(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "a task file's [expert] keys" in text and "a task file's key horizon is not used here" in text

@@ -79,9 +79,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             "on real LQR expert trajectories; exactness is checked on every run. With --experts, also the experts "
             "of pendulum_swingup and cartpole_swingup, or of any task (--expert-tasks, task files too): seconds per "
             "H-step trajectory (median, quartiles, range) from s0 ~ rho with each task's default options and time "
-            "budget, where the time goes, and how many answers met the task's success criterion (check an expert "
-            "before a long run: a certificate is relative to it); --only experts measures just that (minutes), "
-            "keeping the rest of OUT's bench.json and bench.md. Writes bench.md and bench.json."
+            "budget (a task file's [expert] keys), where the time goes, and how many answers met the task's success "
+            "criterion (check an expert before a long run: a certificate is relative to it); --only experts "
+            "measures just that (minutes), keeping the rest of OUT's bench.json and bench.md. Writes bench.md and "
+            "bench.json."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -111,7 +112,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--expert-requests", type=int, default=10, help="expert requests per task, from the s0 of episodes 0 .. N-1"
     )
-    parser.add_argument("--expert-horizon", type=int, default=1000, help="steps per expert trajectory (H)")
+    parser.add_argument(
+        "--expert-horizon",
+        type=int,
+        default=1000,
+        help="steps per expert trajectory (H), the same for every task: a task file's key horizon is not used here",
+    )
     parser.add_argument(
         "--expert-tasks",
         nargs="+",
