@@ -311,39 +311,51 @@ class GraphClient:
             pass
 
     # ------------------------------------------------------------------------- callbacks
+    # A callback is added on the client's thread, which delivers every message: the messages received before
+    # it was added (the kept reports, the plant) are handed to it first, so that it misses and repeats none.
     def on_gap(self, callback: Callable[[GapReport], None]) -> None:
         """Call ``callback`` with each of this run's gap reports (one per episode), on the client's thread."""
-        self._callbacks.setdefault(GapReport, []).append(callback)
+        self._add(GapReport, callback)
 
     def on_episode(self, callback: Callable[[EpisodeResult], None]) -> None:
         """Call ``callback`` with each of this run's episode results, on the client's thread."""
-        self._callbacks.setdefault(EpisodeResult, []).append(callback)
+        self._add(EpisodeResult, callback)
 
     def on_certificate(self, callback: Callable[[Certificate], None]) -> None:
-        """Call ``callback`` with the run's certificate once it is issued, on the client's thread (at once, on the
-        caller's, when it is already here: it is issued once)."""
-        self._callbacks.setdefault(Certificate, []).append(callback)
-        if self._certificate is not None:
-            callback(self._certificate)
+        """Call ``callback`` with the run's certificate once it is issued, on the client's thread."""
+        self._add(Certificate, callback)
 
     def on_health(self, callback: Callable[[DiagnosticArray], None]) -> None:
-        """Call ``callback`` with each /diagnostics message (every node's health; ``health`` reads them)."""
-        self._callbacks.setdefault(DiagnosticArray, []).append(callback)
+        """Call ``callback`` with each /diagnostics message from now on (``health`` holds each node's latest)."""
+        self._add(DiagnosticArray, callback)
 
     def on_plant(self, callback: Callable[[PlantDescription], None]) -> None:
         """Call ``callback`` with the sim's plant description (this run's key's, when the client has a key)."""
-        self._callbacks.setdefault(PlantDescription, []).append(callback)
+        self._add(PlantDescription, callback)
 
     def on_notice(self, callback: Callable[[str], None]) -> None:
         """Call ``callback`` with a line for each other run whose reports are left out (see runtime/reports.py)."""
         self._notices.append(callback)
 
+    def _add(self, kind: type, callback: Callable[[Any], None]) -> None:
+        def add() -> None:
+            earlier = [self._plant] if kind is PlantDescription and self._plant is not None else []
+            earlier += [msg for msg in self._kept if isinstance(msg, kind)]
+            for msg in earlier:
+                self._deliver(callback, msg)
+            self._callbacks.setdefault(kind, []).append(callback)
+
+        self._executor.create_task(add)
+
     def _call(self, msg: Any) -> None:
         for callback in list(self._callbacks.get(type(msg), ())):
-            try:
-                callback(msg)
-            except Exception as exc:  # a caller's bug must not stop the client's thread
-                self.node.get_logger().error(f"a {type(msg).__name__} callback failed: {type(exc).__name__}: {exc}")
+            self._deliver(callback, msg)
+
+    def _deliver(self, callback: Callable[[Any], None], msg: Any) -> None:
+        try:
+            callback(msg)
+        except Exception as exc:  # a caller's bug must not stop the client's thread
+            self.node.get_logger().error(f"a {type(msg).__name__} callback failed: {type(exc).__name__}: {exc}")
 
     def _on_report(self, msg: Report) -> None:
         with self._cond:
