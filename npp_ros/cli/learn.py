@@ -68,8 +68,9 @@ def parser() -> argparse.ArgumentParser:
         choices=CERTIFY_MODES,
         default=None,
         help="what each episode checks: rollout (V_ub + tail - the policy's own return; sound when L bounds the "
-        "value's slope), oracle (the expert's return - the policy's; needs no L, relative to the expert) or "
-        "surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4). Default: the task's "
+        "value's slope), oracle (the expert's return - the policy's; the check needs no L, though the policy "
+        "chooses with one; relative to the expert) or surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4). "
+        "Default: the task's "
         f"({by_task('default_certify')}; oracle where the expert is suboptimal; a task file's key certify)",
     )
     ap.add_argument(
