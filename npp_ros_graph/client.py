@@ -205,9 +205,9 @@ class GraphClient:
 
         ``options`` are npp-run's (horizon=50, epsilon=10, max_episodes=200, policy="open-loop", record=True...).
         ``key``: the run's key, which a client that joins the run needs (None: NPP_RUN_KEY's, else a fresh one
-        that only this client and the nodes know). npp-run's
-        own output goes to RUN_DIR/logs/npp-run.log. Raises GraphError with npp-run's reason when it refuses
-        (a run folder in use, another graph on the domain, a bad option).
+        that only this client and the nodes know). npp-run's own output goes to RUN_DIR/logs/npp-run.log.
+        Raises GraphError with npp-run's reason when it refuses (a run folder in use, another graph on the
+        domain, a bad option). Like npp-run, it sets ROS_AUTOMATIC_DISCOVERY_RANGE to LOCALHOST where unset.
         """
         folder = Path(run_dir) if run_dir is not None else default_run_dir(task, seed)
         folder = folder.resolve()

@@ -34,6 +34,7 @@ def test_the_graph_client_tutorial_runs_as_written(
     # What the page says it prints.
     assert "lqr_2_1 50 4 1" in out
     assert "5 [47.07, 47.1, 47.12, 47.14, 47.16] 4.89" in out
+    assert "the expert refused the request: state has 2 entries, expected 4 (qpos then qvel of 2 joints" in out
     assert "the expert was asked in episodes [0, 1, 2]..." in out
     assert "True 100.0 With probability at least 0.9" in out
     assert "True True" in out
