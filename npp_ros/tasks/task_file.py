@@ -32,6 +32,8 @@ describes every key. In short::
     stop = "iterations"            # or "time": iLQR within time_budget, fewer iterations on a loaded machine
     time_budget = 60.0             # s per request: under "iterations" a guard against a runaway request
     warm_start = "zero"
+    planner = "ilqr"               # or "receding", "sampling": windows first (npp_ros.trajopt.receding: window,
+                                   # commit, window_iterations, restarts; samples, knots, noise, sample_rounds)
 
     [success]                      # optional: when an episode did the task (npp_ros.tasks.task_file_success)
     distance = ["fingertip", "target"]   # or joint = NAME, or site = NAME with axis = "x", "y" or "z"
@@ -77,7 +79,8 @@ from npp_ros.tasks.task_file_cost import TermCost
 from npp_ros.tasks.task_file_reader import TaskFileError as TaskFileError  # re-exported: what a bad file raises
 from npp_ros.tasks.task_file_schema import DEFAULT_MAX_ITERATIONS, HASH_MARK, TaskDefinition, parse
 from npp_ros.tasks.task_file_terms import TermReward
-from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
+from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES
+from npp_ros.trajopt.receding import PlannerSettings, PlanningExpert
 
 FINGERPRINT_FIELDS = (
     "opt.timestep", "opt.gravity", "opt.integrator", "opt.wind", "opt.density", "opt.viscosity", "dof_damping",
@@ -119,8 +122,13 @@ class FilePlant(SuitePlant):
         self.steps = 0
 
 
-class FileExpert(OptimizingExpert):
-    """The iLQR expert on the file's model, its smooth cost from the file's terms, warm-started at u = 0."""
+class FileExpert(PlanningExpert):
+    """The iLQR expert on the file's model, its smooth cost from the file's terms, warm-started at u = 0.
+
+    ``[expert] planner`` (npp_ros.trajopt.receding) plans each request by receding-horizon windows
+    before the iLQR over the whole horizon; a plan that misses the file's ``[success]`` is made again
+    (``restarts``). The default, ``"ilqr"``, is that iLQR alone from u = 0.
+    """
 
     def __init__(
         self,
@@ -134,18 +142,21 @@ class FileExpert(OptimizingExpert):
     ) -> None:
         plant = FilePlant(definition, seed)
         zero = np.zeros(plant.action_dim)
+        success = definition.success
         super().__init__(
             plant,
             TermCost(definition.cost_terms, plant.physics.model.ptr, definition.expert),
             lambda _x: zero,
             definition.represent,
+            settings=definition.expert.get("planner", PlannerSettings()),
+            seed=seed,
+            judge=None if success is None else lambda raw: success.met(definition.represent(raw)),
             horizon=definition.horizon if horizon is None else horizon,
             time_budget=time_budget,
             max_iterations=max_iterations,
             values=values,
             stop=stop,
         )
-        self.seed = int(seed)
         self.task = definition.name
         self.reward_lipschitz_detail = "not computed for a task file's reward"
 

@@ -31,12 +31,13 @@ from npp_ros.tasks.task_file_success import read_success
 from npp_ros.tasks.task_file_terms import FunctionReward, Term, TermReward, read_reward, read_terms
 from npp_ros.trajopt.expert import DEFAULT_VALUES, STOP_MODES, VALUE_MODES
 from npp_ros.trajopt.ilqr import check_time_budget
+from npp_ros.trajopt.receding import DEFAULT_PLANNER, PLANNER_KEYS, PlannerSettings, SettingError
 
 HASH_MARK = "#sha256="  # a task file's name: its absolute path, this, and its content's SHA-256
 TOP_KEYS = {"name", "model", "control_timestep", "horizon", "epsilon", "lipschitz", "certify", "actuators", "state",
             "rho", "reward", "expert", "success"}  # fmt: skip
 EXPERT_KEYS = {"max_iterations", "time_budget", "stop", "values", "warm_start", "control_weight", "velocity_weight",
-               "terms"}  # fmt: skip
+               "terms", *PLANNER_KEYS}  # fmt: skip
 WARM_STARTS = ("zero",)
 DEFAULT_CERTIFY = "oracle"  # the check of every task with an iLQR expert (OptimizerTask)
 # iLQR iterations per request of a task file's expert. Measured on examples/two_link_arm under the earlier 5 s budget
@@ -153,6 +154,21 @@ def _run_defaults(reader: Reader, doc: dict[str, Any]) -> tuple[int, float | Non
     return horizon, epsilon, lipschitz, certify
 
 
+def _read_planner(reader: Reader, expert: dict[str, Any]) -> PlannerSettings:
+    """The planner keys of ``[expert]`` (npp_ros.trajopt.receding), each only where the chosen planner uses it."""
+    given = {key: expert[key] for key in PLANNER_KEYS if key in expert}
+    planner = given.get("planner", DEFAULT_PLANNER)
+    try:
+        settings = PlannerSettings(**given)
+    except SettingError as exc:
+        raise reader.fail(f"expert.{exc.key}", exc.problem) from None
+    for key in given:
+        if planner not in PlannerSettings.planners_using(key):
+            users = " or ".join(f'"{name}"' for name in PlannerSettings.planners_using(key))
+            raise reader.fail(f"expert.{key}", f'applies to planner = {users}, not "{planner}"')
+    return settings
+
+
 def _read_expert(
     reader: Reader, doc: dict[str, Any], model: Any, reward: TermReward | FunctionReward
 ) -> tuple[dict[str, Any], tuple[Term, ...]]:
@@ -179,6 +195,7 @@ def _read_expert(
         raise reader.fail("expert.warm_start", f"must be one of {', '.join(WARM_STARTS)}")
     for key, default in (("control_weight", DEFAULT_CONTROL_WEIGHT), ("velocity_weight", DEFAULT_VELOCITY_WEIGHT)):
         options[key] = reader.non_negative(expert.get(key, default), f"expert.{key}")
+    options["planner"] = _read_planner(reader, expert)
     if "terms" in expert:
         return options, read_terms(reader, expert["terms"], "expert.terms", model, True)
     if isinstance(reward, TermReward):
