@@ -61,7 +61,8 @@ def reduced_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_bad_options_get_a_clear_error(tmp_path: Path) -> None:
     run = subprocess.run([*EXPERIMENT, "--lipschitz", "huge", "--out", str(tmp_path)], capture_output=True, text=True)
-    assert run.returncode == 2 and "L setting must be one of paper, analytic, data or a number > 0, got 'huge'" in run.stderr
+    expected = "L setting must be one of paper, analytic, data or a number > 0, got 'huge'"
+    assert run.returncode == 2 and expected in run.stderr
     run = subprocess.run([*EXPERIMENT, "--p", "1.2", "--out", str(tmp_path)], capture_output=True, text=True)
     assert run.returncode == 2 and "p and delta must lie in (0, 1)" in run.stderr
 
