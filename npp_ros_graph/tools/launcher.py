@@ -57,6 +57,8 @@ SECOND_GRAPH_WINDOW_S = 30.0  # a second graph seen this soon after the start st
 GRAPH_TOPICS = (PLANT, GAP)  # one publisher each per graph: its sim and its supervisor
 LOG_HEADER = "==== npp-run: this start of the node at"
 STALL_NOTICE_S = 2.0  # a node stopped this long is named
+STOP_NOTICE_S = 5.0  # a stop that takes longer names the node it waits for
+STOP_GRACE_S = 60.0  # a node's ordered teardown; on a 2-core machine at load 15-20 one took over 15 s
 TWO_GRAPHS = (
     "Two graphs on one domain answer each other's service calls (their seals keep their data apart, at the cost "
     "of retries): stop the other one, or give this run its own domain (--domain-id N)"
@@ -216,15 +218,23 @@ def _ignore_further(signum: int, _frame: object) -> None:
 
 
 def stop_all(procs: dict[str, subprocess.Popen]) -> None:
+    """SIGINT to every node still running, and SIGCONT, so that a paused one (SIGSTOP, a debugger) can take it;
+    then up to STOP_GRACE_S for their ordered teardowns, saying which node is waited for; one still running
+    after that is killed, named. A killed node loses nothing: the run file is written transaction by transaction."""
     for proc in procs.values():
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)
-    deadline = time.monotonic() + 15
+            proc.send_signal(signal.SIGCONT)
+    start = time.monotonic()
     for name, proc in procs.items():
+        with suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=max(start + STOP_NOTICE_S - time.monotonic(), 0.0))
+        if proc.poll() is None:
+            say(f"npp-run: waiting for {name} to stop (up to {STOP_GRACE_S:.0f} s)")
         try:
-            proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
+            proc.wait(timeout=max(start + STOP_GRACE_S - time.monotonic(), 0.1))
         except subprocess.TimeoutExpired:
-            say(f"npp-run: {name} did not stop on SIGINT; killing it")
+            say(f"npp-run: {name} did not stop on SIGINT within {STOP_GRACE_S:.0f} s; killing it")
             proc.kill()
             proc.wait()
 
