@@ -131,17 +131,6 @@ class RunSeal:
             raise self._fail(what, tag)
         return context
 
-    def shows(self, msg: Any) -> bool:
-        """For viewers of a run's reports (npp-run, npp-monitor, npp-dashboard): given the run's key, only
-        that run's reports; without a key nothing can be verified, so every report is shown."""
-        if not self.private:
-            return True
-        try:
-            self.check_header(msg, "a report")
-        except SealError:
-            return False
-        return True
-
 
 _FIELDS: dict[type, tuple[str, ...]] = {}  # a message class's field names, in declaration order
 
