@@ -1,4 +1,4 @@
-"""dm_control's acrobot swing-up as a task registered through the plug-in path, with an iLQR expert.
+"""dm_control's acrobot swing-up, a built-in task with a receding-horizon iLQR expert.
 
 Task (``suite.load("acrobot", "swingup")``): two links hanging from a shoulder hinge, one motor at
 the elbow (gear 2, u in [-1, 1]): underactuated. One control step is one RK4 MuJoCo step of 0.01 s;
@@ -7,11 +7,13 @@ the tip to the target above the shoulder, within 0.2, Gaussian margin 1). s0 ~ r
 both angles uniform in [-pi, pi), at rest. Stored state: [shoulder, elbow] wrapped to (-pi, pi],
 then their rates.
 
-It is registered as an entry point of npp_ros's own package (pyproject.toml, group npp_ros.tasks),
-the path any plug-in takes. Its expert plans by receding-horizon iLQR (short windows, each started
-from where the committed actions left the plant) on an energy-shaping surrogate, tries other plans
-(an energy-pumping controller swinging first, longer windows with more iterations) when the first
-does not hold the acrobot up, then polishes the plan with a few iLQR iterations over the whole
+It is in the registry's table (npp_ros.tasks.registry.REGISTRY) like every built-in task, and also
+declared as an entry point of npp_ros's own package (pyproject.toml, group npp_ros.tasks), the way a
+plug-in declares its tasks; the registry counts the two as one task. Its expert plans by receding-
+horizon iLQR (short windows, each started from where the committed actions left the plant) on an
+energy-shaping surrogate, tries other plans (an energy-pumping controller swinging first, longer
+windows with more iterations) when the first does not hold the acrobot up, then polishes the plan
+with a few iLQR iterations over the whole
 horizon. One iLQR over the whole horizon from u = 0 does not swing the acrobot up (its derivatives
 through 10 s of a chaotic swing lead nowhere); short windows often do. A local optimiser, so claims
 are relative to its own returns (oracle mode).
