@@ -13,8 +13,8 @@ plug-in declares its tasks; the registry counts the two as one task. Its expert 
 horizon iLQR (short windows, each started from where the committed actions left the plant) on an
 energy-shaping surrogate, tries other plans (an energy-pumping controller swinging first, longer
 windows with more iterations) when the first does not hold the acrobot up, then polishes the plan
-with a few iLQR iterations over the whole
-horizon. One iLQR over the whole horizon from u = 0 does not swing the acrobot up (its derivatives
+with a few iLQR iterations over the whole horizon.
+One iLQR over the whole horizon from u = 0 does not swing the acrobot up (its derivatives
 through 10 s of a chaotic swing lead nowhere); short windows often do. A local optimiser, so claims
 are relative to its own returns (oracle mode).
 """
