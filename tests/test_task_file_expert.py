@@ -107,3 +107,21 @@ def test_a_planned_answer_is_the_same_bit_for_bit_and_carries_gains(acrobot_dir:
             assert np.array_equal(getattr(answers[0], field), getattr(other, field)), field
     gains = answers[0].gains
     assert gains is not None and gains.shape == (40, 1, 4) and np.isfinite(gains).all()
+
+
+def test_sampled_windows_lift_the_acrobot_higher_than_one_ilqr(acrobot_dir: Path) -> None:
+    """The acrobot example's cost and s0 at H = 300 (3 s), with a cheap sampling planner: its answer's
+    return is well above the plain expert's (one iLQR from u = 0) on the same file."""
+    returns = {}
+    for planner, keys in (
+        ("sampling", 'planner = "sampling"\nwindow = 100\ncommit = 10\nsamples = 16\nnoise = 0.5\n'
+                     "window_iterations = 3\nrestarts = 0\nmax_iterations = 5"),
+        ("ilqr", ""),
+    ):  # fmt: skip
+        folder = acrobot_dir / planner
+        folder.mkdir()
+        shutil.copy(acrobot_dir / "acrobot.xml", folder / "acrobot.xml")
+        shutil.copy(acrobot_dir / "task.toml", folder / "task.toml")
+        task = get_task(str(with_expert(folder, keys)))
+        returns[planner] = task.make_expert(0, 300).trajectory(task.initial_state(0, 0)).expert_return
+    assert returns["sampling"] > returns["ilqr"] + 15.0, returns
