@@ -10,7 +10,9 @@ follow, npp_ros_graph/runtime/node.py), so every call here is synchronous with a
 the caller's thread, and nothing waits in a constructor. It has its own rclpy context on its own
 domain: closing it never shuts down a context the caller uses. Reports are shown only when they are
 this run's (npp_ros_graph/runtime/reports.py): given the run's key, the reports of the run the live
-supervisor runs; without it, every report on the domain, which ``mark`` says is not verified.
+supervisor runs; without it, every report on the domain, which ``mark`` says is not verified. It asks
+the expert through the contract an expert of any process serves (npp_ros_graph/transport/expert_api.py),
+and checks each answer under the run's seal as the supervisor does.
 """
 
 from __future__ import annotations
@@ -43,20 +45,9 @@ from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Heal
 from npp_ros_graph.runtime.node import release
 from npp_ros_graph.runtime.reports import RunReports
 from npp_ros_graph.transport.convert import float64_array, trajectory_from_response
+from npp_ros_graph.transport.expert_api import BUSY, EXPERT_SERVICE, NOT_READY, PLANT_QOS, PLANT_TOPIC, SERVICE_QOS
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal, SealError
-from npp_ros_graph.transport.topics import (
-    BUSY,
-    CERTIFICATE,
-    EPISODE,
-    EXPERT_SERVICE,
-    GAP,
-    LATCHED_READER_QOS,
-    NOT_READY,
-    PLANT,
-    REPORT_HISTORY_QOS,
-    REPORT_QOS,
-    SERVICE_QOS,
-)
+from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_READER_QOS, REPORT_HISTORY_QOS, REPORT_QOS
 
 Report = GapReport | EpisodeResult | Certificate
 R = TypeVar("R", GapReport, EpisodeResult)
@@ -179,7 +170,7 @@ class GraphClient:
         self.node.create_subscription(GapReport, GAP, self.reports_of_run.take, report_qos)
         self.node.create_subscription(EpisodeResult, EPISODE, self.reports_of_run.take, report_qos)
         self.node.create_subscription(Certificate, CERTIFICATE, self.reports_of_run.take, LATCHED_READER_QOS)
-        self.node.create_subscription(PlantDescription, PLANT, self._on_plant, LATCHED_READER_QOS)
+        self.node.create_subscription(PlantDescription, PLANT_TOPIC, self._on_plant, PLANT_QOS)
         self.node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS_QOS)
         self._expert = self.node.create_client(ExpertTrajectory, EXPERT_SERVICE, qos_profile=SERVICE_QOS)
         self._closing = threading.Event()
