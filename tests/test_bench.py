@@ -15,6 +15,7 @@ from npp_ros.bench.report import expert_label
 from npp_ros.cli.bench import main
 from npp_ros.tasks.registry import get_task
 from npp_ros.trajopt.batch_steps import default_threads
+from npp_ros.trajopt.expert import DEFAULT_GUARD_S
 
 
 def test_quick_bench_writes_markdown_and_json_with_exactness(tmp_path: Path, capsys) -> None:
@@ -75,7 +76,9 @@ def test_only_experts_reports_each_request_and_keeps_the_rest_of_the_file(tmp_pa
     assert [t["task"] for t in experts["tasks"]] == ["pendulum_swingup", "cartpole_swingup"]
     for t in experts["tasks"]:
         assert t["horizon"] == 40 and t["requests"] == len(t["detail"]) == 2
-        assert t["options"]["time_budget_s"] == 5.0 and t["options"]["values"] == "window"  # the task's defaults
+        options = t["options"]  # the task's defaults: iterations decide, the time budget a guard
+        expected = ("iterations", DEFAULT_GUARD_S, "window")
+        assert (options["stop"], options["time_budget_s"], options["values"]) == expected
         s = t["seconds"]
         assert s["min_s"] <= s["q25_s"] <= s["median_s"] <= s["q75_s"] <= s["max_s"] and len(s["samples_s"]) == 2
         assert set(t["phases_s"]) == {"derivatives", "backward", "line_search", "rollout", "optimizer_other",

@@ -472,6 +472,7 @@ def time_expert(
         results.append({
             "task": label, "path": path, "horizon": horizon, "requests": len(starts), "seed": seed,
             "options": {"time_budget_s": expert.time_budget if optimizer else math.nan,
+                        "stop": expert.stop if optimizer else "closed form",
                         "max_iterations": expert.max_iterations if optimizer else 0,
                         "values": expert.values if optimizer else "closed form"},
             "derivatives_by": expert.optimizer.dynamics.derivatives_by if optimizer else "closed form",

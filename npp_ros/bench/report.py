@@ -73,8 +73,10 @@ def expert_markdown(experts: dict[str, Any]) -> list[str]:
     lines += [""]
     for t in experts["tasks"]:
         o = t["options"]
-        lines.append(f"- {expert_label(t)}: default expert (time budget {o['time_budget_s']:g} s per request, at most "
-                     f"{o['max_iterations']} iterations, {o['values']} values); succeeded = "
+        stop = o.get("stop", "time")  # files from before the stop was recorded: the budget stopped iLQR
+        budget = "a guard of" if stop == "iterations" else "a budget of"
+        lines.append(f"- {expert_label(t)}: default expert (stop = {stop}: at most {o['max_iterations']} iterations, "
+                     f"{budget} {o['time_budget_s']:g} s per request; {o['values']} values); succeeded = "
                      f"{t['success_rule']}.")  # fmt: skip
     lines += [
         "",
