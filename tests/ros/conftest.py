@@ -24,6 +24,7 @@ import sys
 import time
 import tomllib
 from collections.abc import Callable, Iterator, Mapping
+from contextlib import suppress
 from pathlib import Path
 from typing import IO, Any
 
@@ -72,6 +73,7 @@ def ros_domain(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
         "ROS_LOG_DIR": str(tmp_path_factory.mktemp("ros-log")),
         "PYTHONUNBUFFERED": "1",
+        SESSION_MARK: f"{os.getpid()}-{time.time_ns()}",
     }
     keys = ["ROS_DOMAIN_ID", "ROS_STATIC_PEERS", *overrides]
     saved = {key: os.environ.get(key) for key in keys}
@@ -87,6 +89,45 @@ def ros_domain(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
                     os.environ.pop(key, None)
                 else:
                     os.environ[key] = value
+
+
+SESSION_MARK = "NPP_TEST_SESSION"  # in the environment of every process a session starts: what outlives a module
+LINGER_S = 20.0  # a module's processes still stopping after its teardown get this long to go
+
+
+def _session_processes(mark: str) -> dict[int, str]:
+    """pid -> command line of every npp_ros process (a node, npp-run, a tool) this session started, still running."""
+    needle = f"{SESSION_MARK}={mark}".encode()
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
+            carries_mark = needle in (entry / "environ").read_bytes().split(b"\0")
+        except OSError:  # gone, or not ours to read
+            continue
+        if carries_mark and ("npp_ros_graph" in command or "/npp-" in command):
+            found[int(entry.name)] = command
+    return found
+
+
+@pytest.fixture(scope="module", autouse=True)
+def no_process_outlives_its_module(ros_domain: int) -> Iterator[None]:
+    """A module leaves no node behind: one still running after the module's teardown is another graph on the
+    session's domain for every later module (they refuse to start beside it, or take its answers). Each is
+    named in this module's teardown error, and killed, so that the modules after it run as they would alone."""
+    yield
+    mark = os.environ[SESSION_MARK]
+    deadline = time.monotonic() + LINGER_S
+    left = _session_processes(mark)
+    while left and time.monotonic() < deadline:
+        time.sleep(0.5)
+        left = _session_processes(mark)
+    for pid in left:
+        with suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    assert not left, "still running after the module's teardown: " + "; ".join(f"pid {p}: {c}" for p, c in left.items())
 
 
 def assert_confined(env: Mapping[str, str], domain: int) -> None:
