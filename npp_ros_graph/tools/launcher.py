@@ -41,7 +41,7 @@ from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import WriterLock
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_HELP, STOP_MODES
-from npp_ros_graph.client import GraphClient, child_setup, default_run_dir
+from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default_run_dir
 from npp_ros_graph.graph.description import graph_parameters, node_argv
 from npp_ros_graph.runtime.diagnostics import WARN, health_of
 from npp_ros_graph.runtime.node import node_name, publishers_of
@@ -58,7 +58,6 @@ GRAPH_TOPICS = (PLANT, GAP)  # one publisher each per graph: its sim and its sup
 LOG_HEADER = "==== npp-run: this start of the node at"
 STALL_NOTICE_S = 2.0  # a node stopped this long is named
 STOP_NOTICE_S = 5.0  # a stop that takes longer names the node it waits for
-STOP_GRACE_S = 60.0  # a node's ordered teardown; on a 2-core machine at load 15-20 one took over 15 s
 TWO_GRAPHS = (
     "Two graphs on one domain answer each other's service calls (their seals keep their data apart, at the cost "
     "of retries): stop the other one, or give this run its own domain (--domain-id N)"
