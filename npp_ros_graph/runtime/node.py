@@ -96,6 +96,7 @@ def _init(args: list[str]) -> None:
 
 SPIN_ONCE_S = 1.0  # the longest wait for an event before run_node checks for a stop
 FORCE_AFTER_S = 20.0  # a signal this long after the first ends a teardown that hangs (the waits in it are shorter)
+TEARDOWN_S = 30.0  # a process whose ROS teardown has not returned by then leaves without it (npp-run waits 60 s)
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
@@ -179,10 +180,14 @@ def run_node(
         return 2
     finally:
         _stop.executor = None
+        # One signal is all a node gets when npp-run dies (its parent-death signal): a DDS teardown that hangs
+        # must not keep it alive on the domain, where it would be another graph for the next run.
+        leaving = leave_if_teardown_hangs(os.path.basename(args[0]), TEARDOWN_S, int(getattr(node, "exit_code", 0)))
         try:
             release(executor, node)
         except KeyboardInterrupt:  # a Ctrl-C while shutting down, before take_stop_signals
             pass
+        leaving.cancel()
     return int(getattr(node, "exit_code", 0))
 
 
@@ -208,11 +213,12 @@ def release(executor: Executor | None, node: Node | None) -> None:
 
 
 def leave_if_teardown_hangs(program: str, seconds: float, code: int = 0) -> threading.Timer:
-    """For a viewer that holds no data (npp-monitor): exit with ``code`` after ``seconds`` if the ROS
-    teardown that follows has not returned by then, saying so on stderr.
+    """Exit with ``code`` after ``seconds`` if the ROS teardown that follows has not returned by then, saying
+    so on stderr (every node's run_node, npp-run, npp-monitor).
 
     On a loaded machine a DDS teardown was seen to take minutes while its peers were shutting down
-    too; a user who asked the viewer to exit must get the terminal back, and nothing is lost.
+    too, and a sim whose npp-run was killed hung in it with no second signal to come. Leaving loses
+    nothing: the run file commits every episode with its trajectory (fsynced), and a node keeps nothing else.
     """
 
     def leave() -> None:

@@ -44,7 +44,7 @@ from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_
 from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default_run_dir
 from npp_ros_graph.graph.description import graph_parameters, node_argv
 from npp_ros_graph.runtime.diagnostics import WARN, health_of
-from npp_ros_graph.runtime.node import node_name, publishers_of
+from npp_ros_graph.runtime.node import TEARDOWN_S, leave_if_teardown_hangs, node_name, publishers_of
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
@@ -397,10 +397,13 @@ def main(argv: list[str] | None = None) -> int:
                 with suppress(OSError):
                     print(("\n" if follower.tty else "") + certificate_line(follower.certificate))
                     print(f"run folder: {run_dir}")
-        if follower is not None:
-            follower.client.close()
+        # The nodes first: a ROS teardown that hangs (a loaded machine's DDS) must never leave them running.
         stop_all({name: proc for name, proc in procs.items() if name not in extras})
         stop_all(extras)
+        if follower is not None:
+            leaving = leave_if_teardown_hangs("npp-run", TEARDOWN_S, code)
+            follower.client.close()
+            leaving.cancel()
     return code
 
 
