@@ -112,3 +112,35 @@ def test_ctrl_c_a_certified_run_and_a_refusal_leave_clean_logs(tmp_path: Path, r
         refusal = left.pop("supervisor", [])
         assert len(refusal) == 1 and "[ERROR]" in refusal[0] and "Algorithm 1 stopped: " in refusal[0], refusal
         assert left == {"npp-run": [line for line in said.splitlines() if "npp-supervisor exited with code 1" in line]}
+
+
+HANGING_NODE = """
+import sys, threading
+import npp_ros_graph.runtime.node as runtime
+from rclpy.node import Node
+
+class HangsInTeardown(Node):
+    def __init__(self):
+        super().__init__("npp_hangs_in_teardown")
+        self.create_timer(0.1, lambda: print("spinning", flush=True))
+
+    def destroy_node(self):  # a DDS teardown that never returns, as one did under load
+        threading.Event().wait()
+
+runtime.TEARDOWN_S = 2.0
+sys.exit(runtime.run_node(HangsInTeardown))
+"""
+
+
+def test_a_node_whose_teardown_hangs_leaves_after_its_grace(ros_domain: int) -> None:
+    """One SIGTERM (all a node gets when npp-run is killed: its parent-death signal) ends a node even when its
+    ROS teardown hangs: run_node leaves after TEARDOWN_S, saying so, rather than stay on the domain."""
+    command = [sys.executable, "-c", HANGING_NODE]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    with ended_at_exit(proc):
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == b"spinning"
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0, out.decode()
+    assert b"the ROS teardown did not finish within 2 s; leaving without it" in out, out.decode()
