@@ -13,10 +13,11 @@ from typing import Any
 import numpy as np
 
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.tasks.task_file_terms import Term
+from npp_ros.tasks.task_file_terms import Term, mechanical_energy
 
 DEFAULT_CONTROL_WEIGHT = 1e-3  # 0.5 w |u|^2 on every control, the file's expert.control_weight
 DEFAULT_VELOCITY_WEIGHT = 1e-4  # 0.5 w |qvel|^2 on every state, the file's expert.velocity_weight
+ENERGY_STEP = 1e-6  # rad or m: the central difference of the energy in qpos
 
 
 class TermCost:
@@ -24,8 +25,9 @@ class TermCost:
 
     scale is the term's margin (1 without one). Zero exactly where the term's tolerance is 1, and
     its gradient points there from anywhere (a Gaussian tolerance is flat far from its bounds).
-    State terms are differentiated through MuJoCo's kinematics (site Jacobians); the Hessian is
-    Gauss-Newton. Small velocity and control weights keep the problem well posed.
+    State terms are differentiated through MuJoCo's kinematics (site Jacobians); an energy term's
+    gradient is M qvel in qvel and a central difference in qpos. The Hessian is Gauss-Newton. Small
+    velocity and control weights keep the problem well posed.
     """
 
     def __init__(self, terms: tuple[Term, ...], model: Any, options: dict[str, Any]) -> None:
@@ -41,11 +43,13 @@ class TermCost:
         self.control_weight = float(options.get("control_weight", DEFAULT_CONTROL_WEIGHT))
         self._jac = np.zeros((3, model.nv))
         self._jac2 = np.zeros((3, model.nv))
+        self._energy_data = mujoco.MjData(model)  # apart: the differences must not move the terms' kinematics
 
     @staticmethod
     def _residual(term: Term, q: float) -> float:
         scale = term.margin if term.margin > 0 else 1.0
         low, high = term.bounds
+        q -= term.offset  # an energy term's bounds are about its pose's energy
         return (q - min(max(q, low), high)) / scale
 
     def _site_jacobian(self, site: int, out: FloatArray) -> None:
@@ -68,6 +72,8 @@ class TermCost:
             self._site_jacobian(term.target[0], self._jac)
             grad[: self.nq] = self._jac[term.axis]
             return float(data.site_xpos[term.target[0], term.axis]), grad
+        if term.quantity == "energy":
+            return self._energy_and_gradient(x)
         a, b = term.target
         delta = data.site_xpos[a] - data.site_xpos[b]
         distance = float(np.linalg.norm(delta))
@@ -76,6 +82,21 @@ class TermCost:
             self._site_jacobian(b, self._jac2)
             grad[: self.nq] = delta @ (self._jac - self._jac2) / distance
         return distance, grad
+
+    def _energy(self, x: FloatArray) -> float:
+        return mechanical_energy(self.model, x[: self.nq], x[self.nq :], self._energy_data)
+
+    def _energy_and_gradient(self, x: FloatArray) -> tuple[float, FloatArray]:
+        """The mechanical energy at x and its gradient: M qvel in qvel, a central difference in qpos."""
+        grad = np.zeros(2 * self.nq)
+        for i in range(self.nq):
+            up, down = x.copy(), x.copy()
+            up[i] += ENERGY_STEP
+            down[i] -= ENERGY_STEP
+            grad[i] = (self._energy(up) - self._energy(down)) / (2 * ENERGY_STEP)
+        energy = self._energy(x)
+        self._mujoco.mj_mulM(self.model, self._energy_data, grad[self.nq :], x[self.nq :])
+        return energy, grad
 
     def state_terms(self, states: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         count, n = len(states), 2 * self.nq
@@ -126,6 +147,8 @@ class TermCost:
             return float(x[self.nq + int(model.jnt_dofadr[term.target[0]])])
         if term.quantity == "site_position":
             return float(site_xpos[term.target[0], term.axis])
+        if term.quantity == "energy":
+            return self._energy(x)
         a, b = term.target
         return float(np.linalg.norm(site_xpos[a] - site_xpos[b]))
 

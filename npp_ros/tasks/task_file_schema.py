@@ -197,7 +197,7 @@ def _read_expert(
         options[key] = reader.non_negative(expert.get(key, default), f"expert.{key}")
     options["planner"] = _read_planner(reader, expert)
     if "terms" in expert:
-        return options, read_terms(reader, expert["terms"], "expert.terms", model, True)
+        return options, read_terms(reader, expert["terms"], "expert.terms", model, True, cost=True)
     if isinstance(reward, TermReward):
         return options, reward.terms
     raise reader.fail("expert.terms", "a reward function needs [[expert.terms]]: the iLQR expert's smooth cost")

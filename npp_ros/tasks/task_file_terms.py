@@ -7,6 +7,9 @@ A term is dm_control.utils.rewards.tolerance of one quantity: ``joint_position``
 tolerance, dm_control's ``(4 + small_control) / 5`` with floor 0.8. The reward combines the terms as a
 weighted sum or a product, computed from the physics after each step with the applied (clamped) control, as
 dm_control's suite does. The same terms give the iLQR expert its smooth cost (npp_ros.tasks.task_file_cost).
+The expert's own cost (``[[expert.terms]]``) may also use ``energy``: the model's mechanical energy (MuJoCo's
+potential plus kinetic) less that of a named pose at rest, which an underactuated swing-up must pump before
+it can catch. No reward is paid for energy.
 """
 
 from __future__ import annotations
@@ -18,15 +21,17 @@ from typing import Any
 
 import numpy as np
 
+from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.task_file_model import model_ids, named_objects
 from npp_ros.tasks.task_file_reader import Reader
 
 QUANTITIES = ("joint_position", "joint_velocity", "site_position", "site_distance", "control")
+COST_QUANTITIES = ("energy",)  # the expert's cost only: no reward is paid for energy
 SIGMOIDS = ("gaussian", "hyperbolic", "long_tail", "reciprocal", "cosine", "linear", "quadratic", "tanh_squared")
 BOUNDED_SIGMOIDS = ("linear", "quadratic", "cosine")  # reach 0 at the margin: any value_at_margin will do
 COMBINES = ("sum", "product")
 REWARD_KEYS = {"combine", "terms", "function"}
-TERM_KEYS = {*QUANTITIES, "axis", "bounds", "margin", "sigmoid", "value_at_margin", "weight", "floor"}
+TERM_KEYS = {*QUANTITIES, *COST_QUANTITIES, "axis", "bounds", "margin", "sigmoid", "value_at_margin", "weight", "floor"}
 AXES = ("x", "y", "z")
 DEFAULT_COMBINE = "product"
 # dm_control's tolerance defaults
@@ -52,6 +57,7 @@ class Term:
     weight: float
     label: str
     floor: float = DEFAULT_FLOOR
+    offset: float = 0.0  # subtracted from the quantity: an energy term's reference, the energy of its pose at rest
 
     @property
     def on_control(self) -> bool:
@@ -59,17 +65,27 @@ class Term:
 
 
 # ----------------------------------------------------------------------------- reading the terms
-def read_terms(reader: Reader, entries: Any, key: str, model: Any, weighted: bool) -> tuple[Term, ...]:
-    """The list of term tables at ``key``; ``weighted``: the terms are summed, so a weight is allowed."""
+def read_terms(
+    reader: Reader, entries: Any, key: str, model: Any, weighted: bool, cost: bool = False
+) -> tuple[Term, ...]:
+    """The list of term tables at ``key``; ``weighted``: the terms are summed, so a weight is allowed;
+    ``cost``: they are the expert's cost, so an ``energy`` term is allowed."""
     if not isinstance(entries, list) or not entries:
         raise reader.fail(key, "must be a non-empty list of terms ([[...]] tables)")
     ids = {kind: model_ids(model, kind) for kind in ("joint", "site", "actuator")}
-    return tuple(_read_term(reader, entry, f"{key}[{k}]", ids, weighted) for k, entry in enumerate(entries))
+    return tuple(
+        _read_energy_term(reader, entry, f"{key}[{k}]", model, ids["joint"])
+        if cost and isinstance(entry, dict) and "energy" in entry
+        else _read_term(reader, entry, f"{key}[{k}]", ids, weighted)
+        for k, entry in enumerate(entries)
+    )
 
 
 def _read_term(reader: Reader, entry: Any, where: str, ids: dict[str, dict[str, int]], weighted: bool) -> Term:
     entry = reader.table(entry, where)
     reader.unknown_keys(entry, TERM_KEYS, f"{where}.")
+    if "energy" in entry:
+        raise reader.fail(f"{where}.energy", "an energy term is the expert's cost only: write it in [[expert.terms]]")
     quantity, kind, wanted = _quantity_and_names(reader, entry, where, ids)
     axis = _axis(reader, entry, where, quantity)
     bounds = reader.interval(entry.get("bounds", list(DEFAULT_BOUNDS)), f"{where}.bounds")
@@ -89,6 +105,45 @@ def _read_term(reader: Reader, entry: Any, where: str, ids: dict[str, dict[str, 
     target = tuple(ids[kind][name] for name in wanted)
     label = f"{quantity} {'-'.join(wanted)}"
     return Term(quantity, target, axis, bounds, margin, sigmoid, at_margin, weight, label, floor)
+
+
+ENERGY_KEYS = {"energy", "bounds", "margin", "weight"}
+
+
+def _read_energy_term(reader: Reader, entry: dict[str, Any], where: str, model: Any, joints: dict[str, int]) -> Term:
+    """``energy = { joint = position, ... }``: the energy less that of this pose at rest (joints it does not
+    name at the model's qpos0), with ``bounds`` (J, default [0, 0]), ``margin`` (J, the penalty's scale)
+    and ``weight``."""
+    reader.unknown_keys(entry, ENERGY_KEYS, f"{where}.")
+    key = f"{where}.energy"
+    pose = reader.table(entry["energy"], key)
+    qpos = np.array(model.qpos0, dtype=np.float64)
+    for name, position in pose.items():
+        named_objects(reader, name, key, joints, "joint", pair=False)
+        qpos[int(model.jnt_qposadr[joints[name]])] = reader.number(position, f"{key}.{name}")
+    bounds = reader.interval(entry.get("bounds", list(DEFAULT_BOUNDS)), f"{where}.bounds")
+    margin = reader.non_negative(entry.get("margin", DEFAULT_MARGIN), f"{where}.margin")
+    weight = reader.number(entry.get("weight", DEFAULT_WEIGHT), f"{where}.weight", positive=True)
+    label = "energy at " + (", ".join(f"{name} = {value:g}" for name, value in pose.items()) or "qpos0")
+    return Term(
+        "energy", (), 0, bounds, margin, DEFAULT_SIGMOID, DEFAULT_VALUE_AT_MARGIN, weight, label,
+        offset=mechanical_energy(model, qpos, np.zeros(model.nv)),
+    )  # fmt: skip
+
+
+def mechanical_energy(model: Any, qpos: FloatArray, qvel: FloatArray, data: Any = None) -> float:
+    """MuJoCo's potential (gravity and springs) plus kinetic energy at (qpos, qvel), in J."""
+    import mujoco
+
+    data = mujoco.MjData(model) if data is None else data
+    data.qpos[:] = qpos
+    data.qvel[:] = qvel
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_comPos(model, data)
+    mujoco.mj_makeM(model, data)
+    mujoco.mj_energyPos(model, data)
+    mujoco.mj_energyVel(model, data)
+    return float(data.energy[0] + data.energy[1])
 
 
 def _quantity_and_names(
