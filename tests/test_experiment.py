@@ -186,6 +186,22 @@ def test_arms_and_settings_reject_unknown_names() -> None:
     assert settings.checkpoints_for("lqr_2_1") == [10, 100, 150]
 
 
+def test_expert_stop_reaches_the_optimizer_experts_and_no_other() -> None:
+    """--expert-stop is an option of every iLQR expert an experiment makes (its answers depend on it: it is
+    part of their identity); closed-form experts take none. Without it each task decides (None)."""
+    from npp_ros.cli.experiment import parser, plan
+    from npp_ros.experiment.arms import expert_options
+
+    example = str(Path(__file__).resolve().parents[1] / "examples" / "two_link_arm" / "task.toml")
+    for flags, wanted in (([], None), (["--expert-stop", "time"], "time")):
+        settings, arms = plan(
+            parser().parse_args(["--tasks", example, "lqr_2_1", "--epsilon", "5", "--horizon", "50", *flags])
+        )
+        stops = {arm.task.split("#")[0]: expert_options(arm, settings).stop for arm in arms}  # a file's: path#digest
+        assert stops == {example: wanted, "lqr_2_1": None}, stops
+        assert all(expert_options(a, settings).answer_identity()["stop"] == stops[a.task.split("#")[0]] for a in arms)
+
+
 def test_sound_modes_are_arms_and_every_certificate_is_checked_on_held_out_states(tmp_path: Path) -> None:
     run = run_experiment(
         tmp_path, 60, "--lipschitz", "analytic", "--experts", "optimal", "--certify", "rollout", "oracle",

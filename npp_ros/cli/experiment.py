@@ -11,7 +11,7 @@ or an existing one given by its scheduler's address. Each worker returns its run
 process writes the tables and figures from them.
 
 An option not given takes each task's own value: the paper's, or for a task file its keys horizon,
-epsilon, lipschitz, certify and [expert] time_budget.
+epsilon, lipschitz, certify and [expert] time_budget and stop.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.tasks.lqr import TASKS
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros.tasks.sources import short_name
-from npp_ros.trajopt.expert import DEFAULT_TIME_BUDGET_S
+from npp_ros.trajopt.expert import STOP_HELP, STOP_MODES, TIME_BUDGET_HELP
 
 
 def parser() -> argparse.ArgumentParser:
@@ -145,13 +145,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--control-weight", type=float, default=DETUNED_CONTROL_WEIGHT, help="detuned expert: control cost x this"
     )
-    ap.add_argument(
-        "--time-budget",
-        type=float,
-        default=None,
-        help=f"seconds per expert request (optimizer experts); default: a task file's [expert] time_budget, else "
-        f"{DEFAULT_TIME_BUDGET_S:g}",
-    )
+    ap.add_argument("--time-budget", type=float, default=None, help=TIME_BUDGET_HELP)
+    ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=STOP_HELP)
     ap.add_argument(
         "--held-out", type=positive_int, default=HELD_OUT, help="fresh s0 on which each certificate is checked"
     )
@@ -313,6 +308,7 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
         control_weight=args.control_weight,
         epsilon={task: args.epsilon for task in args.tasks} if args.epsilon is not None else None,
         time_budget=args.time_budget,
+        stop=args.expert_stop,
         held_out=args.held_out,
     )
     for task in args.tasks:

@@ -38,7 +38,7 @@ from npp_ros.run.setup import (
 from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads
-from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_HELP, STOP_MODES
+from npp_ros.trajopt.expert import STOP_HELP, STOP_MODES, TIME_BUDGET_HELP
 
 
 def parser() -> argparse.ArgumentParser:
@@ -95,14 +95,7 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
     ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
-    ap.add_argument(
-        "--time-budget",
-        type=float,
-        default=None,
-        help=f"seconds per expert request (iLQR experts): a guard under --expert-stop iterations (default "
-        f"{DEFAULT_GUARD_S:g}), the budget iLQR works within under time (default {DEFAULT_TIME_BUDGET_S:g}); "
-        "default: a task file's [expert] time_budget, else those",
-    )
+    ap.add_argument("--time-budget", type=float, default=None, help=TIME_BUDGET_HELP)
     ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=STOP_HELP)
     ap.add_argument(
         "--values",

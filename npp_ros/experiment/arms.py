@@ -87,6 +87,7 @@ class ExperimentSettings:
     epsilon: dict[str, float] | None = None
     control_weight: float = DETUNED_CONTROL_WEIGHT
     time_budget: float | None = None  # seconds per expert request (optimizer experts); None = the task's
+    stop: str | None = None  # what ends an optimizer expert's request ("iterations" or "time"); None = the task's
     held_out: int = HELD_OUT  # fresh s0 on which each certificate is checked
 
     def epsilon_for(self, task: str) -> float:
@@ -153,8 +154,11 @@ def default_arms(
 def expert_options(arm: Arm, settings: ExperimentSettings) -> ExpertOptions:
     """The options of an arm's data expert: what, with the task and seed, decides its answers."""
     task = get_task(arm.task)
-    budget = settings.time_budget if isinstance(task, OptimizerTask) else None  # closed-form experts take none
-    return ExpertOptions(kind=arm.expert, control_weight=settings.control_weight, time_budget=budget)
+    optimizer = isinstance(task, OptimizerTask)  # closed-form experts take no budget and no stop
+    return ExpertOptions(
+        kind=arm.expert, control_weight=settings.control_weight,
+        time_budget=settings.time_budget if optimizer else None, stop=settings.stop if optimizer else None,
+    )  # fmt: skip
 
 
 def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> Expert:

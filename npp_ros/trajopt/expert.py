@@ -105,6 +105,11 @@ STOP_HELP = (
     "what ends an iLQR expert's request: iterations (convergence or max_iterations: the same answer on any machine; "
     "the default) or time (within the time budget: fewer iterations on a loaded machine, not reproducible)"
 )
+TIME_BUDGET_HELP = (
+    f"seconds per expert request (iLQR experts): a guard under --expert-stop iterations (default {DEFAULT_GUARD_S:g}), "
+    f"the budget iLQR works within under time (default {DEFAULT_TIME_BUDGET_S:g}); default: a task file's [expert] "
+    "time_budget, else those"
+)
 
 
 def check_stop(stop: str) -> str:
