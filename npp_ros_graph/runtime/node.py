@@ -38,7 +38,9 @@ that is gone: timers cancelled, the executor let go, the node destroyed (each no
 stops its worker thread before its publishers go), and only then the context shut down. Further
 signals during the teardown are ignored (a terminal's Ctrl-C reaches the node and npp-run, which
 then sends its own SIGINT), except one more than FORCE_AFTER_S after the first, which ends a
-teardown that hangs.
+teardown that hangs. A process leaves by itself when its teardown hangs past TEARDOWN_S, and when it is
+still running STOP_BOUND_S after its first stop signal, whatever holds its main thread
+(``watch_stop_signals``): one signal is all it may get.
 """
 
 from __future__ import annotations
@@ -97,6 +99,7 @@ def _init(args: list[str]) -> None:
 SPIN_ONCE_S = 1.0  # the longest wait for an event before run_node checks for a stop
 FORCE_AFTER_S = 20.0  # a signal this long after the first ends a teardown that hangs (the waits in it are shorter)
 TEARDOWN_S = 30.0  # a process whose ROS teardown has not returned by then leaves without it (npp-run waits 60 s)
+STOP_BOUND_S = 45.0  # a process still here this long after its first stop signal leaves (npp-run waits 60 s)
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
@@ -107,6 +110,7 @@ class _Stop:
         self.requested = threading.Event()
         self.first_signal_at: float | None = None
         self.executor: Executor | None = None  # the spinning executor, woken by a request from another thread
+        self.node: Node | None = None  # whose exit code a process that must leave exits with
 
 
 _stop = _Stop()
@@ -144,6 +148,31 @@ def take_stop_signals() -> None:
         signal.signal(signum, _on_signal)
 
 
+def watch_stop_signals(program: str) -> None:
+    """Leave STOP_BOUND_S after the first SIGINT or SIGTERM, whatever the main thread is doing then.
+
+    run_node's handler runs only when the main thread comes back to Python, and only its spin loop acts
+    on the request: a callback blocked on a lock, or a main thread held in the middleware, would keep
+    the process on the domain, with no second signal to come when npp-run was killed (its parent-death
+    signal is one). Python's C-level handler writes each signal's number to the wakeup fd at once, from
+    any state of the main thread; this thread reads it and arms the exit. Nothing is lost by leaving:
+    the run file commits every episode.
+    """
+    read_end, write_end = os.pipe()
+    os.set_blocking(write_end, False)
+    signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
+
+    def watch() -> None:
+        signum = os.read(read_end, 1)[0]
+        while signum not in STOP_SIGNALS:  # another signal with a Python handler: not a stop
+            signum = os.read(read_end, 1)[0]
+        bound = STOP_BOUND_S
+        code = int(getattr(_stop.node, "exit_code", 0))
+        leave_if_teardown_hangs(program, bound, code, f"still running {bound:g} s after {signal.Signals(signum).name}")
+
+    threading.Thread(target=watch, name="npp-stop-watch", daemon=True).start()
+
+
 def run_node(
     factory: Callable[[], Node],
     argv: Sequence[str] | None = None,
@@ -164,12 +193,14 @@ def run_node(
     executor: Executor | None = None
     _stop.requested.clear()
     _stop.first_signal_at = None
+    _stop.node = None
     try:
         _init(args)
         executor = EventsExecutor() if events and EventsExecutor is not None else SingleThreadedExecutor()
         take_stop_signals()
+        watch_stop_signals(os.path.basename(args[0]))
         _stop.executor = executor
-        node = factory()
+        node = _stop.node = factory()
         executor.add_node(node)
         while rclpy.ok() and not _stop.requested.is_set():
             executor.spin_once(timeout_sec=SPIN_ONCE_S)
@@ -212,9 +243,9 @@ def release(executor: Executor | None, node: Node | None) -> None:
     rclpy.try_shutdown(context=context)
 
 
-def leave_if_teardown_hangs(program: str, seconds: float, code: int = 0) -> threading.Timer:
+def leave_if_teardown_hangs(program: str, seconds: float, code: int = 0, why: str = "") -> threading.Timer:
     """Exit with ``code`` after ``seconds`` if the ROS teardown that follows has not returned by then, saying
-    so on stderr (every node's run_node, npp-run, npp-monitor).
+    so (or ``why``) on stderr (every node's run_node, npp-run, npp-monitor).
 
     On a loaded machine a DDS teardown was seen to take minutes while its peers were shutting down
     too, and a sim whose npp-run was killed hung in it with no second signal to come. Leaving loses
@@ -223,8 +254,8 @@ def leave_if_teardown_hangs(program: str, seconds: float, code: int = 0) -> thre
 
     def leave() -> None:
         sys.stdout.flush()
-        print(f"{program}: the ROS teardown did not finish within {seconds:g} s; leaving without it",
-              file=sys.stderr, flush=True)  # fmt: skip
+        said = why or f"the ROS teardown did not finish within {seconds:g} s"
+        print(f"{program}: {said}; leaving without it", file=sys.stderr, flush=True)
         os._exit(code)
 
     timer = threading.Timer(seconds, leave)

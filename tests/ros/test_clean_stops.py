@@ -144,3 +144,37 @@ def test_a_node_whose_teardown_hangs_leaves_after_its_grace(ros_domain: int) -> 
         out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, out.decode()
     assert b"the ROS teardown did not finish within 2 s; leaving without it" in out, out.decode()
+
+
+BLOCKED_NODE = """
+import sys, threading
+import npp_ros_graph.runtime.node as runtime
+from rclpy.node import Node
+
+class BlocksInACallback(Node):
+    def __init__(self):
+        super().__init__("npp_blocks_in_a_callback")
+        self.create_timer(0.1, self.block)
+
+    def block(self):  # a callback that never returns (a deadlock): the spin loop never sees the stop request
+        print("blocked", flush=True)
+        threading.Event().wait()
+
+runtime.STOP_BOUND_S = 2.0
+sys.exit(runtime.run_node(BlocksInACallback))
+"""
+
+
+def test_a_node_whose_callback_never_returns_leaves_after_its_bound(ros_domain: int) -> None:
+    """One SIGTERM ends a node whose main thread never comes back to its spin loop: the stop watch leaves
+    STOP_BOUND_S after the signal, saying so, rather than stay on the domain."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", BLOCKED_NODE], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+    )
+    with ended_at_exit(proc):
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == b"blocked"
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0, out.decode()
+    assert b"still running 2 s after SIGTERM; leaving without it" in out, out.decode()
