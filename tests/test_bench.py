@@ -154,3 +154,16 @@ def test_only_throughput_answers_every_request_at_each_worker_count_alike(tmp_pa
     table = (tmp_path / "bench.md").read_text()
     assert "## Expert throughput" in table and "| pendulum_swingup | 40 | 3 | 2 x 1 |" in table
     assert "## Expert throughput" in capsys.readouterr().out
+
+
+def test_each_expert_is_timed_at_its_tasks_own_horizon_unless_one_is_given(tmp_path: Path) -> None:
+    """A user checking their expert before a run sees it at the run's H: a task file's key horizon (the two-link
+    arm's 200), not another task's; --expert-horizon sets one H for every task."""
+    example = str(Path(__file__).resolve().parents[1] / "examples" / "two_link_arm" / "task.toml")
+    for flags, wanted in (([], 200), (["--expert-horizon", "30"], 30)):
+        out = tmp_path / str(wanted)
+        assert main(["--only", "experts", "--expert-tasks", example, "--expert-requests", "1", *flags,
+                     "--out", str(out)]) == 0  # fmt: skip
+        (timed,) = json.loads((out / "bench.json").read_text())["experts"]["tasks"]
+        assert timed["horizon"] == wanted, timed["horizon"]
+        assert f"| two_link_arm-task | {wanted} | 1 |" in (out / "bench.md").read_text()

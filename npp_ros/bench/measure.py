@@ -494,7 +494,8 @@ def expert_section(args: argparse.Namespace, progress: Progress, command: str) -
     for name in args.expert_tasks:
         task = get_task(name)
         starts = [task.initial_state(args.seed, k) for k in range(args.expert_requests)]
-        tasks += time_expert(name, starts, args.expert_horizon, args.seed, progress, tuple(args.expert_paths))
+        horizon = task.default_horizon if args.expert_horizon is None else args.expert_horizon
+        tasks += time_expert(name, starts, horizon, args.seed, progress, tuple(args.expert_paths))
     return {"command": command, "date": started, "load_average_start": load_start,
             "load_average_end": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
             "tasks": tasks}  # fmt: skip

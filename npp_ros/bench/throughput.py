@@ -74,11 +74,13 @@ def time_pool(
 
 
 def task_throughput(
-    name: str, requests: int, horizon: int, seed: int, counts: Sequence[int], progress: Progress,
+    name: str, requests: int, horizon: int | None, seed: int, counts: Sequence[int], progress: Progress,
     options: ExpertOptions = DEFAULT_OPTIONS,
 ) -> dict[str, Any]:  # fmt: skip
-    """One task at every worker count on the same s0, with the speed-ups over one worker."""
+    """One task at every worker count on the same s0, with the speed-ups over one worker (horizon None: the
+    task's own)."""
     task = get_task(name)
+    horizon = task.default_horizon if horizon is None else horizon
     starts = [task.initial_state(seed, k) for k in range(requests)]
     runs = []
     for workers in counts:
@@ -101,8 +103,9 @@ def task_throughput(
 
 
 def throughput_section(
-    tasks: Sequence[str], requests: int, horizon: int, seed: int, most: int | None, progress: Progress, command: str
-) -> dict[str, Any]:
+    tasks: Sequence[str], requests: int, horizon: int | None, seed: int, most: int | None, progress: Progress,
+    command: str,
+) -> dict[str, Any]:  # fmt: skip
     """Every task at 1, 2 and ``most`` workers (None: one per core this process may use)."""
     started = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     load_start = list(os.getloadavg()) if hasattr(os, "getloadavg") else None

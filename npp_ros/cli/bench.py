@@ -115,8 +115,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--expert-horizon",
         type=int,
-        default=1000,
-        help="steps per expert trajectory (H), the same for every task: a task file's key horizon is not used here",
+        default=None,
+        help="steps per expert trajectory (H) for every task; default: each task's own (1000 for the built-in "
+        "tasks, a task file's key horizon)",
     )
     parser.add_argument(
         "--expert-tasks",
@@ -155,13 +156,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="the largest pool measured, beside 1 and 2 workers (default: one per usable core)",
     )
     args = parser.parse_args(argv)
-    if args.expert_requests < 1 or args.expert_horizon < 2:
+    if args.expert_requests < 1 or (args.expert_horizon is not None and args.expert_horizon < 2):
         parser.error("--expert-requests must be >= 1 and --expert-horizon >= 2")
     if args.quick:
         args.trajectories = min(args.trajectories, 12)
         args.queries, args.single, args.check, args.repeats = 200, 50, 50, 2
         args.brute_budget = 2e5
-        args.expert_requests, args.expert_horizon = min(args.expert_requests, 2), min(args.expert_horizon, 200)
+        args.expert_requests, args.expert_horizon = min(args.expert_requests, 2), min(args.expert_horizon or 200, 200)
         args.throughput_requests = min(args.throughput_requests, 4)
     return args
 
