@@ -166,4 +166,6 @@ def test_each_expert_is_timed_at_its_tasks_own_horizon_unless_one_is_given(tmp_p
                      "--out", str(out)]) == 0  # fmt: skip
         (timed,) = json.loads((out / "bench.json").read_text())["experts"]["tasks"]
         assert timed["horizon"] == wanted, timed["horizon"]
-        assert f"| two_link_arm-task | {wanted} | 1 |" in (out / "bench.md").read_text()
+        table = (out / "bench.md").read_text()
+        assert f"| two_link_arm-task | {wanted} | 1 |" in table
+        assert 'window values; planner = "ilqr" (no plan: one iLQR from the warm start))' in table  # the file's planner

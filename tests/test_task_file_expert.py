@@ -37,6 +37,14 @@ def test_every_planner_key_is_an_expert_key() -> None:
     assert set(PLANNER_KEYS) <= EXPERT_KEYS
 
 
+def test_a_planners_settings_are_described_as_a_file_writes_them() -> None:
+    """What npp-bench prints beside an expert's figures: the planner and only the keys it uses."""
+    assert PlannerSettings("receding", window=200, commit=10, restarts=1).describe() == (
+        'planner = "receding": window 200, commit 10, window_iterations 5, restarts 1'
+    )
+    assert "samples 32, knots 10, noise 0.3" in PlannerSettings("sampling").describe()
+
+
 def test_a_file_without_a_planner_keeps_one_ilqr_from_zero() -> None:
     expert = get_task(str(EXAMPLES / "two_link_arm" / "task.toml")).make_expert(0, 20)
     assert expert.settings == PlannerSettings() and expert.settings.planner == "ilqr"

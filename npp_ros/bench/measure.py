@@ -34,6 +34,7 @@ from npp_ros.tasks.registry import ExpertOptions, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads
 from npp_ros.trajopt.expert import OptimizingExpert
+from npp_ros.trajopt.receding import PlanningExpert
 
 try:  # the registry's fastest plain 1-NN tree; the benchmark still runs without it
     from pykdtree.kdtree import KDTree as PyKDTree
@@ -474,7 +475,8 @@ def time_expert(
             "options": {"time_budget_s": expert.time_budget if optimizer else math.nan,
                         "stop": expert.stop if optimizer else "closed form",
                         "max_iterations": expert.max_iterations if optimizer else 0,
-                        "values": expert.values if optimizer else "closed form"},
+                        "values": expert.values if optimizer else "closed form",
+                        "planner": expert.settings.describe() if isinstance(expert, PlanningExpert) else None},
             "derivatives_by": expert.optimizer.dynamics.derivatives_by if optimizer else "closed form",
             "success_rule": "not scored: the task states no success criterion" if criterion is None
             else f"{criterion.describe()}; at H = {horizon}, the last {window} steps",

@@ -75,8 +75,9 @@ def expert_markdown(experts: dict[str, Any]) -> list[str]:
         o = t["options"]
         stop = o.get("stop", "time")  # files from before the stop was recorded: the budget stopped iLQR
         budget = "a guard of" if stop == "iterations" else "a budget of"
+        planner = f"; {o['planner']}" if o.get("planner") else ""  # a task file's planner keys
         lines.append(f"- {expert_label(t)}: default expert (stop = {stop}: at most {o['max_iterations']} iterations, "
-                     f"{budget} {o['time_budget_s']:g} s per request; {o['values']} values); succeeded = "
+                     f"{budget} {o['time_budget_s']:g} s per request; {o['values']} values{planner}); succeeded = "
                      f"{t['success_rule']}.")  # fmt: skip
     lines += [
         "",

@@ -86,6 +86,13 @@ class PlannerSettings:
             return PLANNERS
         return ("sampling",) if key in SAMPLING_KEYS else ("receding", "sampling")
 
+    def describe(self) -> str:
+        """The planner and the keys it uses, as a task file writes them."""
+        if not self.plans:
+            return 'planner = "ilqr" (no plan: one iLQR from the warm start)'
+        used = [key for key in PLANNER_KEYS if key != "planner" and self.planner in self.planners_using(key)]
+        return f'planner = "{self.planner}": ' + ", ".join(f"{key} {getattr(self, key):g}" for key in used)
+
     @property
     def plans(self) -> bool:
         """Whether requests are planned by windows (else one iLQR over the horizon, from the warm start)."""
