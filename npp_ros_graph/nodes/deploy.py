@@ -283,21 +283,33 @@ class DeployNode(LifecycleNode):
         return DeploySettings(**{param.name: self.get_parameter(param.name).value for param in PARAMETERS})
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
-        source = ""
+        # Three steps, each refusing with its reason; a ValueError is a refusal only where the settings are
+        # checked: from the gate (which refuses with GateRefusal) it is unexpected, and named by its type.
         try:
             self.settings = settings = self._read_settings()
             fingerprint, source = self._robot_fingerprint(settings)
-            deployment = load_deployment(settings.run_dir, settings.acceptance(fingerprint))
-            plant = deployment.plant
-            check_command_interface(plant, settings.command_interface)
-            layout = JointLayout.of_plant(plant, parse_names(settings.command_joints))
-            coverage = Coverage.of_deployment(deployment, settings.coverage_radius)
-        except (GateRefusal, ValueError) as exc:
+            acceptance = settings.acceptance(fingerprint)
+        except ValueError as exc:
+            return self._refuse("configure", str(exc))
+        except Exception as exc:  # whatever it is, configure fails with its reason, never silently
+            return self._refuse("configure", f"{type(exc).__name__}: {exc}")
+        try:
+            deployment = load_deployment(settings.run_dir, acceptance)
+        except GateRefusal as exc:
             reason = str(exc)
             if source and "fingerprint" in reason:
                 reason += f" (the robot's fingerprint came from {source})"
             return self._refuse("configure", reason)
-        except Exception as exc:  # whatever it is, configure fails with its reason, never silently
+        except Exception as exc:
+            return self._refuse("configure", f"{type(exc).__name__}: {exc}")
+        try:
+            plant = deployment.plant
+            check_command_interface(plant, settings.command_interface)
+            layout = JointLayout.of_plant(plant, parse_names(settings.command_joints))
+            coverage = Coverage.of_deployment(deployment, settings.coverage_radius)
+        except ValueError as exc:  # a setting the run's plant cannot take
+            return self._refuse("configure", str(exc))
+        except Exception as exc:
             return self._refuse("configure", f"{type(exc).__name__}: {exc}")
         for reason in deployment.overridden:
             self.get_logger().error(f"GATE OVERRIDDEN (override_gate is true): {reason}")

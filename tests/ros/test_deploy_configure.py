@@ -1,0 +1,53 @@
+"""npp-deploy's configure in process: each failure reaches the operator with its reason, a bug named by its type."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.parameter import Parameter
+
+import npp_ros_graph.nodes.deploy as deploy_node
+from npp_ros.deployment.gate import GateRefusal
+
+
+@pytest.fixture
+def deploy(ros_context: None) -> Iterator[deploy_node.DeployNode]:
+    node = deploy_node.DeployNode()
+    node.set_parameters([Parameter("run_dir", value="/nowhere"), Parameter("robot_model_fingerprint", value="0" * 64)])
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize(
+    ("raised", "said"),
+    [
+        (GateRefusal("the run file holds no certificate"), "configure refused: the run file holds no certificate"),
+        (ValueError("setting an array element with a sequence"),
+         "configure refused: ValueError: setting an array element with a sequence"),
+        (KeyError("policy"), "configure refused: KeyError: 'policy'"),
+    ],
+)  # fmt: skip
+def test_a_gate_refusal_is_its_reason_and_anything_else_from_the_gate_is_named_by_its_type(
+    deploy: deploy_node.DeployNode, monkeypatch: pytest.MonkeyPatch, raised: Exception, said: str
+) -> None:
+    """The gate refuses with GateRefusal; a ValueError from inside it is a bug, not a refusal, and the operator
+    sees its type rather than a message that reads like one of the gate's reasons."""
+
+    def gate(*_args: object) -> None:
+        raise raised
+
+    monkeypatch.setattr(deploy_node, "load_deployment", gate)
+    assert deploy.on_configure(None) == TransitionCallbackReturn.FAILURE  # type: ignore[arg-type]
+    assert deploy.refusal == said, deploy.refusal
+
+
+def test_a_bad_setting_is_refused_with_its_own_reason(deploy: deploy_node.DeployNode) -> None:
+    """0 is within the parameter's range (>= 0), but no certificate can meet it: refused at configure."""
+    (result,) = deploy.set_parameters([Parameter("max_epsilon", value=0.0)])
+    assert result.successful, result.reason
+    assert deploy.on_configure(None) == TransitionCallbackReturn.FAILURE  # type: ignore[arg-type]
+    assert deploy.refusal == "configure refused: max_epsilon must be > 0, got 0.0", deploy.refusal
