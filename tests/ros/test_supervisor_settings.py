@@ -12,6 +12,7 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.setup import build_config, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
 from npp_ros_graph.nodes.supervisor.node import PARAMETERS, SupervisorSettings
@@ -45,6 +46,17 @@ def test_epsilon_certify_and_rule_are_the_tasks_until_given(settings_of) -> None
     assert settings_of(epsilon="task").epsilon is None
     for value in (None, 7.25):  # what npp-run passes for its --epsilon
         assert settings_of(epsilon=task_or_number_value(value)).epsilon == value
+
+
+def test_lipschitz_is_read_once_into_the_cores_type(settings_of) -> None:
+    """task -> None (the task decides), a named choice as it is, a number as a user's L; anything else refused."""
+    assert settings_of().lipschitz is None and settings_of(lipschitz="task").lipschitz is None
+    assert settings_of(lipschitz="data").lipschitz == "data"
+    user = settings_of(lipschitz="250").lipschitz
+    assert isinstance(user, LipschitzConstant) and (user.value, user.source) == (250.0, "user")
+    refusal = r"parameter lipschitz must be one of: task, analytic, paper, data, a number > 0, got 'steep'"
+    with pytest.raises(StartupError, match=refusal):
+        settings_of(lipschitz="steep")
 
 
 def test_a_bad_epsilon_is_refused_at_start_with_the_specs_own_reason(settings_of) -> None:

@@ -84,13 +84,19 @@ from npp_ros_graph.transport.topics import (
 
 MODE_DEFAULT = "mode"  # the stopping rule the checked quantity defaults to (DEFAULT_RULES)
 
+
+def task_or_lipschitz(text: str) -> str | LipschitzConstant | None:
+    """L's parameter in the core's type: None for ``task`` (the task decides), a named choice, or a user's L."""
+    return None if text == TASK_CHOICE else parse_lipschitz(text)
+
+
 PARAMETERS = (
     Param("epsilon", TASK_CHOICE, f"target gap > 0; task = the task's: the paper's ({by_task('paper_epsilon')}) or a "
           "task file's", choices=(TASK_CHOICE, "a number > 0"), read=task_or_number),
     Param("lipschitz", TASK_CHOICE, "L: analytic (bounds V*'s slope on the expert's states; lqr), paper ("
           f"{by_task('paper_lipschitz')}; not a bound), data (fixed from the run's first expert answers; a choice) or "
           "a number > 0; task = analytic where the task has it, else a task file's lipschitz, else paper",
-          choices=(TASK_CHOICE, *LIPSCHITZ_CHOICES, "a number > 0")),
+          choices=(TASK_CHOICE, *LIPSCHITZ_CHOICES, "a number > 0"), read=task_or_lipschitz),
     Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
     Param("policy", DEFAULT_POLICY, POLICY_HELP, choices=POLICY_KINDS),
     Param("explore", 0.0, EXPLORE_HELP, 0.0),
@@ -123,12 +129,11 @@ class SupervisorSettings:
 
     check_spec_choices (what CertificationSpec checks its fields with) checks condition, p, delta, the policy and
     those of epsilon, certify and rule the parameters give; what the task decides (None here: epsilon, certify,
-    rule, and L's diam(S0)) is checked when the sim names the task and the spec is built. parse_lipschitz reads L
-    once.
+    rule, and L's diam(S0)) is checked when the sim names the task and the spec is built.
     """
 
     epsilon: float | None  # None: the task's
-    lipschitz: str | LipschitzConstant
+    lipschitz: str | LipschitzConstant | None  # a named choice, a user's L, or None: the task's
     condition: Condition
     certify: CheckedQuantity | None  # None: the task's
     rule: StoppingRule | None  # None: the checked quantity's default
@@ -147,10 +152,6 @@ class SupervisorSettings:
     def __post_init__(self) -> None:
         if not self.run_dir.strip():
             raise ValueError("run_dir must name a folder")
-        lipschitz = self.lipschitz
-        if isinstance(lipschitz, str) and lipschitz != TASK_CHOICE:
-            lipschitz = parse_lipschitz(lipschitz)
-        object.__setattr__(self, "lipschitz", lipschitz)
         check_spec_choices(
             self.condition, self.p, self.delta, self.policy, epsilon=self.epsilon, certify=self.certify, rule=self.rule
         )
@@ -302,10 +303,9 @@ class SupervisorNode(Node):
         if isinstance(s.lipschitz, LipschitzConstant):
             lipschitz = s.lipschitz
         else:
-            choice = None if s.lipschitz == TASK_CHOICE else s.lipschitz
             run_file = Path(s.run_dir) / "run.sqlite"
             lipschitz = resolve_lipschitz(
-                task, choice, expert, seed=plant.seed, horizon=plant.horizon, run_file=run_file
+                task, s.lipschitz, expert, seed=plant.seed, horizon=plant.horizon, run_file=run_file
             )
         config = build_config(
             task, plant.seed, lipschitz, epsilon,
