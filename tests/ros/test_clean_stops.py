@@ -132,18 +132,25 @@ sys.exit(runtime.run_node(HangsInTeardown))
 """
 
 
-def test_a_node_whose_teardown_hangs_leaves_after_its_grace(ros_domain: int) -> None:
-    """One SIGTERM (all a node gets when npp-run is killed: its parent-death signal) ends a node even when its
-    ROS teardown hangs: run_node leaves after TEARDOWN_S, saying so, rather than stay on the domain."""
-    command = [sys.executable, "-c", HANGING_NODE]
+def after_one_sigterm(script: str, ready: bytes) -> str:
+    """What a node process started from ``script`` says, and that it exits with 0, after one SIGTERM sent once it
+    printed ``ready``: all a node gets when npp-run is killed (its parent-death signal)."""
+    command = [sys.executable, "-c", script]
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
     with ended_at_exit(proc):
         assert proc.stdout is not None
-        assert proc.stdout.readline().strip() == b"spinning"
+        assert proc.stdout.readline().strip() == ready
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, out.decode()
-    assert b"the ROS teardown did not finish within 2 s; leaving without it" in out, out.decode()
+    return out.decode()
+
+
+def test_a_node_whose_teardown_hangs_leaves_after_its_grace(ros_domain: int) -> None:
+    """One SIGTERM ends a node even when its ROS teardown hangs: run_node leaves after TEARDOWN_S, saying so,
+    rather than stay on the domain."""
+    out = after_one_sigterm(HANGING_NODE, b"spinning")
+    assert "the ROS teardown did not finish within 2 s; leaving without it" in out, out
 
 
 BLOCKED_NODE = """
@@ -168,13 +175,5 @@ sys.exit(runtime.run_node(BlocksInACallback))
 def test_a_node_whose_callback_never_returns_leaves_after_its_bound(ros_domain: int) -> None:
     """One SIGTERM ends a node whose main thread never comes back to its spin loop: the stop watch leaves
     STOP_BOUND_S after the signal, saying so, rather than stay on the domain."""
-    proc = subprocess.Popen(
-        [sys.executable, "-c", BLOCKED_NODE], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
-    )
-    with ended_at_exit(proc):
-        assert proc.stdout is not None
-        assert proc.stdout.readline().strip() == b"blocked"
-        proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=120)
-    assert proc.returncode == 0, out.decode()
-    assert b"still running 2 s after SIGTERM; leaving without it" in out, out.decode()
+    out = after_one_sigterm(BLOCKED_NODE, b"blocked")
+    assert "still running 2 s after SIGTERM; leaving without it" in out, out
