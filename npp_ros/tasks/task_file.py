@@ -47,7 +47,9 @@ suite does (npp_ros.tasks.task_file_terms).
 
 The expert optimises a smooth surrogate of the reward (npp_ros.tasks.task_file_cost): each term
 costs 0.5 w ((q - clip(q, bounds)) / margin)^2, zero exactly where its tolerance is 1; the values it
-stores are the true rewards replayed on the plant, as for every iLQR expert.
+stores are the true rewards replayed on the plant, as for every iLQR expert. ``[[expert.terms]]``
+replaces the reward's terms as that cost, and may add ``energy = { joint = position, ... }``: the
+mechanical energy less that pose's at rest, which an underactuated swing-up must pump.
 
 Agreement: the task's name is the file's absolute path and its content's SHA-256
 (``/abs/task.toml#sha256=...``); the sim publishes that name, and the expert and the supervisor
