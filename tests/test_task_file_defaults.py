@@ -133,4 +133,7 @@ def test_npp_bench_help_says_which_task_file_values_it_uses(capsys: pytest.Captu
     with pytest.raises(SystemExit):
         bench.parse_args(["--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "a task file's [expert] keys" in text and "a task file's key horizon is not used here" in text
+    assert (
+        "a task file's [expert] keys" in text
+        and "default: each task's own (1000 for the built-in tasks, a task file's key horizon)" in text
+    )
