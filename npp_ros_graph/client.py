@@ -141,7 +141,7 @@ class GraphClient:
 
         ``key``: the run's key (None: NPP_RUN_KEY's; without one, reports are not verified).
         ``past_reports``: also the episodes the supervisor reported before this client joined (it keeps
-        its last 1,000); False: new ones only, as npp-run and npp-monitor print them.
+        its last 1,000); False: new ones only, as npp-monitor prints them.
         ``name``: the client's node name ("": npp_graph_client_PID_N, one of its own for each client).
         ``ros_args``: ROS arguments for the client's node (e.g. ``["--ros-args", "-r", "__ns:=/robot1"]``).
         """

@@ -129,8 +129,11 @@ class Follower:
         self.last: GapReport | None = None
         self.certificate: Certificate | None = None
         self.certified = threading.Event()
-        # Only this run's reports: main() has set the run's key, and the run's supervisor names its run.
-        self.client = GraphClient(name="npp_run", past_reports=False)
+        # Only this run's reports: main() has set the run's key, and the run's supervisor names its run. Its past
+        # ones too: the supervisor starts after this client, so every report it keeps is this run's, and one sent
+        # before discovery matched this reader would be lost to a volatile one (a short run can end in its first
+        # seconds, and npp-run would then wait for its last report forever).
+        self.client = GraphClient(name="npp_run", past_reports=True)
         self.client.on_gap(self.on_report)
         self.client.on_certificate(self.on_report)
         self.client.on_health(self.on_health)

@@ -37,7 +37,8 @@ CONTROL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, histo
 REPORT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 # The supervisor's per-episode reports (/npp/gap, /npp/episode) are kept for late subscribers that ask for
 # them (npp-record): a recorder started before the run whose discovery of the supervisor comes after the
-# first episodes still records every one. Volatile subscribers (npp-run, npp-monitor) get new ones only.
+# first episodes still records every one, and npp-run, which starts its supervisor, gets all of its run's. Volatile
+# subscribers (npp-monitor) get new ones only.
 REPORT_HISTORY_QOS = QoSProfile(
     depth=1000,
     reliability=ReliabilityPolicy.RELIABLE,
