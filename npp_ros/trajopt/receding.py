@@ -106,11 +106,13 @@ SAMPLING_KEYS = ("samples", "knots", "noise", "sample_rounds")
 class BatchRollouts:
     """Open-loop rollouts of many action sequences from one state, in one ``mujoco.rollout`` call.
 
-    Each starts from a reset MjData at the state, as :meth:`MujocoDynamics.rollout` does, so a row's
-    states are that rollout's, bit for bit.
+    Each starts from a reset MjData at the state, as :meth:`MujocoDynamics.rollout` does, and steps on the
+    plant's own control step: ``substeps`` MuJoCo steps per action, the action held (a plan scored at one
+    model step per action would be scored on a clock k times slower than the plant's). A row's states are
+    that rollout's, bit for bit.
     """
 
-    def __init__(self, model: Any, state_dim: int) -> None:
+    def __init__(self, model: Any, state_dim: int, substeps: int = 1) -> None:
         import mujoco
         from mujoco import rollout as mj_rollout
 
@@ -123,19 +125,21 @@ class BatchRollouts:
         mujoco.mj_getState(model, self.data, self._template, spec)
         self._control_spec = int(mujoco.mjtState.mjSTATE_CTRL)
         self.state_dim = int(state_dim)
+        self.substeps = int(substeps)  # MuJoCo steps per action, the action held
 
     def __call__(self, x0: FloatArray, actions: FloatArray) -> FloatArray:
         """States (N, T + 1, n) of the N action sequences (N, T, m) from x0."""
         count, steps, _ = actions.shape
-        n, at = self.state_dim, self._at
+        n, at, k = self.state_dim, self._at, self.substeps
         initial = np.repeat(self._template[None, :], count, axis=0)
         initial[:, at : at + n] = x0
+        held = np.ascontiguousarray(np.repeat(actions, k, axis=1))  # each action held for its k MuJoCo steps
         out, _ = self._rollout.rollout(
-            self.model, self.data, initial, np.ascontiguousarray(actions), control_spec=self._control_spec, nstep=steps
+            self.model, self.data, initial, held, control_spec=self._control_spec, nstep=steps * k
         )
         states = np.empty((count, steps + 1, n))
         states[:, 0] = x0
-        states[:, 1:] = out[:, :, at : at + n]
+        states[:, 1:] = out[:, k - 1 :: k, at : at + n]  # the state after each control step's last MuJoCo step
         return states
 
 
@@ -159,7 +163,7 @@ class RecedingPlanner:
         self.settings = settings
         self.controller = controller  # extends each window's guess past the shifted plan (None: zeros)
         dynamics = optimizer.dynamics
-        self.rollouts = BatchRollouts(dynamics.model, dynamics.state_dim)
+        self.rollouts = BatchRollouts(dynamics.model, dynamics.state_dim, dynamics.substeps)
         self.lower, self.upper = dynamics.lower, dynamics.upper
         # A perturbation's scale per control: half its range (1 for an unlimited control).
         self.scale = np.where(np.isfinite(self.upper - self.lower), (self.upper - self.lower) / 2, 1.0)
