@@ -201,6 +201,11 @@ class CertificationStatus:
     (trajectories are stored but held back). The mixture rule (mixture.py) fills ``stage``
     ("screen" or "verification"); in a verification ``window`` counts its checks, ``failures`` the
     failed ones, and ``log_mixture`` is ln M.
+
+    ``episodes_to_certify`` is the fewest further episodes after which the rule could certify: every
+    further check passing, which no failure can shorten (a failure starts a test that needs more).
+    It is a lower bound, so a run with fewer episodes left cannot certify (``reachable_within``);
+    None where the rule cannot tell (condition (ii): its need moves with the mean gap).
     """
 
     certified: bool
@@ -214,6 +219,13 @@ class CertificationStatus:
     stage: str = ""
     failures: int = 0
     log_mixture: float | None = None
+    episodes_to_certify: int | None = None
+
+    def reachable_within(self, episodes_left: int) -> bool | None:
+        """Whether a certificate may still come within ``episodes_left`` more episodes (None: cannot tell)."""
+        if self.certified:
+            return True
+        return None if self.episodes_to_certify is None else self.episodes_to_certify <= episodes_left
 
 
 @dataclass
@@ -255,6 +267,8 @@ class Certifier:
         test_delta = spec.test_delta(test) if test else 0.0
         if spec.condition == "i":
             required = spec.streak_required(test) if spec.rule == "sequential" else spec.quiet_episodes_required()
+            # Before any episode (test 0) the first check has no policy and fails; then test 1's streak.
+            at_best = 1 + required if test == 0 else max(required - self.quiet_episodes, 0)
             return CertificationStatus(
                 certified=test > 0 and self.quiet_episodes >= required,
                 window=self.quiet_episodes,
@@ -263,6 +277,7 @@ class Certifier:
                 test=test,
                 test_delta=test_delta,
                 frozen=self.quiet_episodes > 0,
+                episodes_to_certify=at_best,
             )
         if spec.rule == "sequential":
             return replace(self._hoeffding_within_test(test, test_delta), frozen=self.quiet_episodes > 0)

@@ -163,6 +163,23 @@ class MixtureCertifier:
         """The policy must stay as it is: a verification runs, or a screen streak holds (oracle mode)."""
         return self.verifying or self.certified or self.streak > 0
 
+    def episodes_to_certify(self) -> int:
+        """The fewest further checks after which this rule could certify (a lower bound, see CertificationStatus).
+
+        Screening: the screen's passes still missing, then the next verification's checks with no failure.
+        Verifying: the fewer of this verification's checks still needed with no more failures, and giving it
+        up (at least one more failure), a new screen and the next verification with no failure."""
+        p, spec = self.spec.p, self.spec
+        if self.certified:
+            return 0
+        if not self.verifying:
+            return SCREEN_PASSES - self.streak + checks_to_certify(0, p, spec.test_delta(self.verification + 1))
+        here = checks_to_certify(self.failures, p, spec.test_delta(self.verification)) - self.checks
+        if here > VERIFICATION_BUDGET - self.checks:
+            here = math.inf  # beyond the budget: this verification gives up first
+        again = 1 + SCREEN_PASSES + checks_to_certify(0, p, spec.test_delta(self.verification + 1))
+        return int(min(here, again))
+
     def status(self) -> CertificationStatus:
         if self.verifying or self.certified:
             v, n, f = self.verification, self.checks, self.failures
@@ -178,6 +195,7 @@ class MixtureCertifier:
                 stage="verification",
                 failures=f,
                 log_mixture=log_mixture(n, f, self.spec.p),
+                episodes_to_certify=self.episodes_to_certify(),
             )
         return CertificationStatus(
             certified=False,
@@ -186,6 +204,7 @@ class MixtureCertifier:
             quiet_episodes=self.streak,
             frozen=self.streak > 0,
             stage="screen",
+            episodes_to_certify=self.episodes_to_certify(),
         )
 
 

@@ -25,7 +25,8 @@ from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzWarning
 from npp_ros.run.evaluation import check_policy
 from npp_ros.run.explore import EXPLORE_HELP
-from npp_ros.run.progress import Counter, StatusLine
+from npp_ros.run.loop import NPPLoop, RunResult
+from npp_ros.run.progress import Counter, StatusLine, unreachable_text
 from npp_ros.run.records import RunFileError, write_episode_log
 from npp_ros.run.setup import (
     build_config,
@@ -95,6 +96,12 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
     ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
+    ap.add_argument(
+        "--stop-when-unreachable",
+        action="store_true",
+        help="end the run, uncertified, as soon as no certificate can come within --max-episodes (the episodes "
+        "left are fewer than the rule needs at best: a streak's passes still missing); the run says so either way",
+    )
     ap.add_argument("--time-budget", type=float, default=None, help=TIME_BUDGET_HELP)
     ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=STOP_HELP)
     ap.add_argument(
@@ -113,6 +120,25 @@ def parser() -> argparse.ArgumentParser:
         "--evaluate", type=nonnegative_int, default=100, metavar="N", help="after the run, N fresh rollouts (0: none)"
     )
     return ap
+
+
+ENDINGS = {
+    "certified": "certified",
+    "max-episodes": "at --max-episodes",
+    "unreachable": "stopped early (--stop-when-unreachable)",
+}
+
+
+def run_to_end(loop: NPPLoop, max_episodes: int, stop_when_unreachable: bool) -> tuple[RunResult, str]:
+    """The run to its certificate or ``max_episodes``; with ``stop_when_unreachable``, to the first moment no
+    certificate can come within ``max_episodes`` (CertificationStatus.reachable_within). Also says why it ended."""
+    while loop.certificate is None and loop.next_episode < max_episodes:
+        left = max_episodes - loop.next_episode
+        if stop_when_unreachable and loop.certifier.status().reachable_within(left) is False:
+            return loop.run(loop.next_episode), "unreachable"
+        loop.run_episode()
+    result = loop.run(loop.next_episode)  # runs nothing more: the result of the episodes stored
+    return result, "certified" if result.certificate else "max-episodes"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
             condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
             certify=args.certify, rule=args.rule, policy=args.policy, explore=args.explore,
         )  # fmt: skip
-        status = StatusLine(epsilon, args.condition)
+        status = StatusLine(epsilon, args.condition, max_episodes=args.max_episodes, prefix="npp-learn: ")
         loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", rollouts=args.rollouts, observers=[status])
     except (ValueError, RunFileError) as exc:
         print(f"npp-learn: {exc}", file=sys.stderr)
@@ -147,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"npp-learn: resuming {run_dir / 'run.sqlite'} at episode {loop.next_episode}", file=sys.stderr)
     started = time.perf_counter()
     try:
-        result = loop.run(args.max_episodes)
+        result, ended = run_to_end(loop, args.max_episodes, args.stop_when_unreachable)
     except KeyboardInterrupt:
         status.close()
         print(f"\nnpp-learn: interrupted; {loop.next_episode} episodes stored, resumed on restart", file=sys.stderr)
@@ -191,6 +217,8 @@ def main(argv: list[str] | None = None) -> int:
         "certificate": result.certificate.record() if result.certificate else None,
         "lipschitz_checks": [{"slope": c.slope, "source": c.source, "ok": c.ok} for c in checks],
         "success": {"criterion": task.success.describe() if task.success else None, **asdict(counts)},
+        "ended": ended,
+        "episodes_to_certify": loop.certifier.status().episodes_to_certify,  # at best, after the last episode
         "wall_time_s": elapsed,
     }
     if result.certificate:
@@ -200,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
             f"NOT CERTIFIED after {result.episodes} episodes "
             f"({result.oracle_calls} oracle calls, |D| = {result.dataset_size})"
         )
+        why = unreachable_text(loop.certifier.status(), result.episodes, args.max_episodes)
+        print(f"  ended           {ENDINGS[ended]}" + (f": {why}" if why else ""))
         print(f"  {loop.measured_success().sentence()}")
     print(f"  L source detail  {lipschitz.detail}")
     for check in checks:

@@ -31,28 +31,69 @@ def status_text(row: EpisodeRow, epsilon: float, status: CertificationStatus, co
     )
 
 
-class StatusLine(Observer):
-    """Prints the run's state after each episode; rate-limited when not on a terminal."""
+def unreachable_text(status: CertificationStatus, episodes: int, max_episodes: int) -> str | None:
+    """The line that says a certificate can no longer come within ``max_episodes``, after ``episodes`` episodes;
+    None while it still can, where the rule cannot tell (CertificationStatus.episodes_to_certify), and at the
+    run's last episode, which ends it anyway."""
+    left = max_episodes - episodes
+    if left <= 0 or status.reachable_within(left) is not False:
+        return None
+    if status.stage == "screen":
+        where = f"screen {status.quiet_episodes}/{status.required}, then a verification"
+    elif status.stage == "verification":
+        where = f"verification {status.test}: {status.window} checks, {status.failures} failed"
+    else:
+        where = f"test {status.test} streak {status.quiet_episodes}/{status.required}"
+    return (
+        f"the certificate can no longer be reached within {max_episodes} episodes: after episode {episodes} it "
+        f"needs at least {status.episodes_to_certify} more episodes ({where}), and {left} are left"
+    )
 
-    def __init__(self, epsilon: float, condition: str, stream: TextIO | None = None, every: float = 2.0) -> None:
+
+class StatusLine(Observer):
+    """Prints the run's state after each episode; rate-limited when not on a terminal.
+
+    Given ``max_episodes``, it also says once, on its own line, when a certificate can no longer come
+    within that many episodes (``unreachable``): the run goes on to its end unless its caller stops it."""
+
+    def __init__(
+        self,
+        epsilon: float,
+        condition: str,
+        stream: TextIO | None = None,
+        every: float = 2.0,
+        *,
+        max_episodes: int | None = None,
+        prefix: str = "",
+    ) -> None:
         self.epsilon = epsilon
         self.condition = condition
         self.stream = stream or sys.stderr
         self.tty = self.stream.isatty()
         self.every = every
+        self.max_episodes = max_episodes
+        self.prefix = prefix  # before the unreachable line, e.g. "npp-learn: "
+        self.unreachable = ""  # the line, once said
         self._last = 0.0
         self._pending = ""
 
     def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
         text = status_text(row, self.epsilon, status, self.condition)
         now = time.monotonic()
+        line = None
+        if self.max_episodes is not None and not self.unreachable:
+            line = unreachable_text(status, row.episode + 1, self.max_episodes)
         if self.tty:
             self.stream.write("\r" + text.ljust(110))
             self.stream.flush()
-        elif now - self._last >= self.every or status.certified:
+        elif now - self._last >= self.every or status.certified or line is not None:
             self.stream.write(text + "\n")
             self.stream.flush()
             self._last = now
+        if line is not None:
+            self.unreachable = line
+            self.stream.write(("\n" if self.tty else "") + self.prefix + line + "\n")
+            self.stream.flush()
 
     def on_certificate(self, certificate: Certificate) -> None:
         self.close()

@@ -324,7 +324,7 @@ class SupervisorNode(Node):
                 gaps=self.gap_pub, episodes=self.episode_pub, certificates=self.certificate_pub,
                 send_trajectory=self.send_trajectory, seal=self.seal,
                 context=report_context(plant.model_sha256, self.run_id), clock=self.get_clock(), logger=log,
-                config=config, run_dir=run_dir,
+                config=config, run_dir=run_dir, max_episodes=s.max_episodes,
             )  # fmt: skip
             # Every answer is replayed on the supervisor's own plant before anything of it is stored.
             tail = expert.value_basis().tail

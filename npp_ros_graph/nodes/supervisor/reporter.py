@@ -16,6 +16,7 @@ from rclpy.publisher import Publisher
 from npp_ros.certificate.certifier import Certificate, CertificationStatus
 from npp_ros.policy.dataset import Trajectory
 from npp_ros.run.loop import Observer, RunConfig
+from npp_ros.run.progress import unreachable_text
 from npp_ros.run.records import EpisodeRow, append_episode_log
 from npp_ros_graph.transport.convert import certificate_to_msg, episode_result, gap_report
 from npp_ros_graph.transport.seal import RunSeal
@@ -45,12 +46,15 @@ class GraphReporter(Observer):
         logger: RcutilsLogger,
         config: RunConfig,
         run_dir: Path,
+        max_episodes: int | None = None,
     ) -> None:
         self.gaps, self.episodes, self.certificates = gaps, episodes, certificates
         self.send_trajectory, self.seal, self.context = send_trajectory, seal, context
         self.clock, self.logger, self.config = clock, logger, config
         self.gap_log = run_dir / "gaps.csv"
         self.episode_log = run_dir / "episodes.csv"
+        self.max_episodes = max_episodes  # says once when no certificate can come within it
+        self.unreachable = ""
 
     def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
         stamp = self.clock.now().to_msg()
@@ -65,6 +69,10 @@ class GraphReporter(Observer):
              row.oracle_calls, row.quiet_episodes],
         )  # fmt: skip
         append_episode_log(self.episode_log, row)  # the columns npp-learn writes too
+        if self.max_episodes is not None and not self.unreachable:
+            self.unreachable = unreachable_text(status, row.episode + 1, self.max_episodes) or ""
+            if self.unreachable:
+                self.logger.warning(self.unreachable)
 
     def on_trajectory(self, index: int, trajectory: Trajectory) -> None:
         self.send_trajectory(index, trajectory)
