@@ -122,6 +122,7 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+EVALUATION_CHUNK = 10  # held-out rollouts stepped in lockstep between progress lines (the numbers do not depend on it)
 ENDINGS = {
     "certified": "certified",
     "max-episodes": "at --max-episodes",
@@ -201,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
         evaluation = check_policy(
             policy, task, task.make_plant(args.seed), expert, states, args.horizon,
             epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.spec.certify == "oracle",
-            progress=Counter("evaluating"),
+            progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
+            expert_progress=Counter("held-out: the expert's returns"),
         )  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LipschitzWarning)  # reported below, in the summary

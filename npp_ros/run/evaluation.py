@@ -41,6 +41,8 @@ def policy_rollouts(
     (NaN where the expert's value slope is not known in closed form)."""
     returns = np.empty(len(states))
     slopes = np.empty(len(states))
+    if progress is not None:
+        progress(0, len(states))  # the phase has begun: a chunk of long rollouts says nothing until it ends
     for lo in range(0, len(states), chunk):
         hi = min(lo + chunk, len(states))
         for k, run in enumerate(rollout_batch(plant, policy.act, states[lo:hi], horizon)):
@@ -95,6 +97,7 @@ def check_policy(
     expert_progress: Callable[[int, int], None] | None = None,
     expert_returns: FloatArray | None = None,
     expert_budget_stops: int = 0,
+    chunk: int = CHUNK,
 ) -> HeldOutCheck:
     """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
 
@@ -102,14 +105,20 @@ def check_policy(
     suboptimal expert); otherwise the task's optimal H-step return (lqr: H - 0.5 s0'P_H s0). A task
     that knows no optimum is always checked against its expert. ``expert_returns``: the expert's
     returns from ``states`` where the caller already asked for them (in parallel), with
-    ``expert_budget_stops`` of them cut by its time budget; else asked here, and counted here.
+    ``expert_budget_stops`` of them cut by its time budget; else asked here, and counted here. ``progress`` and
+    ``expert_progress`` hear (done, total) of the policy's rollouts (after every ``chunk``) and of the expert's
+    requests, each from (0, total) on: an optimizer's requests take seconds each.
     """
     started = time.perf_counter()
-    returns, slopes = policy_rollouts(plant, policy, states, horizon, task.value_slope(expert), progress=progress)
+    returns, slopes = policy_rollouts(
+        plant, policy, states, horizon, task.value_slope(expert), chunk=chunk, progress=progress
+    )
     optimal = None if against_expert else task.optimal_returns(expert, plant, states, horizon)
     if optimal is None:
         if expert_returns is None:
             before = budget_stops(expert)
+            if expert_progress is not None:
+                expert_progress(0, len(states))
             reference = task.expert_returns(expert, plant, states, horizon, expert_progress)
             expert_budget_stops = budget_stops(expert) - before
         else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import TextIO
@@ -105,22 +106,27 @@ class StatusLine(Observer):
 
 
 class Counter:
-    """A small progress counter for batches of rollouts ("evaluating 12/100")."""
+    """A small progress counter for a batch of slow steps ("evaluating 12/100 (34 s)"): the count and the
+    seconds since its first call, so a long phase is never silent."""
 
-    def __init__(self, label: str, stream: TextIO | None = None) -> None:
+    def __init__(self, label: str, stream: TextIO | None = None, every: float = 2.0) -> None:
         self.label = label
         self.stream = stream or sys.stderr
         self.tty = self.stream.isatty()
-        self._last = 0.0
+        self.every = every
+        self._last = -math.inf
+        self._started: float | None = None
 
     def __call__(self, done: int, total: int) -> None:
         now = time.monotonic()
+        self._started = now if self._started is None else self._started
+        text = f"{self.label} {done}/{total} ({now - self._started:.0f} s)"
         if self.tty:
-            self.stream.write(f"\r{self.label} {done}/{total}")
+            self.stream.write(f"\r{text}")
             if done == total:
                 self.stream.write("\n")
             self.stream.flush()
-        elif done == total or now - self._last >= 2.0:
-            self.stream.write(f"{self.label} {done}/{total}\n")
+        elif done == total or now - self._last >= self.every:
+            self.stream.write(f"{text}\n")
             self.stream.flush()
             self._last = now

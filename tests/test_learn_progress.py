@@ -1,0 +1,34 @@
+"""npp-learn's held-out evaluation is never silent: each phase (the policy's rollouts, the expert's returns from
+the same s0) prints its count and the seconds since it began, from 0 on."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+from pathlib import Path
+
+from npp_ros.run.progress import Counter
+
+ARM = Path(__file__).resolve().parents[1] / "examples" / "two_link_arm" / "task.toml"
+
+
+def test_a_counter_says_its_count_and_seconds_from_the_start() -> None:
+    out = io.StringIO()
+    count = Counter("held-out: the expert's returns", out, every=3600.0)
+    for done in range(4):
+        count(done, 3)
+    lines = out.getvalue().splitlines()
+    assert lines == ["held-out: the expert's returns 0/3 (0 s)", "held-out: the expert's returns 3/3 (0 s)"]
+
+
+def test_npp_learn_reports_both_held_out_phases(tmp_path: Path) -> None:
+    run = subprocess.run(
+        [sys.executable, "-m", "npp_ros.cli.learn", "--task", str(ARM), "--horizon", "20", "--epsilon", "5",
+         "--max-episodes", "2", "--evaluate", "3", "--run-dir", str(tmp_path)],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert run.returncode == 1, run.stderr  # two episodes certify nothing
+    for phase in ("held-out: policy rollouts", "held-out: the expert's returns"):
+        assert f"{phase} 0/3 (" in run.stderr and f"{phase} 3/3 (" in run.stderr, run.stderr
+    assert run.stderr.index("held-out: policy rollouts 3/3") < run.stderr.index("held-out: the expert's returns 0/3")
