@@ -73,9 +73,11 @@ def author_certificate(
     dataset_size: int,
     policy_trajectories: int,
     success: MeasuredSuccess | None = None,
+    robots: str = "",
 ) -> Certificate:
     """The certificate a run issues when ``status`` certifies, about the policy on its first trajectories;
-    ``success``: what the run measured of the task's success criterion (None: the task states none)."""
+    ``success``: what the run measured of the task's success criterion (None: the task states none); ``robots``:
+    the set of robots each episode drew from, in words ("": the exact model)."""
     measured = success if success is not None else MeasuredSuccess(None)
     certify = spec.certify
     if certify == "oracle":
@@ -96,16 +98,48 @@ def author_certificate(
         test=status.test,
         delta_spent=status.test_delta,
         value=value,
-        statement=spec.statement(
-            status.window, value, policy_trajectories, status.test, status.failures, status.log_mixture
+        statement=over_robots(
+            spec.statement(status.window, value, policy_trajectories, status.test, status.failures, status.log_mixture),
+            robots,
         )
         + " "
         + measured.sentence(),
-        proven=is_proven(spec, basis),
-        assumptions=assumptions(spec, basis),
+        proven=is_proven(spec, basis) and not (robots and spec.certify == "surrogate"),
+        assumptions=assumptions(spec, basis) + robot_assumptions(spec, robots),
         failures=status.failures,
         mixture=math.exp(status.log_mixture) if status.log_mixture is not None else None,
     )
+
+
+ROBOT_DRAW = "(s0, theta)~rho x Theta"  # what a claim under model uncertainty is a probability over
+
+
+def over_robots(statement: str, robots: str) -> str:
+    """A claim over the exact model made a claim over the set of robots: the probability is over (s0, theta)."""
+    if not robots:
+        return statement
+    claim = statement.replace("_(s0~rho)[", f"_({ROBOT_DRAW})[")
+    return (
+        f"{claim} Theta, the robots this covers: {robots}; V^E is the expert planning on each episode's robot "
+        "(which the policy does not know). Nothing is claimed for a robot outside Theta."
+    )
+
+
+def robot_assumptions(spec: CertificationSpec, robots: str) -> tuple[str, ...]:
+    """What a claim under model uncertainty adds to its assumptions ("" robots: nothing)."""
+    if not robots:
+        return ()
+    items = [
+        "each episode's robot theta is an independent draw from Theta (from the run's seed and the episode only), "
+        "independent of s0 and of the run so far",
+        "the robot is one of Theta: the plant's model with those parameters, delay and noise; nothing else differs",
+    ]
+    if spec.certify != "oracle":
+        items.append(
+            "L bounds the slope of the value for every robot in Theta, and V_ub from data of one robot bounds "
+            "another's value: NOT checked, so a certificate under uncertainty that rests on L is not proven"
+        )
+    return tuple(items)
 
 
 def no_lipschitz_bound(basis: ValueBasis | None) -> str:

@@ -38,6 +38,7 @@ from npp_ros.run.setup import (
 )
 from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
 from npp_ros.tasks.sources import short_name
+from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
 from npp_ros.trajopt.batch_steps import default_threads
 from npp_ros.trajopt.expert import STOP_HELP, STOP_MODES, TIME_BUDGET_HELP
 
@@ -85,6 +86,7 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--policy", choices=POLICY_KINDS, default=DEFAULT_POLICY, help=POLICY_HELP)
     ap.add_argument("--explore", type=float, default=0.0, metavar="RADIUS", help=EXPLORE_HELP)
+    ap.add_argument("--uncertainty", type=float, default=0.0, metavar="FACTOR", help=UNCERTAINTY_HELP)
     ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
     ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
     ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
@@ -162,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
             args.task, args.seed, lipschitz, epsilon,
             condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
             certify=args.certify, rule=args.rule, policy=args.policy, explore=args.explore,
+            uncertainty=args.uncertainty,
         )  # fmt: skip
         status = StatusLine(epsilon, args.condition, max_episodes=args.max_episodes, prefix="npp-learn: ")
         loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", rollouts=args.rollouts, observers=[status])

@@ -22,6 +22,7 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.registry import Plant
 from npp_ros.tasks.rollout import Rollout, rollout
+from npp_ros.tasks.uncertainty import Robot
 
 EXPLORE_HELP = (
     "after a failed check, also ask the expert from the first state of the policy's own rollout farther than this "
@@ -46,13 +47,13 @@ class PolicyReplay:
         self.plant = plant
         self.horizon = int(horizon)
         self._policy: NonparametricPolicy | None = None
-        self._key: tuple[bytes, int] | None = None
+        self._key: tuple[bytes, int, Robot | None] | None = None
         self._last: Rollout | None = None
 
-    def rollout(self, initial_state: FloatArray, policy: NonparametricPolicy) -> Rollout:
-        key = (np.asarray(initial_state, dtype=np.float64).tobytes(), len(policy.dataset))
+    def rollout(self, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None) -> Rollout:
+        key = (np.asarray(initial_state, dtype=np.float64).tobytes(), len(policy.dataset), robot)
         if self._last is None or self._policy is not policy or self._key != key:
-            self._last = rollout(self.plant, policy.act, initial_state, self.horizon)
+            self._last = rollout(self.plant, policy.act, initial_state, self.horizon, robot)
             self._policy, self._key = policy, key
         return self._last
 
@@ -64,11 +65,13 @@ class RolloutExplorer:
         self.replay = replay
         self.radius = check_radius(radius)
 
-    def state_to_ask(self, initial_state: FloatArray, policy: NonparametricPolicy) -> FloatArray | None:
+    def state_to_ask(
+        self, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None
+    ) -> FloatArray | None:
         """The state to ask the expert from, or None (no data yet, or the rollout never leaves the data)."""
         if len(policy.dataset) == 0 or self.radius == 0:
             return None
-        states = self.replay.rollout(initial_state, policy).states
+        states = self.replay.rollout(initial_state, policy, robot).states
         distance, _ = cKDTree(policy.dataset.states).query(states)
         far = np.flatnonzero(distance > self.radius)
         return None if len(far) == 0 else states[far[0]].copy()

@@ -25,6 +25,10 @@ Where the task states a success criterion (npp_ros.tasks.success), every episode
 expert's answer from s0 on its stored states, the policy's rollout on the states of that rollout, which a
 :class:`Replay` gives (the in-process driver's own rollout, or in the graph the same rollout re-run on a local
 copy of the deterministic plant). Nothing of this decides a check; the certificate states the counts.
+
+Under model uncertainty (npp_ros.tasks.uncertainty) each episode also draws its robot theta from the run's seed and
+the episode's index (``robots``), and everything the episode checks runs on it: the policy's rollout (the driver and
+the replay), the oracle's answer (a privileged expert, planning on theta) and the explorer's. The row records it.
 """
 
 from __future__ import annotations
@@ -47,27 +51,39 @@ from npp_ros.policy.feedback import ControlSpace
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts, state_tuple
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.success import SuccessCriterion
+from npp_ros.tasks.uncertainty import Robot, describe_robots
 
 if TYPE_CHECKING:
     from npp_ros.tasks.rollout import Rollout
 
 
 class Oracle(Protocol):
-    """The TrajectoryOptimizer: an expert trajectory from a given state."""
+    """The TrajectoryOptimizer: an expert trajectory from a given state (a run under model uncertainty names the
+    episode's robot, and the oracle plans on it; a run without names none, and any expert is an oracle)."""
 
     def trajectory(self, initial_state: FloatArray) -> Trajectory: ...
+
+
+class RobotOracle(Protocol):
+    """An oracle that plans on a drawn robot (npp_ros.tasks.uncertainty): a privileged expert."""
+
+    def trajectory(self, initial_state: FloatArray, robot: Robot | None = None) -> Trajectory: ...
 
 
 class Explorer(Protocol):
     """Where to ask the expert besides s0 after a failed check (npp_ros.run.explore), or None."""
 
-    def state_to_ask(self, initial_state: FloatArray, policy: NonparametricPolicy) -> FloatArray | None: ...
+    def state_to_ask(
+        self, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None
+    ) -> FloatArray | None: ...
 
 
 class Replay(Protocol):
     """The policy's own rollout from s0 (npp_ros.run.explore.PolicyReplay): what the success check judges."""
 
-    def rollout(self, initial_state: FloatArray, policy: NonparametricPolicy) -> Rollout: ...
+    def rollout(
+        self, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None
+    ) -> Rollout: ...
 
 
 class EpisodeInterrupted(RuntimeError):
@@ -78,9 +94,12 @@ class EpisodeInterrupted(RuntimeError):
 class EpisodeDriver(Protocol):
     """Lets the current policy drive one episode from s0; returns its return, or None when the policy
     cannot drive at all (no data). A driver that loses a result asks for it again or runs the episode
-    again; it raises EpisodeInterrupted only when the run is stopping."""
+    again; it raises EpisodeInterrupted only when the run is stopping. Under model uncertainty the episode's
+    ``robot`` is the plant the policy drives."""
 
-    def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None: ...
+    def run_episode(
+        self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None
+    ) -> float | None: ...
 
 
 class Observer:
@@ -112,6 +131,8 @@ class RunConfig:
     gamma: float = 1.0
     plant_fingerprint: str = ""  # the compiled model's SHA-256 (Plant.model_sha256): which plant the data are of
     explore: float = 0.0  # > 0: after a failed check, also ask where the policy's rollout leaves the data this far
+    # The set of robots the run draws from (UncertaintySet.record(), its elements named): '' = the exact model.
+    uncertainty: str = ""
 
     def metadata(self) -> RunMetadata:
         """What the run file records of this config: its own fields, the spec's record, where L came from."""
@@ -162,6 +183,7 @@ class NPPLoop:
         explorer: Explorer | None = None,
         success: SuccessCriterion | None = None,
         replay: Replay | None = None,
+        robots: Callable[[int], Robot] | None = None,
     ) -> None:
         self.config = config
         self.spec = config.spec
@@ -184,6 +206,9 @@ class NPPLoop:
         self.explorer = explorer if config.explore > 0 else None
         self.success = success
         self.replay = replay  # None: the policy's success is not judged (the expert's still is)
+        if config.uncertainty and robots is None:
+            raise ValueError("a run under model uncertainty needs its robot draw (npp_ros.run.setup.robot_fn)")
+        self.robots = robots if config.uncertainty else None
         self.certifier = certifier_for(self.spec)
         self.rows: list[EpisodeRow] = []
         self.certificate: Certificate | None = None
@@ -256,14 +281,20 @@ class NPPLoop:
         self.policy_data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
 
     # ------------------------------------------------------------------ one episode
-    def _drive(self, episode: int, s0: FloatArray) -> float | None:
+    def _drive(self, episode: int, s0: FloatArray, robot: Robot | None) -> float | None:
         if self.driver is None or len(self.policy_data) == 0:
             return None
-        ret = self.driver.run_episode(episode, s0, self.policy)
+        if robot is None:
+            ret = self.driver.run_episode(episode, s0, self.policy)
+        else:
+            ret = self.driver.run_episode(episode, s0, self.policy, robot)
         return None if ret is None else float(ret)
 
-    def _ask_oracle(self, s0: FloatArray) -> Trajectory:
-        answer = self.oracle.trajectory(s0)
+    def _ask_oracle(self, s0: FloatArray, robot: Robot | None) -> Trajectory:
+        if robot is None:
+            answer = self.oracle.trajectory(s0)
+        else:
+            answer = self.oracle.trajectory(s0, robot=robot)  # type: ignore[call-arg]  # a RobotOracle
         trajectory = self.dataset.validate(answer.states, answer.actions, answer.values, answer.gains)
         if self.spec.certify == "oracle":
             ret = answer.expert_return
@@ -287,6 +318,7 @@ class NPPLoop:
         started = time.perf_counter()
         episode = self.next_episode
         s0 = np.asarray(self.initial_state(episode), dtype=np.float64)
+        robot = None if self.robots is None else self.robots(episode)
         v_lb, v_ub = float(self.policy.lower(s0).value[0]), float(self.policy.upper(s0).value[0])
         gap = v_ub - v_lb if len(self.policy_data) else math.inf
         mode = self.spec.certify
@@ -295,16 +327,16 @@ class NPPLoop:
         if mode == "surrogate":
             checked = gap
             if not self.spec.passes(checked):
-                trajectory = self._ask_oracle(s0)
+                trajectory = self._ask_oracle(s0, robot)
         else:
-            policy_return = self._drive(episode, s0)
+            policy_return = self._drive(episode, s0, robot)
             if mode == "oracle":
-                trajectory = self._ask_oracle(s0)
+                trajectory = self._ask_oracle(s0, robot)
             checked = self._check(s0, v_ub, policy_return, trajectory)
             if not self.spec.passes(checked) and trajectory is None:
-                trajectory = self._ask_oracle(s0)
+                trajectory = self._ask_oracle(s0, robot)
         failed = not self.spec.passes(checked)
-        explored = self._explore(s0) if failed and trajectory is not None and policy_return is not None else []
+        explored = self._explore(s0, robot) if failed and trajectory is not None and policy_return is not None else []
         index = self.dataset.num_trajectories if trajectory is not None else None
         status = self.certifier.preview(checked, failed)
         new = [] if trajectory is None else [trajectory, *explored]
@@ -313,7 +345,7 @@ class NPPLoop:
         if expert_value is None and trajectory is not None:
             expert_value = float(trajectory.values[0])
         expert_success = self._met(trajectory.states) if trajectory is not None else None
-        policy_success = self._policy_success(s0) if policy_return is not None else None
+        policy_success = self._policy_success(s0, robot) if policy_return is not None else None
         row = EpisodeRow(
             episode=episode,
             initial_state=state_tuple(s0),
@@ -337,6 +369,7 @@ class NPPLoop:
             explored=len(explored),
             expert_success=expert_success,
             policy_success=policy_success,
+            robot=None if robot is None else robot.record(),
         )
         # Persist before anything else can fail: expert data is the expensive part.
         if self.store is not None:
@@ -357,9 +390,9 @@ class NPPLoop:
         self.certifier.observe(checked, failed)
         self.rows.append(row)
         if mode == "surrogate" and self.driver is not None:
-            ret = self._drive(episode, s0)
+            ret = self._drive(episode, s0, robot)
             if ret is not None:
-                row = replace(row, policy_return=ret, policy_success=self._policy_success(s0))
+                row = replace(row, policy_return=ret, policy_success=self._policy_success(s0, robot))
                 self.rows[-1] = row
                 if self.store is not None:
                     self.store.set_policy_return(episode, ret, row.policy_success)
@@ -379,22 +412,22 @@ class NPPLoop:
         """Whether an episode with these stored states met the task's success criterion (None: the task states none)."""
         return None if self.success is None else self.success.met(states)
 
-    def _policy_success(self, s0: FloatArray) -> bool | None:
+    def _policy_success(self, s0: FloatArray, robot: Robot | None) -> bool | None:
         """The success criterion on the current policy's own rollout from s0 (the one the episode measured)."""
         if self.success is None or self.replay is None or len(self.policy_data) == 0:
             return None
-        return self.success.met(self.replay.rollout(s0, self.policy).states)
+        return self.success.met(self.replay.rollout(s0, self.policy, robot).states)
 
     def success_counts(self) -> SuccessCounts:
         """The expert's and the policy's successes so far; the policy's only where the check measured its rollout."""
         return SuccessCounts.of(self.rows, policy=self.spec.certify != "surrogate")
 
-    def _explore(self, s0: FloatArray) -> list[Trajectory]:
+    def _explore(self, s0: FloatArray, robot: Robot | None) -> list[Trajectory]:
         """After a failed check: the expert's trajectory from where the checked policy's rollout left the data."""
         if self.explorer is None:
             return []
-        state = self.explorer.state_to_ask(s0, self.policy)
-        return [] if state is None else [self._ask_oracle(state)]
+        state = self.explorer.state_to_ask(s0, self.policy, robot)
+        return [] if state is None else [self._ask_oracle(state, robot)]
 
     def _hold_back(self, count: int = 1) -> None:
         """The first held trajectories split the policy's data from the stored data."""
@@ -428,6 +461,7 @@ class NPPLoop:
             dataset_size=len(self.policy_data),
             policy_trajectories=self.policy_data.num_trajectories,
             success=self.measured_success(),
+            robots=describe_robots(self.config.uncertainty),
         )
 
     def measured_success(self) -> MeasuredSuccess:

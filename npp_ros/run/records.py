@@ -37,7 +37,7 @@ class RunMetadata(SimpleNamespace):
     PROVENANCE = ("lipschitz_detail",)
     RECORDED_SINCE = ("plant_fingerprint",)  # absent from older files: the first resume records them
     # Absent from files made before the choice existed, which all made this one: read as it.
-    BEFORE_RECORDED: ClassVar[dict[str, object]] = {"policy": "open-loop", "explore": 0.0}
+    BEFORE_RECORDED: ClassVar[dict[str, object]] = {"policy": "open-loop", "explore": 0.0, "uncertainty": ""}
 
     def __getattr__(self, name: str) -> object:
         """Only called for a key the meta table lacks (a hand-edited or damaged file): say which."""
@@ -90,6 +90,7 @@ class EpisodeRow:
     # none, no answer or rollout was there to judge, or the file is from before success was recorded.
     expert_success: bool | None = None  # on the expert's answer from s0 (its stored states)
     policy_success: bool | None = None  # on the policy's own rollout from s0
+    robot: str | None = None  # the episode's drawn robot (Robot.record()); None: the exact model
 
     @property
     def trajectories_stored(self) -> int:
@@ -99,6 +100,7 @@ class EpisodeRow:
 
 EPISODE_COLUMNS = tuple(EpisodeRow.__dataclass_fields__)
 SUCCESS_COLUMNS = ("expert_success", "policy_success")  # absent from files made before success was recorded
+LATER_COLUMNS = {"robot": "TEXT"}  # absent from files made before robots were drawn: added at the next write
 
 
 @dataclass(frozen=True)

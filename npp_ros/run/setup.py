@@ -21,7 +21,7 @@ from npp_ros.certificate.certifier import DEFAULT_RULES, CertificationSpec, Chec
 from npp_ros.certificate.choices import DATA_ANSWERS, DATA_FACTOR, DATA_RULE, LIPSCHITZ_FLAG
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
-from npp_ros.policy.dataset import Dataset, FloatArray
+from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.policy.feedback import DEFAULT_POLICY, ControlSpace, PolicyKind, check_policy_kind
 from npp_ros.policy.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
 from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
@@ -30,6 +30,7 @@ from npp_ros.run.records import RunFileError, RunMetadata, SuccessCounts
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import Expert, MeasuresValueSlope, control_space, get_task
 from npp_ros.tasks.sources import short_name
+from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot, supports_robots
 
 
 def resolve_lipschitz(
@@ -106,10 +107,13 @@ def build_config(
     rule: StoppingRule | None = None,
     policy: PolicyKind = DEFAULT_POLICY,
     explore: float = 0.0,
+    uncertainty: float = 0.0,
 ) -> RunConfig:
     """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
     ``rule`` None the default rule of that checked quantity (DEFAULT_RULES), ``policy`` how the policy acts,
-    ``explore`` > 0 the radius beyond which a failed check also asks where the policy went (npp_ros.run.explore).
+    ``explore`` > 0 the radius beyond which a failed check also asks where the policy went (npp_ros.run.explore),
+    ``uncertainty`` > 0 the task's uncertainty set, its ranges' distance from the nominal model multiplied by this
+    (1: the set the task declares; 0: the exact model), a robot drawn from it per episode (:func:`robot_fn`).
 
     Refuses a bad combination (ValueError) when the run is defined, not episodes later.
     """
@@ -122,7 +126,53 @@ def build_config(
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,
         horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed), explore=check_radius(explore),
+        uncertainty=uncertainty_record(task, seed, uncertainty),
     )  # fmt: skip
+
+
+def uncertainty_record(task: str, seed: int, factor: float) -> str:
+    """The run's set of robots for an uncertainty factor, as the run file records it ('' for the exact model).
+
+    Refused (ValueError, saying why) where the task declares nothing uncertain, its plant is not a MuJoCo model a
+    robot can be drawn into, or its expert cannot plan on a drawn robot (the certificate's reference would be
+    the nominal expert's, which this run does not claim).
+    """
+    if not (math.isfinite(factor) and factor >= 0):
+        raise ValueError(f"the uncertainty factor must be finite and >= 0 (0: the exact model), got {factor!r}")
+    if factor == 0:
+        return ""
+    definition = get_task(task)
+    name = short_name(task)
+    if definition.uncertainty.empty:
+        raise ValueError(f"{name} declares nothing uncertain (a task file's [uncertainty] table): uncertainty 0")
+    plant = definition.make_plant(seed)
+    if not supports_robots(plant) or not getattr(definition, "plans_on_robot", False):
+        raise ValueError(
+            f"{name}: its expert cannot plan on a drawn robot (only the iLQR experts plan on the plant's own model "
+            "each request), so no certificate under uncertainty can name its reference: uncertainty 0"
+        )
+    return definition.uncertainty.widened(factor).resolved(plant.physics.model).record()
+
+
+def robot_fn(config: RunConfig) -> Callable[[int], Robot] | None:
+    """theta for episode e from the run's seed and e only (None: the exact model), so a resumed run, the graph
+    and a held-out check draw the same robots."""
+    if not config.uncertainty:
+        return None
+    robots = UncertaintySet.from_record(config.uncertainty)
+    return lambda episode: robots.draw(config.seed, episode)
+
+
+class PrivilegedExpert:
+    """The task's expert planning on the episode's robot: its own plant's model is made into the robot for the
+    request and is nominal again after it (a teacher that knows theta; the policy does not)."""
+
+    def __init__(self, expert: Expert) -> None:
+        self.expert = expert
+
+    def trajectory(self, initial_state: FloatArray, robot: Robot | None = None) -> Trajectory:
+        with as_robot(self.expert.plant, robot):
+            return self.expert.trajectory(initial_state)
 
 
 def spec_of(metadata: RunMetadata, diameter: float | None) -> CertificationSpec:
@@ -167,10 +217,12 @@ class PolicyRollouts:
     def __init__(self, replay: PolicyReplay) -> None:
         self.replay = replay
 
-    def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float | None:
+    def run_episode(
+        self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None
+    ) -> float | None:
         if len(policy.dataset) == 0:
             return None
-        return self.replay.rollout(initial_state, policy).total_return
+        return self.replay.rollout(initial_state, policy, robot).total_return
 
 
 def build_loop(
@@ -204,6 +256,8 @@ def build_loop(
         drive = rollouts or config.spec.certify != "surrogate"
         assert replay is not None
         driver = PolicyRollouts(replay) if drive else None
+    if oracle is None and config.uncertainty:  # in process: the expert plans on each episode's robot
+        oracle = PrivilegedExpert(expert)
     return NPPLoop(
         config,
         oracle or expert,
@@ -217,6 +271,7 @@ def build_loop(
         explorer=RolloutExplorer(replay, config.explore) if config.explore and replay is not None else None,
         success=task.success,
         replay=replay if driver is not None else None,
+        robots=robot_fn(config),
     )
 
 

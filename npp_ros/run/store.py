@@ -72,7 +72,7 @@ from typing import Any
 import numpy as np
 
 from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
-from npp_ros.run.records import EPISODE_COLUMNS, SUCCESS_COLUMNS, EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.records import EPISODE_COLUMNS, LATER_COLUMNS, SUCCESS_COLUMNS, EpisodeRow, RunFileError, RunMetadata
 
 FORMAT_NAME = "npp_ros.run"
 FORMAT_VERSION = 3  # 2: certification mode, stopping rule, checked gap and test per episode; 3: feedback gains
@@ -196,7 +196,7 @@ class RunStore:
                 "quiet_episodes INTEGER NOT NULL, window INTEGER NOT NULL, required INTEGER NOT NULL, "
                 "certified INTEGER NOT NULL, expert_value REAL, policy_return REAL, wall_time REAL, "
                 "checked_gap REAL, test INTEGER NOT NULL, test_delta REAL NOT NULL, "
-                "explored INTEGER NOT NULL DEFAULT 0, expert_success INTEGER, policy_success INTEGER)"
+                "explored INTEGER NOT NULL DEFAULT 0, expert_success INTEGER, policy_success INTEGER, robot TEXT)"
             )
             rows = {"format": FORMAT_NAME, "format_version": str(FORMAT_VERSION), "created": str(time.time()),
                     "run_id": new_run_id()}  # fmt: skip
@@ -282,8 +282,10 @@ class RunStore:
     def _upgrade(self) -> None:
         """A version-2 file gets the gain columns (zeros) and becomes version 3, and a file without the success
         columns gets them (NULL: not judged), in one transaction."""
-        missing = [column for column in SUCCESS_COLUMNS if column not in self._episode_columns()]
-        if self.format_version == FORMAT_VERSION and not missing:
+        present = self._episode_columns()
+        missing = [column for column in SUCCESS_COLUMNS if column not in present]
+        later = [column for column in LATER_COLUMNS if column not in present]
+        if self.format_version == FORMAT_VERSION and not missing and not later:
             return
         meta = self.metadata
         with _transaction(self._conn, self.path):
@@ -295,6 +297,8 @@ class RunStore:
                 self._conn.execute("UPDATE meta SET value = ? WHERE key = 'format_version'", (str(FORMAT_VERSION),))
             for column in missing:
                 self._conn.execute(f"ALTER TABLE episodes ADD COLUMN {column} INTEGER")
+            for column in later:
+                self._conn.execute(f"ALTER TABLE episodes ADD COLUMN {column} {LATER_COLUMNS[column]}")
         self.format_version = FORMAT_VERSION
 
     def _episode_columns(self) -> set[str]:

@@ -30,6 +30,7 @@ from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
+from npp_ros.tasks.uncertainty import SWINGUP_UNCERTAINTY
 from npp_ros.trajopt.dynamics import MujocoDynamics
 from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
 
@@ -213,4 +214,5 @@ SWINGUP = OptimizerTask(
     sampler=sample_initial_state,
     reward_range=(0.0, 1.0),  # dm_control's tolerance-based reward
     success=SUCCESS,
+    uncertainty=SWINGUP_UNCERTAINTY,
 )

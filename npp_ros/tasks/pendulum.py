@@ -35,6 +35,7 @@ from npp_ros.policy.feedback import wrap_angle
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
+from npp_ros.tasks.uncertainty import SWINGUP_UNCERTAINTY
 from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
 
 TASK = "pendulum_swingup"
@@ -235,6 +236,7 @@ SWINGUP = OptimizerTask(
     sampler=sample_initial_state,
     reward_range=(0.0, 1.0),  # dm_control's tolerance-based reward
     success=SUCCESS,
+    uncertainty=SWINGUP_UNCERTAINTY,
 )
 """Stored values are ``window`` (the H-step return of each stored state), not ``return-to-go``: an upright
 state held to the end is stored with value H - t under return-to-go, one state with many values, which

@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike
 
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.registry import Plant, check_horizon
+from npp_ros.tasks.uncertainty import Robot, RobotEffects, as_robot
 
 
 def episode_return(rewards: ArrayLike) -> float:
@@ -33,19 +34,30 @@ class Rollout:
 
 
 def rollout(
-    plant: Plant, controller: Callable[[FloatArray], ArrayLike], initial_state: ArrayLike, horizon: int
+    plant: Plant,
+    controller: Callable[[FloatArray], ArrayLike],
+    initial_state: ArrayLike,
+    horizon: int,
+    robot: Robot | None = None,
 ) -> Rollout:
-    """Roll ``controller(state) -> action`` out on the plant for ``horizon`` steps."""
+    """Roll ``controller(state) -> action`` out on the plant for ``horizon`` steps; with a ``robot``
+    (npp_ros.tasks.uncertainty), on the plant made into that robot, which is nominal again afterwards.
+
+    The stored states and actions are the true states and the commanded actions; the controller reads the
+    robot's noisy states and the plant applies its delayed commands (the same :class:`RobotEffects` as the sim).
+    """
     horizon = check_horizon(horizon)
     states = np.empty((horizon, plant.state_dim))
     actions = np.empty((horizon, plant.action_dim))
     rewards = np.empty(horizon)
-    x = plant.reset(initial_state)
-    for t in range(horizon):
-        u = controller(x)
-        states[t], actions[t] = x, u
-        rewards[t] = plant.step(u)
-        x = plant.state()
+    effects = None if robot is None else RobotEffects(robot, plant.action_dim)
+    with as_robot(plant, robot):
+        x = plant.reset(initial_state)
+        for t in range(horizon):
+            u = controller(x if effects is None else effects.observe(x))
+            states[t], actions[t] = x, u
+            rewards[t] = plant.step(u if effects is None else effects.command(np.asarray(u, dtype=np.float64)))
+            x = plant.state()
     return Rollout(states, actions, rewards)
 
 

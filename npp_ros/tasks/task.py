@@ -4,7 +4,8 @@ Every source of tasks fills in this contract: npp_ros's own task modules, plug-i
 files. :class:`Task` is one task; :class:`OptimizerTask` fills it in for an expert built on the iLQR
 optimizer (:class:`~npp_ros.trajopt.expert.OptimizingExpert`). Which tasks exist, and the lookup every
 command and node uses, is npp_ros.tasks.registry; of npp_ros.tasks this module imports only the success
-criterion's type (npp_ros.tasks.success, which imports none).
+criterion's type and the uncertainty set's (npp_ros.tasks.success and npp_ros.tasks.uncertainty, which import
+none of them).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.tasks.success import SuccessCriterion
+from npp_ros.tasks.uncertainty import EXACT, UncertaintySet
 from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
 
 MAX_HORIZON = 100_000
@@ -176,6 +178,9 @@ class Task:
     # When an episode did the task (npp_ros.tasks.success): every run measures its expert and its policy on it and
     # the certificate states both; None = the task states none, and the certificate says that nothing was measured.
     success: SuccessCriterion | None = None
+    # What of the robot is uncertain (npp_ros.tasks.uncertainty): a run asks for it (its uncertainty factor) and then
+    # draws a robot from it per episode; the exact model by default, so a run that asks for nothing is the paper's.
+    uncertainty: UncertaintySet = EXACT
 
     # ------------------------------------------------------------------ what each task provides
     def make_plant(self, seed: int) -> Plant:
@@ -301,6 +306,7 @@ class OptimizerTask(Task):
     sampler: Callable[[np.random.Generator], FloatArray] | None = None  # rng -> one s0 ~ rho (sample_initial_state)
     default_values: str = DEFAULT_VALUES  # what the expert stores as Q_t: window (H-step return) or return-to-go
     default_time_budget: float | None = None  # the task's own time budget; None: its expert's default for the stop
+    plans_on_robot: bool = True  # its expert plans on its plant's model at each request, so it can plan on a robot
 
     def make_plant(self, seed: int) -> Plant:
         assert self.plant_factory is not None

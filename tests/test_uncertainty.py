@@ -1,0 +1,199 @@
+"""Model uncertainty in the core: the set a task declares, the robot each episode draws, that robot as the plant's
+model, the privileged expert planning on it, and a run that records its robots and names its set."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from npp_ros.cli import learn
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.records import RunFileError
+from npp_ros.run.setup import PrivilegedExpert, build_config, build_loop
+from npp_ros.run.store import RunStore
+from npp_ros.tasks.registry import ExpertOptions, get_task
+from npp_ros.tasks.rollout import rollout
+from npp_ros.tasks.uncertainty import (
+    NOMINAL,
+    SWINGUP_UNCERTAINTY,
+    Robot,
+    RobotEffects,
+    ScaleRange,
+    UncertaintySet,
+    as_robot,
+)
+
+PENDULUM = "pendulum_swingup"
+
+
+@pytest.fixture(scope="module")
+def pendulum_set() -> UncertaintySet:
+    return SWINGUP_UNCERTAINTY.resolved(get_task(PENDULUM).make_plant(0).physics.model)
+
+
+def test_a_set_names_every_element_it_scales_and_round_trips_through_its_record(pendulum_set: UncertaintySet) -> None:
+    assert [(s.parameter, s.names) for s in pendulum_set.scales] == [
+        ("mass", ("pole",)),
+        ("gear", ("torque",)),
+        ("damping", ("hinge",)),
+    ]
+    assert UncertaintySet.from_record(pendulum_set.record()) == pendulum_set
+    assert "mass of pole x [0.8, 1.2]" in pendulum_set.describe()
+    assert UncertaintySet().record() == "" and UncertaintySet.from_record("").empty
+
+
+def test_bad_sets_are_refused_naming_what_is_wrong() -> None:
+    with pytest.raises(ValueError, match="unknown uncertain parameter 'stiffness'"):
+        ScaleRange("stiffness", 0.5, 2.0)
+    with pytest.raises(ValueError, match=r"0 < low <= high"):
+        ScaleRange("mass", 1.2, 0.8)
+    with pytest.raises(ValueError, match=r"body 'arm'.*its bodys: pole"):
+        UncertaintySet((ScaleRange("mass", 0.8, 1.2, ("arm",)),)).resolved(
+            get_task(PENDULUM).make_plant(0).physics.model
+        )
+    with pytest.raises(ValueError, match="action_delay"):
+        UncertaintySet(action_delay=-1)
+
+
+def test_each_episode_draws_its_own_robot_from_the_seed_and_episode_only(pendulum_set: UncertaintySet) -> None:
+    first = [pendulum_set.draw(3, k) for k in range(50)]
+    assert first == [pendulum_set.draw(3, k) for k in range(50)]  # reproducible, in any order
+    assert pendulum_set.draw(3, 7) != pendulum_set.draw(4, 7)
+    for robot in first:
+        assert pendulum_set.contains(robot) == []
+        assert Robot.from_record(robot.record()) == robot
+    delays = {robot.action_delay for robot in first}
+    assert delays == {0, 1}
+    masses = np.array([dict(((p, n), f) for p, n, f in robot.scales)["mass", "pole"] for robot in first])
+    assert 0.8 <= masses.min() < 0.9 and 1.1 < masses.max() <= 1.2
+    outside = Robot((("mass", "pole", 1.3),), action_delay=2)
+    assert pendulum_set.contains(outside) == [
+        "mass of pole: x1.3 lies outside [0.8, 1.2]",
+        "action delay 2 exceeds 1",
+    ]
+
+
+def test_widening_scales_the_distance_from_the_nominal_model(pendulum_set: UncertaintySet) -> None:
+    half = pendulum_set.widened(0.5)
+    assert [(s.low, s.high) for s in half.scales] == [(0.9, 1.1), (0.9, 1.1), (0.75, 1.25)]
+    assert pendulum_set.widened(0).empty
+
+
+def test_a_robot_is_the_plants_model_inside_the_block_and_nominal_after_it(pendulum_set: UncertaintySet) -> None:
+    plant = get_task(PENDULUM).make_plant(0)
+    twin = plant.clone()  # shares the model: sees the robot too
+    fingerprint, model = plant.model_sha256(), plant.physics.model
+    mass, inertia, gear = model.body_mass.copy(), model.body_inertia.copy(), model.actuator_gear[:, 0].copy()
+    robot = Robot((("mass", "pole", 1.2), ("gear", "torque", 0.8), ("damping", "hinge", 1.5)))
+    with as_robot(plant, robot):
+        assert model.body_mass[1] == pytest.approx(1.2 * mass[1])
+        assert np.allclose(model.body_inertia[1], 1.2 * inertia[1])
+        assert twin.physics.model.actuator_gear[0, 0] == pytest.approx(0.8 * gear[0])
+        assert plant.model_sha256() != fingerprint
+    assert plant.model_sha256() == fingerprint and np.array_equal(model.body_mass, mass)
+
+
+def test_a_heavier_weaker_robot_swings_differently_under_the_same_commands() -> None:
+    plant = get_task(PENDULUM).make_plant(0)
+    pump = lambda x: np.array([1.0 if x[1] >= 0 else -1.0])  # noqa: E731  # a bang-bang energy pump
+    s0 = np.array([0.3, 0.0])
+    nominal = rollout(plant, pump, s0, 60)
+    heavy = rollout(plant, pump, s0, 60, Robot((("mass", "pole", 1.2), ("gear", "torque", 0.8))))
+    again = rollout(plant, pump, s0, 60)
+    assert np.array_equal(nominal.states, again.states)  # the plant is nominal again
+    assert np.abs(heavy.states[-1] - nominal.states[-1]).max() > 1e-2
+
+
+def test_a_delayed_robot_applies_each_command_one_step_late_and_noise_is_read_not_stepped() -> None:
+    effects = RobotEffects(Robot(action_delay=1), 1)
+    applied = [effects.command(np.array([u])) for u in (1.0, 2.0, 3.0)]
+    assert [float(a[0]) for a in applied] == [0.0, 1.0, 2.0]
+    noisy = RobotEffects(Robot(state_noise=0.1, noise_seed=5), 1)
+    again = RobotEffects(Robot(state_noise=0.1, noise_seed=5), 1)
+    state = np.zeros(2)
+    read = noisy.observe(state)
+    assert np.array_equal(read, again.observe(state)) and not np.array_equal(read, state)
+    assert np.array_equal(state, np.zeros(2))
+    assert RobotEffects(NOMINAL, 1).observe(state) is state
+
+
+def test_the_privileged_expert_plans_on_the_episodes_robot(pendulum_set: UncertaintySet) -> None:
+    """Its answer's actions, replayed on the robot's model, give its states; on the nominal model they do not."""
+    task = get_task(PENDULUM)
+    expert = task.make_expert(0, 80, ExpertOptions(max_iterations=5))
+    robot = Robot((("mass", "pole", 1.2), ("gear", "torque", 0.8), ("damping", "hinge", 1.5)))
+    s0 = task.initial_state(0, 0)
+    answer = PrivilegedExpert(expert).trajectory(s0, robot=robot)
+    plant = task.make_plant(0)
+    actions = iter(answer.actions)
+    replayed = rollout(plant, lambda _x: next(actions), s0, len(answer.actions), Robot(robot.scales)).states
+    assert np.allclose(replayed, answer.states, atol=1e-8)
+    actions = iter(answer.actions)
+    on_nominal = rollout(plant, lambda _x: next(actions), s0, len(answer.actions)).states
+    assert not np.allclose(on_nominal, answer.states, atol=1e-3)
+    assert expert.plant.model_sha256() == plant.model_sha256()  # the expert's model is nominal again
+
+
+def test_a_run_under_uncertainty_records_its_set_and_each_episodes_robot_and_resumes_them(tmp_path: Path) -> None:
+    task = get_task(PENDULUM)
+    expert = task.make_expert(0, 60, ExpertOptions(max_iterations=3))
+    config = build_config(PENDULUM, 0, LipschitzConstant(50.0, "user"), 130.0, horizon=60, uncertainty=1.0)
+    exact = build_config(PENDULUM, 0, LipschitzConstant(50.0, "user"), 130.0, horizon=60)
+    assert config.uncertainty and not exact.uncertainty
+    loop = build_loop(config, expert, store_path=tmp_path / "run.sqlite")
+    loop.run(3)
+    robots = UncertaintySet.from_record(config.uncertainty)
+    assert [row.robot for row in loop.rows] == [robots.draw(0, k).record() for k in range(3)]
+    assert [row.initial_state for row in loop.rows] == [tuple(task.initial_state(0, k)) for k in range(3)]
+    assert loop.store is not None
+    loop.store.close()
+    resumed = build_loop(config, expert, store_path=tmp_path / "run.sqlite")
+    assert [row.robot for row in resumed.rows] == [row.robot for row in loop.rows]
+    assert resumed.store is not None
+    resumed.store.close()
+    with RunStore.open(tmp_path / "run.sqlite") as store:
+        assert json.loads(str(store.metadata.uncertainty))["action_delay"] == 1
+    with pytest.raises(RunFileError, match="uncertainty: file has"):  # the same folder, the exact model: another run
+        build_loop(exact, expert, store_path=tmp_path / "run.sqlite")
+
+
+def test_tasks_that_cannot_draw_a_robot_are_refused_saying_why() -> None:
+    with pytest.raises(ValueError, match="declares nothing uncertain"):
+        build_config("lqr_2_1", 0, LipschitzConstant(50.0, "user"), 50.0, uncertainty=1.0)
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        build_config(PENDULUM, 0, LipschitzConstant(50.0, "user"), 130.0, uncertainty=-1.0)
+
+
+def test_npp_learn_names_the_set_in_its_certificate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A tiny epsilon-free run cannot certify in a test's time; the certificate's words are checked on the author."""
+    from npp_ros.certificate.authoring import over_robots, robot_assumptions
+    from npp_ros.certificate.certifier import CertificationSpec
+
+    text = over_robots("With probability at least 0.9, P_(s0~rho)[V - R <= 130] >= 0.9 for the policy.", "mass x")
+    assert "P_((s0, theta)~rho x Theta)[V - R <= 130]" in text and "Theta, the robots this covers: mass x" in text
+    spec = CertificationSpec("i", 130.0, 0.9, 0.1, LipschitzConstant(50.0, "user"), None, certify="rollout")
+    assert any("NOT checked" in item for item in robot_assumptions(spec, "mass x"))
+    code = learn.main(
+        [
+            "--task",
+            PENDULUM,
+            "--seed",
+            "0",
+            "--uncertainty",
+            "1",
+            "--max-episodes",
+            "2",
+            "--horizon",
+            "40",
+            "--evaluate",
+            "0",
+            "--run-dir",
+            str(tmp_path),
+        ],
+    )
+    assert code == 1  # not certified in 2 episodes
+    with RunStore.open(tmp_path / "run.sqlite") as store:
+        assert all(row.robot for row in store.episodes())
