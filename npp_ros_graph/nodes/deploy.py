@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
@@ -51,13 +52,14 @@ from npp_ros.deployment.joints import JointLayout, NonFiniteState, RobotStateErr
 from npp_ros.deployment.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
 from npp_ros.deployment.timing import Watchdog, percentiles
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, WARN, DiagnosticsReporter, Health
-from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, request_stop, run_node
+from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, request_stop, run_node, stop_requested
 from npp_ros_graph.transport.convert import float64_array
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, LATCHED_QOS
 
 STOP_SERVICE = "~/stop"
 ROBOT_DESCRIPTION = "/robot_description"  # robot_state_publisher's topic (std_msgs/String, transient local)
+WAIT_SLICE_S = 0.1  # configure's wait for the description looks again at least this often (and for a stop)
 LATENCY_WINDOW = 1000  # the diagnostics' latency and state-period percentiles are over this many latest ones
 RECENT_S = 1.0  # a refusal this recent makes an active node's status WARN
 NUMBERS = re.compile(r"[-+]?\d+(?:\.\d*)?(?:e[-+]?\d+)?")
@@ -75,6 +77,9 @@ PARAMETERS = (
                "that (a robot that publishes no MJCF, e.g. a URDF; npp-robot logs its fingerprint)"),
     Param("robot_description_topic", ROBOT_DESCRIPTION, "where the robot publishes its model as MJCF "
           "(std_msgs/String, transient local, as robot_state_publisher does)"),
+    Changeable("description_timeout", 5.0, "seconds configure waits for the robot's latched description when it "
+               "needs one (robot_model_fingerprint empty and none received yet): a node started just before "
+               "configure may not have discovered the robot; 0 = do not wait", 0.0, 120.0),
     Changeable("max_epsilon", math.inf, "largest certified epsilon this deployment accepts", 0.0),
     Changeable("min_p", 0.0, "smallest certified p (share of s0 ~ rho within epsilon) accepted", 0.0, 1.0),
     Changeable("max_delta", 1.0, "largest certified delta (the claim's failure probability) accepted", 0.0, 1.0),
@@ -104,6 +109,7 @@ class DeploySettings:
     run_dir: str
     robot_model_fingerprint: str
     robot_description_topic: str
+    description_timeout: float
     max_epsilon: float
     min_p: float
     max_delta: float
@@ -203,7 +209,10 @@ class DeployNode(LifecycleNode):
         self.command_pub: Publisher | None = None  # created at configure, on the configured topic
         self.create_service(Trigger, STOP_SERVICE, self.on_stop)
         # From the start, not at configure: the description is latched, and configure must find it there.
-        self.create_subscription(String, self.settings.robot_description_topic, self.on_description, LATCHED_QOS)
+        self._description_sub = self.create_subscription(
+            String, self.settings.robot_description_topic, self.on_description, LATCHED_QOS
+        )
+        self._description_wait = ""  # what configure's last wait for the description saw, for its refusal
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.watchdog = Watchdog(self.settings.state_timeout, self.on_states_stopped, self.after_states_stopped)
         self.diagnostics = DiagnosticsReporter(self, self.health)
@@ -244,6 +253,47 @@ class DeployNode(LifecycleNode):
             self.get_logger().error(f"{problem}: configure again (cleanup, configure) before activating")
             self.diagnostics.publish()
 
+    def _await_description(self, settings: DeploySettings) -> None:
+        """Wait up to description_timeout for the robot's latched description when configure needs it.
+
+        A node started just before configure may not have discovered the robot yet (0.3-0.9 s here). This runs
+        in the executor's one thread, so the description cannot come through on_description meanwhile: the
+        wait is on the subscription itself (a wait set of its own, looked at again every WAIT_SLICE_S), and a
+        description that comes is taken from it and handed to on_description, as the executor would.
+        """
+        self._description_wait = ""
+        if self.description is not None or settings.robot_model_fingerprint.strip():
+            return
+        topic, subscription = settings.robot_description_topic, self._description_sub
+        started = time.monotonic()
+        seen = 0
+        wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+        waited = False
+        while True:
+            seen = max(seen, self.count_publishers(topic))
+            with subscription.handle:
+                taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+            if taken is not None:
+                self.on_description(taken[0])
+                if waited:  # one already there (not yet handed over by the executor) is not news
+                    self.get_logger().info(
+                        f"configure waited {time.monotonic() - started:.2f} s for the robot's description"
+                    )
+                return
+            left = started + settings.description_timeout - time.monotonic()
+            if left <= 0 or stop_requested() or not rclpy.ok():
+                break
+            with subscription.handle:
+                wait_set.clear_entities()
+                wait_set.add_subscription(subscription.handle)
+                wait_set.wait(int(min(left, WAIT_SLICE_S) * 1e9))
+            waited = True
+        publishers = "no publisher" if seen == 0 else f"{seen} publisher{'s' if seen > 1 else ''}"
+        self._description_wait = (
+            f"waited {time.monotonic() - started:.1f} s (description_timeout {settings.description_timeout:g}); "
+            f"{publishers} of it seen"
+        )
+
     def _described_source(self) -> str:
         return f"the MJCF the robot published on {self.settings.robot_description_topic}"
 
@@ -268,7 +318,10 @@ class DeployNode(LifecycleNode):
                 )
             return explicit, "the robot_model_fingerprint parameter"
         if description is None:
-            return "", f"nowhere: no robot description was received on {topic} and robot_model_fingerprint is empty"
+            waited = f" ({self._description_wait})" if self._description_wait else ""
+            return "", (
+                f"nowhere: no robot description was received on {topic}{waited} and robot_model_fingerprint is empty"
+            )
         return described, self._described_source()
 
     # ---------------------------------------------------------------- lifecycle
@@ -287,6 +340,7 @@ class DeployNode(LifecycleNode):
         # checked: from the gate (which refuses with GateRefusal) it is unexpected, and named by its type.
         try:
             self.settings = settings = self._read_settings()
+            self._await_description(settings)
             fingerprint, source = self._robot_fingerprint(settings)
             acceptance = settings.acceptance(fingerprint)
         except ValueError as exc:

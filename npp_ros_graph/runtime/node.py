@@ -128,6 +128,11 @@ def request_stop() -> None:
         executor.wake()
 
 
+def stop_requested() -> bool:
+    """Whether this node process was asked to stop: a wait inside a callback ends early for it."""
+    return _stop.requested.is_set()
+
+
 def _on_signal(signum: int, _frame: FrameType | None) -> None:
     """SIGINT and SIGTERM: a stop request, never an exception inside whatever callback runs now."""
     now = time.monotonic()

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
+from deploy_runs import make_run
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 
@@ -51,3 +54,20 @@ def test_a_bad_setting_is_refused_with_its_own_reason(deploy: deploy_node.Deploy
     assert result.successful, result.reason
     assert deploy.on_configure(None) == TransitionCallbackReturn.FAILURE  # type: ignore[arg-type]
     assert deploy.refusal == "configure refused: max_epsilon must be > 0, got 0.0", deploy.refusal
+
+
+def test_without_a_description_configure_waits_its_bound_and_says_what_it_saw(
+    deploy: deploy_node.DeployNode, tmp_path: Path
+) -> None:
+    """No robot on the domain: configure waits description_timeout for the description, then refuses, naming how
+    long it waited and how many publishers of the topic it saw."""
+    run = make_run(tmp_path / "run")
+    deploy.set_parameters([
+        Parameter("run_dir", value=str(run)), Parameter("robot_model_fingerprint", value=""),
+        Parameter("description_timeout", value=0.5),
+    ])  # fmt: skip
+    started = time.monotonic()
+    assert deploy.on_configure(None) == TransitionCallbackReturn.FAILURE  # type: ignore[arg-type]
+    assert time.monotonic() - started >= 0.5
+    assert "no robot description was received on /robot_description (waited 0.5 s" in deploy.refusal, deploy.refusal
+    assert "no publisher of it seen" in deploy.refusal, deploy.refusal
