@@ -10,6 +10,7 @@ from pathlib import Path
 
 from npp_ros.certificate.certifier import StoppingRule
 from npp_ros.policy.feedback import PolicyKind
+from npp_ros.run.seal import write_seal
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
 
@@ -38,21 +39,28 @@ def make_run(
     return folder
 
 
-def altered_copy(source: Path, folder: Path, *statements: tuple[str, tuple[object, ...]]) -> Path:
-    """A copy of a run folder with SQL statements applied to its run file (what an edit from outside does)."""
+def altered_copy(
+    source: Path, folder: Path, *statements: tuple[str, tuple[object, ...]], resealed: bool = False
+) -> Path:
+    """A copy of a run folder with SQL statements applied to its run file (what an edit from outside does);
+    ``resealed``: and its seal written again over the edit, as an editor with npp_ros's code can (the gate's
+    other checks, and a signature, must then catch it)."""
     shutil.copytree(source, folder)
     with sqlite3.connect(folder / "run.sqlite") as conn:
         for sql, args in statements:
             conn.execute(sql, args)
+        if resealed:
+            write_seal(conn)
     return folder
 
 
-def edited_certificate(source: Path, folder: Path, **changes: object) -> Path:
+def edited_certificate(source: Path, folder: Path, resealed: bool = False, **changes: object) -> Path:
     """A copy whose certificate record has some fields changed."""
     with sqlite3.connect(source / "run.sqlite") as conn:
         record = json.loads(conn.execute("SELECT value FROM meta WHERE key = 'certificate'").fetchone()[0])
     record.update(changes)
-    return altered_copy(source, folder, ("UPDATE meta SET value = ? WHERE key = 'certificate'", (json.dumps(record),)))
+    edit = ("UPDATE meta SET value = ? WHERE key = 'certificate'", (json.dumps(record),))
+    return altered_copy(source, folder, edit, resealed=resealed)
 
 
 def bad_folders(good: Path, root: Path) -> dict[str, tuple[Path, str]]:
@@ -61,11 +69,11 @@ def bad_folders(good: Path, root: Path) -> dict[str, tuple[Path, str]]:
         "missing": (root / "nothing-here", "does not exist"),
         "uncertified": (make_run(root / "uncertified", max_episodes=5), "no certificate"),
         "not proven": (make_run(root / "paper-rule", rule="paper"), "not proven"),
-        "altered data": (altered_copy(good, root / "altered-data", (NUDGE_ONE_POINT, ())), "fails its SHA-256 check"),
+        "altered data": (altered_copy(good, root / "altered-data", (NUDGE_ONE_POINT, ())), "points.s_0"),
         "altered certificate": (edited_certificate(good, root / "altered-certificate", epsilon=50.0), "altered"),
         "another policy": (edited_certificate(good, root / "another-policy", policy="feedback"), "altered"),
         "deleted certificate": (
             altered_copy(good, root / "deleted-certificate", ("DELETE FROM meta WHERE key = 'certificate'", ())),
-            "no certificate",
+            "meta 'certificate' \\(removed\\)",
         ),
     }

@@ -68,7 +68,7 @@ def test_a_feedback_run_deploys_its_feedback_policy_and_the_gate_refuses_another
     np.testing.assert_allclose(got.actions, rollout(plant, expert.action, s0, HORIZON).actions, rtol=1e-9, atol=1e-12)
     assert not np.array_equal(got.actions, rollout(plant, open_loop.act, s0, HORIZON).actions)
     with pytest.raises(GateRefusal, match="policy 'open-loop' against the run's 'feedback'"):
-        load_deployment(edited_certificate(run, tmp_path / "edited", policy="open-loop"), ACCEPT)
+        load_deployment(edited_certificate(run, tmp_path / "edited", resealed=True, policy="open-loop"), ACCEPT)
 
 
 @pytest.mark.parametrize(
@@ -90,23 +90,30 @@ def test_the_gate_refuses_each_bad_folder_with_its_reason(runs, case: str) -> No
         load_deployment(folder, ACCEPT)
 
 
-def test_a_run_file_without_a_certificate_is_not_said_to_be_never_certified(runs) -> None:
-    """The file cannot tell a run that never certified from a certificate removed afterwards: both are named."""
-    _, bad = runs
-    for case in ("deleted certificate", "uncertified"):
+def test_a_run_file_without_a_certificate_is_not_said_to_be_never_certified(runs, tmp_path) -> None:
+    """Resealed, the file cannot tell a run that never certified from a certificate removed afterwards: both are
+    named (without resealing, the seal names the removal)."""
+    good, bad = runs
+    removed = altered_copy(
+        good, tmp_path / "removed", ("DELETE FROM meta WHERE key = 'certificate'", ()), resealed=True
+    )
+    for folder in (removed, bad["uncertified"][0]):
         with pytest.raises(GateRefusal) as refusal:
-            load_deployment(bad[case][0], ACCEPT)
+            load_deployment(folder, ACCEPT)
         assert "the run file holds no certificate" in str(refusal.value)
         assert "never certified, or its certificate was removed" in str(refusal.value)
 
 
 def test_an_edit_of_both_the_run_and_its_certificate_does_not_follow_from_the_episode_log(runs, tmp_path) -> None:
+    """Even resealed by its editor (test_run_seal.py: the seal names any edit that is not), an edit the log
+    contradicts is refused."""
     good, _ = runs
-    loose = edited_certificate(good, tmp_path / "a", epsilon=0.5)
-    both = altered_copy(loose, tmp_path / "b", ("UPDATE meta SET value = '0.5' WHERE key = 'epsilon'", ()))
+    loose = edited_certificate(good, tmp_path / "a", resealed=True, epsilon=0.5)
+    edit = ("UPDATE meta SET value = '0.5' WHERE key = 'epsilon'", ())
+    both = altered_copy(loose, tmp_path / "b", edit, resealed=True)
     with pytest.raises(GateRefusal, match="does not follow from the run's own log"):
         load_deployment(both, ACCEPT)
-    more = edited_certificate(good, tmp_path / "c", policy_trajectories=3)
+    more = edited_certificate(good, tmp_path / "c", resealed=True, policy_trajectories=3)
     with pytest.raises(GateRefusal, match="altered"):
         load_deployment(more, ACCEPT)
 

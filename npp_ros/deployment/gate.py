@@ -30,8 +30,11 @@ from npp_ros.deployment.stored_run import RUN_FILE, StoredRun, read_run
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.run.records import RunFileError, RunMetadata
+from npp_ros.run.seal import SealCheck
 from npp_ros.run.setup import policy_for
 from npp_ros.tasks.registry import Plant, Task, UnknownTaskError
+
+UNSEALED = SealCheck("", ())
 
 
 class GateRefusal(ValueError):
@@ -71,6 +74,7 @@ class Deployment:
     plant: Plant
     checked_starts: FloatArray  # the s0 ~ rho the run checked whose trajectory is not in the policy's data
     overridden: tuple[str, ...] = ()  # the reasons the gate gave and the operator overrode
+    seal: SealCheck = UNSEALED  # the run file's seal, intact or absent (a file from before seals)
 
     @property
     def policy_trajectories(self) -> int:
@@ -128,7 +132,7 @@ def _pass_gate(run: StoredRun, acceptance: Acceptance) -> Deployment:
     checked_starts = np.array(outside, dtype=np.float64).reshape(len(outside), run.metadata.state_dim)
     return Deployment(
         run.path, run.metadata, certificate, policy, run.task, run.task.make_plant(seed), checked_starts,
-        tuple(reasons),
+        tuple(reasons), run.seal,
     )  # fmt: skip
 
 

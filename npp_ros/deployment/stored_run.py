@@ -20,6 +20,7 @@ from typing import Any, Union, get_args, get_origin, get_type_hints
 from npp_ros.certificate.certifier import Certificate, CertificationSpec
 from npp_ros.policy.dataset import Dataset
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.seal import SealCheck, check_file
 from npp_ros.run.setup import spec_of
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import Task, get_task
@@ -48,14 +49,24 @@ class StoredRun:
     rows: list[EpisodeRow]
     certificate: Certificate | None
     claimed: dict[str, object]
+    seal: SealCheck  # intact (or unsealed, from before seals): a broken seal is a RunFileError
 
 
 def read_run(run_file: Path) -> StoredRun:
     """The run file's contents, typed; a RunFileError for what the file cannot give, an UnknownTaskError for a
     task that does not load here."""
-    store = RunStore.open(run_file)
+    try:
+        store = RunStore.open(run_file)
+    except RunFileError:
+        broken = check_file(run_file)  # an edit the store refuses (its format, its version) is named as one too
+        if broken is not None and broken.mismatches:
+            raise RunFileError(_unsealed_by(run_file, broken)) from None
+        raise
     try:
         with store.snapshot():
+            seal = store.check_seal()  # first: an edit is named as what it changed, before any value is read
+            if seal.mismatches:
+                raise RunFileError(_unsealed_by(run_file, seal))
             metadata = checked_metadata(store.metadata, run_file)
             task = task_of(metadata, run_file)
             try:
@@ -71,12 +82,16 @@ def read_run(run_file: Path) -> StoredRun:
     except ValueError as exc:  # CertificationSpec's refusal of recorded values
         raise RunFileError(f"{run_file} records no valid specification: {exc}") from None
     if record is None:
-        return StoredRun(run_file, metadata, task, spec, dataset, rows, None, {})
+        return StoredRun(run_file, metadata, task, spec, dataset, rows, None, {}, seal)
     if not isinstance(record, Mapping):
         raise RunFileError(f"{run_file}'s certificate is {type(record).__name__}, not a record")
     claimed = {name: record.get(name, RunMetadata.BEFORE_RECORDED.get(name)) for name in spec.record()}
     certificate = certificate_of(record, spec, run_file)
-    return StoredRun(run_file, metadata, task, spec, dataset, rows, certificate, claimed)
+    return StoredRun(run_file, metadata, task, spec, dataset, rows, certificate, claimed, seal)
+
+
+def _unsealed_by(run_file: Path, seal: SealCheck) -> str:
+    return f"{run_file} no longer matches its seal: {', '.join(seal.mismatches)} changed after the run wrote it"
 
 
 def checked_metadata(metadata: RunMetadata, run_file: Path) -> RunMetadata:

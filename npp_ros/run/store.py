@@ -17,6 +17,9 @@ R or any language; no pickle. Tables (see README, "Run file format"):
   answer and the policy's rollout met the task's success criterion (``expert_success``, ``policy_success``:
   1, 0 or NULL when not judged).
 
+- ``seal(part, sha256)``: the seal (``seal.py``), rewritten in every write transaction: a SHA-256 digest of each
+  meta key and of each column of the tables above, and ``run``, the one digest over them all.
+
 Each trajectory is committed in one transaction together with the episode that asked for it.
 Crash safety, while a writer runs: journal_mode=WAL with synchronous=FULL. A commit appends the
 transaction's pages to ``run.sqlite-wal`` and ends with a commit frame; FULL fsyncs the WAL at
@@ -73,6 +76,7 @@ import numpy as np
 
 from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
 from npp_ros.run.records import EPISODE_COLUMNS, LATER_COLUMNS, SUCCESS_COLUMNS, EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.seal import SealCheck, check_seal, write_seal
 
 FORMAT_NAME = "npp_ros.run"
 FORMAT_VERSION = 3  # 2: certification mode, stopping rule, checked gap and test per episode; 3: feedback gains
@@ -442,6 +446,14 @@ class RunStore:
         """The run's identity ("" for a file from before runs had one, until a writer opens it)."""
         return self._meta_value("run_id") or ""
 
+    def check_seal(self) -> SealCheck:
+        """Whether the file still holds exactly what its writer sealed, and what no longer matches (seal.py)."""
+        try:
+            with self.snapshot():
+                return check_seal(self._conn)
+        except sqlite3.DatabaseError as exc:
+            raise RunFileError(f"{self.path}: cannot check its seal: {exc}") from exc
+
     def certificate(self) -> dict[str, Any] | None:
         value = self._meta_value("certificate")
         return None if value is None else json.loads(value)
@@ -521,11 +533,13 @@ def _encode(value: Any) -> Any:
 
 @contextmanager
 def _transaction(conn: sqlite3.Connection, path: Path) -> Iterator[None]:
-    """One write transaction. On failure it rolls back unless SQLite already has (it does on a
-    full disk), and raises the original cause, named, never the rollback's own complaint."""
+    """One write transaction, sealed before it commits (seal.py: the seal always matches what it commits). On
+    failure it rolls back unless SQLite already has (it does on a full disk), and raises the original cause,
+    named, never the rollback's own complaint."""
     try:
         conn.execute("BEGIN IMMEDIATE")
         yield
+        write_seal(conn)
         conn.execute("COMMIT")
     except BaseException as exc:
         if conn.in_transaction:
