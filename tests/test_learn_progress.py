@@ -32,3 +32,5 @@ def test_npp_learn_reports_both_held_out_phases(tmp_path: Path) -> None:
     for phase in ("held-out: policy rollouts", "held-out: the expert's returns"):
         assert f"{phase} 0/3 (" in run.stderr and f"{phase} 3/3 (" in run.stderr, run.stderr
     assert run.stderr.index("held-out: policy rollouts 3/3") < run.stderr.index("held-out: the expert's returns 0/3")
+    # oracle mode (the file's): the claim rests on no L, so no L check is printed as if it did
+    assert "L check    " not in run.stdout and "oracle mode's claim does not rest on L" in run.stdout

@@ -13,8 +13,7 @@ from npp_ros.certificate.choices import DATA_ANSWERS, DATA_FACTOR
 from npp_ros.cli import bench, experiment, learn
 from npp_ros.experiment.arms import default_arms
 from npp_ros.policy.dataset import Dataset
-from npp_ros.policy.lipschitz import estimate_global
-from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
+from npp_ros.run.setup import build_config, build_loop, data_slope, resolve_lipschitz
 from npp_ros.tasks.registry import ExpertOptions, get_task
 from npp_ros.tasks.task_file import TaskFileError, load_task_file
 
@@ -84,7 +83,9 @@ def test_data_lipschitz_is_fixed_from_the_first_answers_and_read_back_on_resume(
     answers = Dataset(task.state_dim, task.action_dim)
     for episode in range(DATA_ANSWERS):
         answers.append(again.trajectory(task.initial_state(0, episode), HORIZON))
-    assert constant.value == DATA_FACTOR * max(estimate_global(answers), again.slope_floor())
+    stored = data_slope(answers, continued=True)
+    assert stored is not None and constant.value == DATA_FACTOR * max(stored.slope, again.slope_floor())
+    assert stored.describe() in constant.detail  # the pair it came from, for the user to read
 
     config = build_config(name, 0, constant, 20.0, horizon=HORIZON)
     loop = build_loop(config, expert, store_path=run_file)

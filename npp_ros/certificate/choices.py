@@ -14,10 +14,15 @@ from npp_ros.policy.lipschitz import LipschitzConstant
 LIPSCHITZ_CHOICES = ("analytic", "paper", "data")
 DATA_ANSWERS = 3  # 'data': the expert's answers from the s0 of episodes 0 .. DATA_ANSWERS - 1 ...
 DATA_FACTOR = 2.0  # ... and L = this x the steepest value slope they show
+# Window values Q_t = r_t + ... + r_{t+H-1} take their last t rewards past the horizon, from the continuation
+# (zero torque for a task file): the rule uses the steps whose values lie at least this share within the horizon,
+DATA_WITHIN = 0.75  # t <= (1 - DATA_WITHIN) H; a chaotic fall after H must not set the policy's L ...
+DATA_PAIR_FLOOR = 0.01  # ... and pairs at least this x the median distance between the pairs compared apart
 DATA_RULE = (
     f"{DATA_FACTOR:g} x the steepest value slope seen on the expert's answers from the s0 of the run's first "
-    f"{DATA_ANSWERS} episodes (the stored values' slope between their points, and the iLQR expert's own |W_x|), "
-    "fixed when the run begins and kept in its run file"
+    f"{DATA_ANSWERS} episodes (the stored values' slope between points at least {DATA_PAIR_FLOOR:g} x the median "
+    f"pair distance apart, on steps whose values lie at least {DATA_WITHIN:g} within the horizon; and the iLQR "
+    "expert's own |W_x|), fixed when the run begins and kept in its run file"
 )
 LIPSCHITZ_HELP = (
     "'analytic' (a bound on the expert's value slope, lqr only: the guarantee holds), 'paper' (the paper's "

@@ -96,3 +96,68 @@ def estimate_global(dataset: Dataset, *, max_points: int = 2000, seed: int = 0) 
     same_traj = np.searchsorted(offsets, starts, side="right") == np.searchsorted(offsets, starts + 1, side="right")
     slopes.append(_pair_slopes(states, values, starts[same_traj], starts[same_traj] + 1))
     return float(max(float(s.max(initial=0.0)) for s in slopes))
+
+
+@dataclass(frozen=True)
+class PairSlope:
+    """The steepest slope between stored points at least ``floor`` apart, and the pair that shows it.
+
+    Points are named (trajectory, step); ``pairs`` is how many pairs were compared, ``points`` how many points."""
+
+    slope: float
+    value_change: float
+    distance: float
+    first: tuple[int, int]
+    second: tuple[int, int]
+    floor: float
+    pairs: int
+    points: int
+
+    def describe(self) -> str:
+        (i, t), (j, u) = self.first, self.second
+        return (
+            f"{self.slope:.6g} = |dQ| {self.value_change:.4g} / |ds| {self.distance:.4g}, answer {i + 1} step {t} "
+            f"against answer {j + 1} step {u}, over {self.pairs} pairs of {self.points} points at least "
+            f"{self.floor:.3g} apart"
+        )
+
+
+def steepest_pair(
+    dataset: Dataset,
+    *,
+    steps: int | None = None,
+    floor_share: float,
+    max_points: int = 2000,
+    seed: int = 0,
+) -> PairSlope | None:
+    """The steepest |Q_i - Q_j| / |s_i - s_j| over pairs of points at least a floor apart (None: no such pair).
+
+    ``steps``: only each trajectory's first ``steps`` points (None: all). The floor is ``floor_share`` x the
+    median distance between the pairs compared: two states far closer than the data's own spacing say nothing
+    about a slope a policy meets, and their quotient is any number (two upright states 1e-10 apart whose values
+    differ by 1 give 1e10). All pairs among up to ``max_points`` points, drawn at random (seeded) beyond that.
+    """
+    bounds = np.asarray(dataset.trajectory_offsets)  # each trajectory's start, then the total size
+    owner = np.repeat(np.arange(len(bounds) - 1), np.diff(bounds))
+    step = np.arange(len(dataset)) - bounds[owner]
+    keep = np.flatnonzero(step < steps) if steps is not None else np.arange(len(dataset))
+    if len(keep) > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(keep, size=max_points, replace=False))
+    if len(keep) < 2:
+        return None
+    a, b = np.triu_indices(len(keep), k=1)
+    a, b = keep[a], keep[b]
+    states, values = dataset.states, dataset.values
+    dist = np.sqrt(((states[a] - states[b]) ** 2).sum(axis=1))
+    floor = float(floor_share * np.median(dist))
+    apart = dist >= floor if floor > 0 else dist > 0
+    if not apart.any():
+        return None
+    a, b, dist = a[apart], b[apart], dist[apart]
+    change = np.abs(values[a] - values[b])
+    best = int(np.argmax(change / dist))
+    return PairSlope(
+        slope=float(change[best] / dist[best]), value_change=float(change[best]), distance=float(dist[best]),
+        first=(int(owner[a[best]]), int(step[a[best]])), second=(int(owner[b[best]]), int(step[b[best]])),
+        floor=floor, pairs=len(a), points=len(keep),
+    )  # fmt: skip

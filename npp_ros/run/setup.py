@@ -18,12 +18,26 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.certificate.certifier import DEFAULT_RULES, CertificationSpec, CheckedQuantity, Condition, StoppingRule
-from npp_ros.certificate.choices import DATA_ANSWERS, DATA_FACTOR, DATA_RULE, LIPSCHITZ_FLAG
+from npp_ros.certificate.choices import (
+    DATA_ANSWERS,
+    DATA_FACTOR,
+    DATA_PAIR_FLOOR,
+    DATA_RULE,
+    DATA_WITHIN,
+    LIPSCHITZ_FLAG,
+)
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.policy.feedback import DEFAULT_POLICY, ControlSpace, PolicyKind, check_policy_kind
-from npp_ros.policy.lipschitz import LipschitzCheck, LipschitzConstant, check_lipschitz, estimate_global
+from npp_ros.policy.lipschitz import (
+    LipschitzCheck,
+    LipschitzConstant,
+    PairSlope,
+    check_lipschitz,
+    estimate_global,
+    steepest_pair,
+)
 from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
 from npp_ros.run.records import RunFileError, RunMetadata, SuccessCounts
@@ -69,7 +83,8 @@ def data_lipschitz(
     answers = Dataset(definition.state_dim, definition.action_dim)
     for episode in range(DATA_ANSWERS):
         answers.append(expert.trajectory(definition.initial_state(seed, episode), horizon))
-    stored = estimate_global(answers)
+    pair = data_slope(answers, getattr(expert, "values", "") == "window")
+    stored = pair.slope if pair is not None else 0.0
     own = expert.slope_floor() if isinstance(expert, MeasuresValueSlope) else 0.0
     steepest = max(stored, own)
     if not (math.isfinite(steepest) and steepest > 0):
@@ -77,8 +92,21 @@ def data_lipschitz(
             f"L = 'data': the expert's first {DATA_ANSWERS} answers show no slope (their values do not change "
             f"with the state): {LIPSCHITZ_FLAG} with a number"
         )
-    measured = f"stored values {stored:.6g}" + (f", the expert's |W_x| {own:.6g}" if own else "")
+    measured = f"stored values {pair.describe() if pair else 'no pair'}" + (
+        f"; the expert's |W_x| {own:.6g}" if own else ""
+    )
     return LipschitzConstant(DATA_FACTOR * steepest, "data", f"{DATA_RULE} ({measured})")
+
+
+def data_slope(answers: Dataset, continued: bool) -> PairSlope | None:
+    """The stored values' slope the 'data' rule takes: between points DATA_PAIR_FLOOR x the median pair distance
+    apart; where values are ``continued`` past the horizon (window values), on each answer's steps
+    t <= (1 - DATA_WITHIN) H only, whose values lie mostly within it."""
+    steps = None
+    if continued and answers.num_trajectories:
+        length = len(answers.trajectory(0).values)
+        steps = math.floor((1.0 - DATA_WITHIN) * length) + 1
+    return steepest_pair(answers, steps=steps, floor_share=DATA_PAIR_FLOOR)
 
 
 def _recorded_lipschitz(run_file: Path | None) -> tuple[float, str] | None:
