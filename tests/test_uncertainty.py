@@ -4,6 +4,7 @@ model, the privileged expert planning on it, and a run that records its robots a
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -197,3 +198,44 @@ def test_npp_learn_names_the_set_in_its_certificate(tmp_path: Path, capsys: pyte
     assert code == 1  # not certified in 2 episodes
     with RunStore.open(tmp_path / "run.sqlite") as store:
         assert all(row.robot for row in store.episodes())
+
+
+# ----------------------------------------------------------------------------- task files
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "pendulum" / "task.toml"
+
+
+def task_file_with(tmp_path: Path, table: str) -> Path:
+    """The pendulum example's file with its [uncertainty] table replaced by ``table``, beside its model."""
+    text = EXAMPLE.read_text().split("\n[uncertainty]")[0] + "\n" + table
+    (tmp_path / "pendulum.xml").write_text((EXAMPLE.parent / "pendulum.xml").read_text())
+    path = tmp_path / "task.toml"
+    path.write_text(text)
+    return path
+
+
+def test_the_pendulum_example_declares_the_swing_ups_set() -> None:
+    from npp_ros.tasks.task_file import load_task_file
+
+    task = load_task_file(str(EXAMPLE))
+    assert task.uncertainty.describe().startswith("mass of pole x [0.8, 1.2]; gear of torque x [0.8, 1.2]")
+    assert task.uncertainty.action_delay == 1
+
+
+def test_a_task_files_named_elements_and_bad_keys(tmp_path: Path) -> None:
+    from npp_ros.tasks.task_file import load_task_file
+    from npp_ros.tasks.task_file_reader import TaskFileError
+
+    table = '[uncertainty]\ngear = { range = [0.9, 1.1], names = ["torque"] }\nstate_noise = 0.01\n'
+    task = load_task_file(str(task_file_with(tmp_path, table)))
+    assert [(s.parameter, s.names, s.low) for s in task.uncertainty.scales] == [("gear", ("torque",), 0.9)]
+    assert task.uncertainty.state_noise == 0.01
+    for bad, problem in [
+        ("stiffness = [1, 2]", "uncertainty.stiffness: unknown key"),
+        ("mass = [1.2, 0.8]", "uncertainty.mass: is empty"),
+        ("mass = [0, 1.2]", "uncertainty.mass: a scale must be > 0"),
+        ("action_delay = 0.5", "uncertainty.action_delay: must be a whole number"),
+        ('mass = { range = [0.8, 1.2], names = ["arm"] }', "uncertainty: mass names body 'arm'"),
+        ("gear = { names = [] }", "uncertainty.gear: a table needs range"),
+    ]:
+        with pytest.raises(TaskFileError, match=re.escape(problem)):
+            load_task_file(str(task_file_with(tmp_path, f"[uncertainty]\n{bad}\n")))

@@ -246,5 +246,6 @@ def _task(path: Path, digest: str, content: bytes) -> FileTask:
         default_horizon=definition.horizon,
         reward_range=definition.reward.bounds() if isinstance(definition.reward, TermReward) else None,
         success=definition.success,
+        uncertainty=definition.uncertainty,
         definition=definition,
     )

@@ -3,7 +3,7 @@
 :func:`parse` reads the TOML, then each part in the file's order: the model and its timestep
 (npp_ros.tasks.task_file_model), the run's defaults (horizon, epsilon, L, certification mode),
 ``[state]``, ``actuators``, ``[rho]``, ``[reward]`` (npp_ros.tasks.task_file_terms), ``[expert]`` and
-``[success]`` (npp_ros.tasks.task_file_success).
+``[success]`` (npp_ros.tasks.task_file_success), ``[uncertainty]`` (npp_ros.tasks.task_file_uncertainty).
 The first problem is refused with one line naming the file and the key (TaskFileError).
 """
 
@@ -29,13 +29,15 @@ from npp_ros.tasks.task_file_model import load_model, read_actuators, read_rho, 
 from npp_ros.tasks.task_file_reader import Reader, TaskFileError
 from npp_ros.tasks.task_file_success import read_success
 from npp_ros.tasks.task_file_terms import FunctionReward, Term, TermReward, read_reward, read_terms
+from npp_ros.tasks.task_file_uncertainty import read_uncertainty
+from npp_ros.tasks.uncertainty import EXACT, UncertaintySet
 from npp_ros.trajopt.expert import DEFAULT_VALUES, STOP_MODES, VALUE_MODES
 from npp_ros.trajopt.ilqr import check_time_budget
 from npp_ros.trajopt.receding import DEFAULT_PLANNER, PLANNER_KEYS, PlannerSettings, SettingError
 
 HASH_MARK = "#sha256="  # a task file's name: its absolute path, this, and its content's SHA-256
 TOP_KEYS = {"name", "model", "control_timestep", "horizon", "epsilon", "lipschitz", "certify", "actuators", "state",
-            "rho", "reward", "expert", "success"}  # fmt: skip
+            "rho", "reward", "expert", "success", "uncertainty"}  # fmt: skip
 EXPERT_KEYS = {"max_iterations", "time_budget", "stop", "values", "warm_start", "control_weight", "velocity_weight",
                "terms", *PLANNER_KEYS}  # fmt: skip
 WARM_STARTS = ("zero",)
@@ -70,6 +72,7 @@ class TaskDefinition:
     cost_terms: tuple[Term, ...]
     expert: dict[str, Any] = field(default_factory=dict)
     success: SuccessCriterion | None = None  # [success]: when an episode did the task (None: the file states none)
+    uncertainty: UncertaintySet = EXACT  # [uncertainty]: what of the robot is uncertain (the exact model: nothing)
 
     @property
     def name(self) -> str:
@@ -122,13 +125,14 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
     reward = read_reward(reader, doc, model)
     options, cost_terms = _read_expert(reader, doc, model, reward)
     success = read_success(reader, doc, model, model_path, dt)
+    uncertainty = read_uncertainty(reader, doc, model)
     label = doc.get("name", path.parent.name or path.stem)
     return TaskDefinition(
         path=path, sha256=hashlib.sha256(content).hexdigest(), label=reader.text(label, "name"),
         model_path=model_path, dt=dt, horizon=horizon, epsilon=epsilon, lipschitz=lipschitz, certify=certify,
         joint_names=joint_names, actuator_names=actuator_names, actuated_joint_names=actuated,
         wrapped=wrapped, rho_low=low, rho_high=high, reward=reward, cost_terms=cost_terms, expert=options,
-        success=success,
+        success=success, uncertainty=uncertainty,
     )  # fmt: skip
 
 

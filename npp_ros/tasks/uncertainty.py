@@ -376,6 +376,7 @@ class RobotEffects:
         self._queue.append(np.asarray(action, dtype=np.float64).copy())
         return self._queue.pop(0)
 
+
 # The built-in swing-ups' set, off unless a run asks for it: masses and inertias known to 20%, the motor constant to
 # 20%, damping to a factor of 1.5, and a command that may arrive one control step late.
 SWINGUP_UNCERTAINTY = UncertaintySet(
