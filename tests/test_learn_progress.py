@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from npp_ros.certificate.certifier import Certificate, CertificationSpec
+from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.progress import Counter
 
 ARM = Path(__file__).resolve().parents[1] / "examples" / "two_link_arm" / "task.toml"
@@ -32,5 +34,21 @@ def test_npp_learn_reports_both_held_out_phases(tmp_path: Path) -> None:
     for phase in ("held-out: policy rollouts", "held-out: the expert's returns"):
         assert f"{phase} 0/3 (" in run.stderr and f"{phase} 3/3 (" in run.stderr, run.stderr
     assert run.stderr.index("held-out: policy rollouts 3/3") < run.stderr.index("held-out: the expert's returns 0/3")
+    # the task file's task by its name key, not its path and hash
+    assert run.stderr.startswith("npp-learn: two_link_arm_reach seed 0, epsilon 5")
+    assert "note: two_link_arm_reach states no success criterion" in run.stderr
+    assert "NOT CERTIFIED (two_link_arm_reach) after 2 episodes" in run.stdout and "sha256" not in run.stdout
     # oracle mode (the file's): the claim rests on no L, so no L check is printed as if it did
     assert "L check    " not in run.stdout and "oracle mode's claim does not rest on L" in run.stdout
+
+
+def test_a_certificate_names_its_task_by_label_and_keeps_its_identity() -> None:
+    spec = CertificationSpec("i", 5.0, 0.9, 0.1, LipschitzConstant(1.0, "user"), certify="oracle")
+    identity = "/robots/arm/task.toml#sha256=ab12"
+    certificate = Certificate(
+        task=identity, spec=spec, episodes=31, oracle_calls=31, dataset_size=310, policy_trajectories=1, window=30,
+        required=30, test=1, delta_spent=0.05, value="V", statement="claim", proven=True, assumptions=(),
+    )  # fmt: skip
+    lines = certificate.summary("arm_reach").splitlines()
+    assert lines[0].startswith("CERTIFICATE (arm_reach, condition (i)") and lines[1] == f"  task            {identity}"
+    assert certificate.summary().startswith(f"CERTIFICATE ({identity},")

@@ -337,11 +337,15 @@ class Certificate:
     failures: int = 0  # the mixture rule: failed checks of the certifying verification (window = its checks)
     mixture: float | None = None  # the mixture rule: M at certification (at least 1 / delta_spent)
 
-    def summary(self) -> str:
+    def summary(self, label: str = "") -> str:
+        """The certificate for people; ``label`` names the task (a task file's ``name`` key), and the task's
+        identity (a task file's path and hash) then follows on a line of its own."""
         spec, lipschitz = self.spec, self.spec.lipschitz
         proof = "yes" if self.proven else "NO: it rests on a step that does not hold here (see assumptions)"
         lines = [
-            f"CERTIFICATE ({self.task}, condition ({spec.condition}), certify={spec.certify}, rule={spec.rule})",
+            f"CERTIFICATE ({label or self.task}, condition ({spec.condition}), certify={spec.certify}, "
+            f"rule={spec.rule})",
+            *([f"  task            {self.task}"] if label and label != self.task else []),
             f"  episodes        {self.episodes}",
             f"  oracle calls    {self.oracle_calls}",
             f"  policy          greedy over {self.policy_trajectories} trajectories ({self.dataset_size} triplets)",

@@ -23,7 +23,7 @@ from npp_ros.certificate.choices import LIPSCHITZ_HELP
 from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int, task_name
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzWarning
-from npp_ros.run.evaluation import check_policy
+from npp_ros.run.evaluation import check_policy, held_out_robots
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.loop import NPPLoop, RunResult
 from npp_ros.run.progress import Counter, StatusLine, unreachable_text
@@ -36,7 +36,7 @@ from npp_ros.run.setup import (
     policy_for,
     resolve_lipschitz,
 )
-from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task
+from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task, task_label
 from npp_ros.tasks.sources import short_name
 from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
 from npp_ros.trajopt.batch_steps import default_threads
@@ -172,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"npp-learn: {exc}", file=sys.stderr)
         return 2
 
-    print(f"npp-learn: {args.task} seed {args.seed}, epsilon {epsilon:g}, {lipschitz.describe()}", file=sys.stderr)
+    label = task_label(args.task)  # a task file's name key; its path and hash stay in the run file and summary.json
+    print(f"npp-learn: {label} seed {args.seed}, epsilon {epsilon:g}, {lipschitz.describe()}", file=sys.stderr)
     if loop.rows:
         print(f"npp-learn: resuming {run_dir / 'run.sqlite'} at episode {loop.next_episode}", file=sys.stderr)
     started = time.perf_counter()
@@ -207,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.spec.certify == "oracle",
             progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
             expert_progress=Counter("held-out: the expert's returns"),
+            robots=held_out_robots(config.uncertainty, args.seed, args.evaluate),
         )  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LipschitzWarning)  # reported below, in the summary
@@ -214,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
 
     summary = {
         "task": args.task,
+        "task_label": label,
         "seed": args.seed,
         "episodes": result.episodes,
         "oracle_calls": result.oracle_calls,
@@ -228,10 +231,10 @@ def main(argv: list[str] | None = None) -> int:
         "wall_time_s": elapsed,
     }
     if result.certificate:
-        print(result.certificate.summary())
+        print(result.certificate.summary(label))
     else:
         print(
-            f"NOT CERTIFIED after {result.episodes} episodes "
+            f"NOT CERTIFIED ({label}) after {result.episodes} episodes "
             f"({result.oracle_calls} oracle calls, |D| = {result.dataset_size})"
         )
         why = unreachable_text(loop.certifier.status(), result.episodes, args.max_episodes)

@@ -42,7 +42,7 @@ from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
 from npp_ros.run.records import RunFileError, RunMetadata, SuccessCounts
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.registry import Expert, MeasuresValueSlope, control_space, get_task
+from npp_ros.tasks.registry import Expert, MeasuresValueSlope, control_space, get_task, task_label
 from npp_ros.tasks.sources import short_name
 from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot, supports_robots
 
@@ -309,7 +309,7 @@ def expert_notice(task: str, counts: SuccessCounts) -> list[str]:
     criterion = get_task(task).success
     if criterion is None:
         return [
-            f"note: {short_name(task)} states no success criterion: nothing measured whether its expert does the "
+            f"note: {task_label(task)} states no success criterion: nothing measured whether its expert does the "
             "task, and a certificate is relative to that expert"
         ]
     return counts.warning(criterion.describe())

@@ -87,6 +87,13 @@ def get_task(name: str) -> Task:
     return _load_registered(name)
 
 
+def task_label(name: str) -> str:
+    """The task as outputs name it for people: a task file's ``name`` key (its identity, the path and content
+    hash, stays in run files and messages); any other task's registered name."""
+    label = getattr(getattr(get_task(name), "definition", None), "label", "")
+    return label if isinstance(label, str) and label else name
+
+
 @functools.cache
 def _load_registered(name: str) -> Task:
     found = _registered()[0]

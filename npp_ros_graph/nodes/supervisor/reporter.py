@@ -18,6 +18,7 @@ from npp_ros.policy.dataset import Trajectory
 from npp_ros.run.loop import Observer, RunConfig
 from npp_ros.run.progress import unreachable_text
 from npp_ros.run.records import EpisodeRow, append_episode_log
+from npp_ros.tasks.registry import task_label
 from npp_ros_graph.transport.convert import certificate_to_msg, episode_result, gap_report
 from npp_ros_graph.transport.seal import RunSeal
 
@@ -80,7 +81,7 @@ class GraphReporter(Observer):
     def on_certificate(self, certificate: Certificate) -> None:
         msg: CertificateMsg = certificate_to_msg(certificate, self.clock.now().to_msg())
         self.certificates.publish(self.seal.seal_header(msg, self.context))
-        self.logger.info("\n" + certificate.summary())
+        self.logger.info("\n" + certificate.summary(task_label(self.config.task)))
 
 
 def _append(path: Path, header: list[str], row: list[object]) -> None:
