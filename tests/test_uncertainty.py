@@ -28,6 +28,7 @@ from npp_ros.tasks.uncertainty import (
 )
 
 PENDULUM = "pendulum_swingup"
+CARTPOLE = "cartpole_swingup"  # its reward is smooth: short episodes earn something
 
 
 @pytest.fixture(scope="module")
@@ -239,3 +240,26 @@ def test_a_task_files_named_elements_and_bad_keys(tmp_path: Path) -> None:
     ]:
         with pytest.raises(TaskFileError, match=re.escape(problem)):
             load_task_file(str(task_file_with(tmp_path, f"[uncertainty]\n{bad}\n")))
+
+
+def test_a_held_out_check_of_a_claim_over_robots_draws_both_and_rolls_each_out_on_its_robot() -> None:
+    from npp_ros.policy.dataset import Dataset
+    from npp_ros.run.evaluation import HELD_OUT_EPISODES, check_policy, held_out_robots
+    from npp_ros.run.setup import policy_for
+
+    config = build_config(CARTPOLE, 0, LipschitzConstant(50.0, "user"), 130.0, horizon=40, uncertainty=1.0)
+    robots = held_out_robots(config.uncertainty, 0, 3)
+    assert held_out_robots("", 0, 3) is None
+    assert robots == [UncertaintySet.from_record(config.uncertainty).draw(0, HELD_OUT_EPISODES + k) for k in range(3)]
+    task = get_task(CARTPOLE)
+    expert = task.make_expert(0, 40, ExpertOptions(max_iterations=3))
+    data = Dataset(4, 1)
+    data.append(expert.trajectory(task.initial_state(0, 0), 40))
+    policy = policy_for(data, config.spec, CARTPOLE, 0)
+    states = np.array([task.initial_state(5, k) for k in range(3)])
+    kwargs = {"epsilon": 130.0, "p": 0.9, "delta": 0.1, "against_expert": True}
+    on_robots = check_policy(policy, task, task.make_plant(0), expert, states, 40, robots=robots, **kwargs)
+    nominal = check_policy(policy, task, task.make_plant(0), expert, states, 40, **kwargs)
+    assert on_robots.states == nominal.states == 3
+    assert on_robots.gap_max != nominal.gap_max  # other robots, other returns
+    assert expert.plant.model_sha256() == task.make_plant(0).model_sha256()

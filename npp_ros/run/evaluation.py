@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +21,8 @@ from scipy.stats import binom
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.registry import Expert, Plant, StopsAtTimeBudget, Task
-from npp_ros.tasks.rollout import rollout_batch
+from npp_ros.tasks.rollout import rollout, rollout_batch
+from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot
 
 CHUNK = 100  # rollouts stepped in lockstep
 VIOLATION_TOLERANCE = 1e-9  # relative: a return below V_lb(s0) by more than rounding
@@ -36,21 +37,45 @@ def policy_rollouts(
     *,
     chunk: int = CHUNK,
     progress: Callable[[int, int], None] | None = None,
+    robots: Sequence[Robot] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """The policy's H-step return from each s0, and the largest |grad V^expert| along each rollout
-    (NaN where the expert's value slope is not known in closed form)."""
+    (NaN where the expert's value slope is not known in closed form). With ``robots``, s0 k is rolled out on
+    robot k (one at a time: each robot is its own model)."""
     returns = np.empty(len(states))
     slopes = np.empty(len(states))
     if progress is not None:
         progress(0, len(states))  # the phase has begun: a chunk of long rollouts says nothing until it ends
     for lo in range(0, len(states), chunk):
         hi = min(lo + chunk, len(states))
-        for k, run in enumerate(rollout_batch(plant, policy.act, states[lo:hi], horizon)):
+        if robots is None:
+            runs = rollout_batch(plant, policy.act, states[lo:hi], horizon)
+        else:
+            runs = [rollout(plant, policy.act, states[k], horizon, robots[k]) for k in range(lo, hi)]
+        for k, run in enumerate(runs):
             returns[lo + k] = run.total_return
             slopes[lo + k] = math.nan if slope is None else float(np.max(slope(run.states)))
         if progress is not None:
             progress(hi, len(states))
     return returns, slopes
+
+
+def privileged_returns(
+    expert: Expert,
+    states: FloatArray,
+    horizon: int,
+    robots: Sequence[Robot],
+    progress: Callable[[int, int], None] | None = None,
+) -> FloatArray:
+    """The expert's own H-step return from each s0, planning on that s0's robot (its model nominal again after)."""
+    out = np.empty(len(states))
+    for k, (s0, robot) in enumerate(zip(states, robots, strict=True)):
+        with as_robot(expert.plant, robot):
+            ret = expert.trajectory(s0, horizon).expert_return
+        out[k] = math.nan if ret is None else ret
+        if progress is not None:
+            progress(k + 1, len(states))
+    return out
 
 
 def below_lower_bound(returns: FloatArray, lower: FloatArray) -> FloatArray:
@@ -98,6 +123,7 @@ def check_policy(
     expert_returns: FloatArray | None = None,
     expert_budget_stops: int = 0,
     chunk: int = CHUNK,
+    robots: Sequence[Robot] | None = None,
 ) -> HeldOutCheck:
     """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
 
@@ -108,18 +134,24 @@ def check_policy(
     ``expert_budget_stops`` of them cut by its time budget; else asked here, and counted here. ``progress`` and
     ``expert_progress`` hear (done, total) of the policy's rollouts (after every ``chunk``) and of the expert's
     requests, each from (0, total) on: an optimizer's requests take seconds each.
+
+    ``robots`` (a run under model uncertainty): s0 k is checked on robot k, the policy's rollout and the expert's
+    answer both, so the check is of the claim over (s0, theta); a held-out check of such a claim must draw both.
     """
     started = time.perf_counter()
     returns, slopes = policy_rollouts(
-        plant, policy, states, horizon, task.value_slope(expert), chunk=chunk, progress=progress
+        plant, policy, states, horizon, task.value_slope(expert), chunk=chunk, progress=progress, robots=robots
     )
-    optimal = None if against_expert else task.optimal_returns(expert, plant, states, horizon)
+    optimal = None if against_expert or robots is not None else task.optimal_returns(expert, plant, states, horizon)
     if optimal is None:
         if expert_returns is None:
             before = budget_stops(expert)
             if expert_progress is not None:
                 expert_progress(0, len(states))
-            reference = task.expert_returns(expert, plant, states, horizon, expert_progress)
+            if robots is None:
+                reference = task.expert_returns(expert, plant, states, horizon, expert_progress)
+            else:
+                reference = privileged_returns(expert, states, horizon, robots, expert_progress)
             expert_budget_stops = budget_stops(expert) - before
         else:
             reference = np.asarray(expert_returns, dtype=np.float64)
@@ -137,3 +169,15 @@ def check_policy(
         wall_time=time.perf_counter() - started, visited_slope=float(np.max(slopes)) if len(slopes) else math.nan,
         expert_budget_stops=expert_budget_stops if optimal is None else 0,
     )  # fmt: skip
+
+
+HELD_OUT_EPISODES = 1 << 30  # the first episode index of held-out draws: no run gets this far
+
+
+def held_out_robots(uncertainty: str, seed: int, count: int) -> list[Robot] | None:
+    """The robots of ``count`` held-out checks of a run whose set is ``uncertainty`` (its record; '' = the exact
+    model, None), drawn as the run draws, at episode indices no run reaches: fresh, and the same at every rerun."""
+    if not uncertainty:
+        return None
+    robots = UncertaintySet.from_record(uncertainty)
+    return [robots.draw(seed, HELD_OUT_EPISODES + k) for k in range(count)]
