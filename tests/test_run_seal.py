@@ -19,8 +19,8 @@ ACCEPT = Acceptance(model_fingerprint=FINGERPRINT)
 # Any value changed: text gets a character, a number 1 more, a NULL becomes 1. The last row, so that a key
 # column moved by 1 collides with no other row.
 CHANGE = (
-    "UPDATE {table} SET \"{column}\" = CASE WHEN typeof(\"{column}\") = 'text' THEN \"{column}\" || ' ' "
-    "WHEN \"{column}\" IS NULL THEN 1 ELSE \"{column}\" + 1 END WHERE rowid = (SELECT MAX(rowid) FROM {table})"
+    'UPDATE {table} SET "{column}" = CASE WHEN typeof("{column}") = \'text\' THEN "{column}" || \' \' '
+    'WHEN "{column}" IS NULL THEN 1 ELSE "{column}" + 1 END WHERE rowid = (SELECT MAX(rowid) FROM {table})'
 )
 
 

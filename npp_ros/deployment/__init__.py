@@ -1,6 +1,7 @@
 """Deploying a certified run on a robot, without ROS: the gate that reads a run file's certificate (gate,
 stored_run), the robot's model fingerprint (robot_model), its joints (joints), what it is commanded (commands),
-how far its states lie from the data (coverage), and the watchdog (timing). npp-deploy and npp-robot call these.
+how far its states lie from the data (coverage), the watchdog (timing), and signed runs (signing). npp-deploy,
+npp-robot and npp-sign call these.
 
 May import: npp_ros.policy, npp_ros.certificate, npp_ros.trajopt, npp_ros.tasks, npp_ros.run.
 """

@@ -12,20 +12,23 @@ It refuses:
 An operator may override the certificate and fingerprint checks (``Acceptance.override``), and every
 overridden reason is kept for the log and /diagnostics. Nothing overrides a file the store cannot read
 (stored_run.py): its data are no run's, so there is no policy to deploy.
-What the checksums detect is an edit of the data after the run; they are not a signature, and a
-writer who recomputes them is not detected.
+The run file's seal names any edit after the run, but an editor can seal again; trusted keys
+(``Acceptance.trusted_keys``, signing.py) make the gate require the signature of one of them over the seal.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from npp_ros.certificate.certifier import Certificate
 from npp_ros.certificate.mixture import certifier_for
+from npp_ros.deployment.signing import signature_reasons
 from npp_ros.deployment.stored_run import RUN_FILE, StoredRun, read_run
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
@@ -50,6 +53,7 @@ class Acceptance:
     max_delta: float = 1.0
     model_fingerprint: str = ""  # the robot's; must equal the run's plant fingerprint
     override: bool = False
+    trusted_keys: tuple[Ed25519PublicKey, ...] = ()  # given any, only a run signed by one of them passes
 
     def __post_init__(self) -> None:
         if not self.max_epsilon > 0:
@@ -75,6 +79,7 @@ class Deployment:
     checked_starts: FloatArray  # the s0 ~ rho the run checked whose trajectory is not in the policy's data
     overridden: tuple[str, ...] = ()  # the reasons the gate gave and the operator overrode
     seal: SealCheck = UNSEALED  # the run file's seal, intact or absent (a file from before seals)
+    signed: str = "unsigned"  # who signed the run, in words (signing.signature_reasons)
 
     @property
     def policy_trajectories(self) -> int:
@@ -105,7 +110,11 @@ def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
         raise GateRefusal(f"the run file was altered or damaged: {exc}") from None
     except UnknownTaskError as exc:
         raise GateRefusal(f"{run_file}: {exc}") from None
-    return _pass_gate(run, acceptance)
+    # A run the operator asked to be signed by a trusted key and is not: no override, as for altered data.
+    unsigned, signed = signature_reasons(run_file.parent, run.seal.digest, acceptance.trusted_keys)
+    if unsigned:
+        raise GateRefusal("; ".join(unsigned))
+    return dataclasses.replace(_pass_gate(run, acceptance), signed=signed)
 
 
 def _pass_gate(run: StoredRun, acceptance: Acceptance) -> Deployment:

@@ -50,6 +50,7 @@ from npp_ros.deployment.coverage import Coverage
 from npp_ros.deployment.gate import Acceptance, Deployment, GateRefusal, load_deployment
 from npp_ros.deployment.joints import JointLayout, NonFiniteState, RobotStateError, parse_names, stored_state
 from npp_ros.deployment.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
+from npp_ros.deployment.signing import load_public_keys
 from npp_ros.deployment.timing import Watchdog, percentiles
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, WARN, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, request_stop, run_node, stop_requested
@@ -83,6 +84,8 @@ PARAMETERS = (
     Changeable("max_epsilon", math.inf, "largest certified epsilon this deployment accepts", 0.0),
     Changeable("min_p", 0.0, "smallest certified p (share of s0 ~ rho within epsilon) accepted", 0.0, 1.0),
     Changeable("max_delta", 1.0, "largest certified delta (the claim's failure probability) accepted", 0.0, 1.0),
+    Changeable("trusted_keys", "", "public keys (npp-sign keygen's NAME.pub files, comma-separated) whose "
+               "signature a run must carry; empty = any run, signed or not (the log says which)"),
     Changeable("override_gate", False, "deploy even when the gate refuses (each reason logged as an error and kept on "
                "/diagnostics); never for a run file whose data fail their checksums"),
     Changeable("joint_states_topic", JOINT_STATES, "the robot's sensor_msgs/JointState topic"),
@@ -113,6 +116,7 @@ class DeploySettings:
     max_epsilon: float
     min_p: float
     max_delta: float
+    trusted_keys: str
     override_gate: bool
     joint_states_topic: str
     command_topic: str
@@ -130,7 +134,8 @@ class DeploySettings:
 
     def acceptance(self, model_fingerprint: str | None = None) -> Acceptance:
         fingerprint = self.robot_model_fingerprint if model_fingerprint is None else model_fingerprint
-        return Acceptance(self.max_epsilon, self.min_p, self.max_delta, fingerprint, self.override_gate)
+        keys = load_public_keys(parse_names(self.trusted_keys))  # a SigningError (a ValueError) names the file
+        return Acceptance(self.max_epsilon, self.min_p, self.max_delta, fingerprint, self.override_gate, keys)
 
 
 USAGE = f"""npp-deploy: one certified run's policy drives a robot over ros2_control topics (lifecycle node
@@ -367,6 +372,11 @@ class DeployNode(LifecycleNode):
             return self._refuse("configure", f"{type(exc).__name__}: {exc}")
         for reason in deployment.overridden:
             self.get_logger().error(f"GATE OVERRIDDEN (override_gate is true): {reason}")
+        provenance = f"run file {deployment.seal.describe()}; run {deployment.signed}"
+        if deployment.signed.startswith("signed by") and settings.trusted_keys.strip():
+            self.get_logger().info(provenance)
+        else:  # unsigned, or a signature nobody asked to check: the operator should know
+            self.get_logger().warning(provenance)
         self.deployment, self.layout, self.coverage = deployment, layout, coverage
         self.fingerprint, self.fingerprint_source = fingerprint, source
         self.limits = CommandLimits.of_plant(plant, settings.effort_limit)
@@ -625,6 +635,7 @@ class DeployNode(LifecycleNode):
         deployment = self.deployment
         if deployment is not None:
             values["policy"] = deployment.describe()
+            values["run provenance"] = f"{deployment.seal.describe()}; {deployment.signed}"
             values["robot model fingerprint"] = f"{self.fingerprint[:12]}... from {self.fingerprint_source}"
             if deployment.overridden:
                 values["gate overridden"] = "; ".join(deployment.overridden)
