@@ -7,12 +7,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from deploy_runs import make_run
+from deploy_runs import FINGERPRINT, make_run
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 
 import npp_ros_graph.nodes.deploy as deploy_node
+from npp_ros.cli.sign import main as npp_sign
 from npp_ros.deployment.gate import GateRefusal
+from npp_ros.deployment.signing import fingerprint, load_public_key
 
 
 @pytest.fixture
@@ -71,3 +73,23 @@ def test_without_a_description_configure_waits_its_bound_and_says_what_it_saw(
     assert time.monotonic() - started >= 0.5
     assert "no robot description was received on /robot_description (waited 0.5 s" in deploy.refusal, deploy.refusal
     assert "no publisher of it seen" in deploy.refusal, deploy.refusal
+
+
+def test_trusted_keys_refuse_a_run_signed_by_another_key_naming_it(
+    deploy: deploy_node.DeployNode, tmp_path: Path
+) -> None:
+    """npp-deploy's trusted_keys: a run signed by another key is refused at configure, its signer named."""
+    run = make_run(tmp_path / "run")
+    for name in ("trusted", "other"):
+        assert npp_sign(["keygen", str(tmp_path / name)]) == 0
+    assert npp_sign(["run", str(run), "--key", str(tmp_path / "other.key")]) == 0
+    signer = fingerprint(load_public_key(tmp_path / "other.pub"))
+    deploy.set_parameters([
+        Parameter("run_dir", value=str(run)), Parameter("robot_model_fingerprint", value=FINGERPRINT),
+        Parameter("trusted_keys", value=str(tmp_path / "trusted.pub")),
+    ])  # fmt: skip
+    assert deploy.on_configure(None) == TransitionCallbackReturn.FAILURE  # type: ignore[arg-type]
+    assert f"the run is signed by {signer}, which this deployment does not trust" in deploy.refusal, deploy.refusal
+    deploy.set_parameters([Parameter("trusted_keys", value=f"{tmp_path / 'trusted.pub'}, {tmp_path / 'other.pub'}")])
+    assert deploy.on_configure(None) == TransitionCallbackReturn.SUCCESS  # type: ignore[arg-type]
+    assert deploy.deployment is not None and deploy.deployment.signed.startswith(f"signed by {signer}")
