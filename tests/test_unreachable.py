@@ -66,7 +66,9 @@ def test_condition_ii_does_not_tell() -> None:
 def test_npp_learn_says_once_and_may_stop_there(tmp_path: Path) -> None:
     base = [*LEARN, "--horizon", "50", "--evaluate", "0"]
     said = "the certificate can no longer be reached within"
-    run = subprocess.run([*base, "--max-episodes", "4", "--run-dir", str(tmp_path / "a")], capture_output=True, text=True)
+    run = subprocess.run(
+        [*base, "--max-episodes", "4", "--run-dir", str(tmp_path / "a")], capture_output=True, text=True
+    )
     assert run.returncode == 1, run.stderr
     assert run.stderr.count(said) == 1  # once, after the first episode (test 1 needs 30 passes)
     assert "after episode 1 it needs at least 30 more episodes (test 1 streak 0/30), and 3 are left" in run.stderr
