@@ -13,6 +13,7 @@ from npp_ros.policy.feedback import PolicyKind
 from npp_ros.run.seal import write_seal
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.uncertainty import ScaleRange, UncertaintySet
 
 TASK, SEED, HORIZON, EPSILON = "lqr_2_1", 0, 100, 2.0
 FINGERPRINT = plant_fingerprint(TASK, SEED)
@@ -77,3 +78,17 @@ def bad_folders(good: Path, root: Path) -> dict[str, tuple[Path, str]]:
             "meta 'certificate' \\(removed\\)",
         ),
     }
+
+
+# The set a test run is said to be certified on: lqr_2_1 declares none, and a certified run under uncertainty on a
+# swing-up takes minutes, so the tests record the swing-ups' ranges in a short lqr run's metadata and seal it again.
+LQR_ROBOTS = UncertaintySet(
+    (ScaleRange("mass", 0.8, 1.2), ScaleRange("gear", 0.8, 1.2), ScaleRange("damping", 0.5, 1.5))
+)
+
+
+def with_robots(source: Path, folder: Path, robots: UncertaintySet = LQR_ROBOTS) -> Path:
+    """A copy of a certified run folder whose metadata records ``robots`` (resolved on the run's model) as its set."""
+    record = robots.resolved(get_task(TASK).make_plant(SEED).physics.model).record()
+    edit = ("INSERT OR REPLACE INTO meta (key, value) VALUES ('uncertainty', ?)", (json.dumps(record),))
+    return altered_copy(source, folder, edit, resealed=True)

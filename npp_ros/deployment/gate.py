@@ -7,7 +7,8 @@ It refuses:
   damaged), or whose certificate does not follow from its own episode log (an edited certificate);
 - a run without a certificate, or with one that is not proven;
 - a certificate weaker than the operator accepts (epsilon, p, delta);
-- a robot whose model fingerprint is not the certified plant's.
+- a robot whose model fingerprint is not the certified plant's, or, for a run certified on a set of
+  robots, whose description lies outside the set (robot_set.py).
 
 An operator may override the certificate and fingerprint checks (``Acceptance.override``), and every
 overridden reason is kept for the log and /diagnostics. Nothing overrides a file the store cannot read
@@ -28,6 +29,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from npp_ros.certificate.certifier import Certificate
 from npp_ros.certificate.mixture import certifier_for
+from npp_ros.deployment.robot_set import gate_reasons
 from npp_ros.deployment.signing import signature_reasons
 from npp_ros.deployment.stored_run import RUN_FILE, StoredRun, read_run
 from npp_ros.policy.bounds import NonparametricPolicy
@@ -54,6 +56,7 @@ class Acceptance:
     model_fingerprint: str = ""  # the robot's; must equal the run's plant fingerprint
     override: bool = False
     trusted_keys: tuple[Ed25519PublicKey, ...] = ()  # given any, only a run signed by one of them passes
+    robot_description: str = ""  # the robot's MJCF: a run certified on a set of robots is compared with it
 
     def __post_init__(self) -> None:
         if not self.max_epsilon > 0:
@@ -80,6 +83,7 @@ class Deployment:
     overridden: tuple[str, ...] = ()  # the reasons the gate gave and the operator overrode
     seal: SealCheck = UNSEALED  # the run file's seal, intact or absent (a file from before seals)
     signed: str = "unsigned"  # who signed the run, in words (signing.signature_reasons)
+    robot: str = ""  # for a run certified on a set of robots: which robot of it the robot's model is, in words
 
     @property
     def policy_trajectories(self) -> int:
@@ -96,7 +100,8 @@ class Deployment:
         spec = cert.spec
         claim = f"condition ({spec.condition}), epsilon {spec.epsilon:g}, p {spec.p:g}, delta {spec.delta:g}"
         proven = "proven" if cert.proven else "NOT proven"
-        return f"{head}; certificate {claim}, certify={spec.certify}, H {meta.horizon}, {proven}"
+        robot = f"; robot: {self.robot}" if self.robot else ""
+        return f"{head}; certificate {claim}, certify={spec.certify}, H {meta.horizon}, {proven}{robot}"
 
 
 def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
@@ -128,7 +133,10 @@ def _pass_gate(run: StoredRun, acceptance: Acceptance) -> Deployment:
         certificate = None
     else:
         reasons = _certificate_reasons(certificate, len(rows), dataset.num_trajectories, acceptance)
-    reasons += _fingerprint_reasons(run.metadata, acceptance)
+    plant = run.task.make_plant(run.metadata.seed)
+    fingerprint = _fingerprint_reasons(run.metadata, acceptance)
+    model_reasons, robot = gate_reasons(run.metadata, plant, acceptance.robot_description, fingerprint)
+    reasons += model_reasons
     if reasons and not acceptance.override:
         raise GateRefusal("; ".join(reasons))
     # Overridden: the certificate's policy where the certificate agrees with its run, else all the data.
@@ -140,8 +148,8 @@ def _pass_gate(run: StoredRun, acceptance: Acceptance) -> Deployment:
     outside = [row.initial_state for row in rows if row.trajectory is None or row.trajectory >= count]
     checked_starts = np.array(outside, dtype=np.float64).reshape(len(outside), run.metadata.state_dim)
     return Deployment(
-        run.path, run.metadata, certificate, policy, run.task, run.task.make_plant(seed), checked_starts,
-        tuple(reasons), run.seal,
+        run.path, run.metadata, certificate, policy, run.task, plant, checked_starts, tuple(reasons), run.seal,
+        robot=robot,
     )  # fmt: skip
 
 

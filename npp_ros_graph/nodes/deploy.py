@@ -31,7 +31,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -348,6 +348,8 @@ class DeployNode(LifecycleNode):
             self._await_description(settings)
             fingerprint, source = self._robot_fingerprint(settings)
             acceptance = settings.acceptance(fingerprint)
+            if self.description is not None and source == self._described_source():  # a run on a set of robots
+                acceptance = replace(acceptance, robot_description=self.description.text)  # compares the MJCF itself
         except ValueError as exc:
             return self._refuse("configure", str(exc))
         except Exception as exc:  # whatever it is, configure fails with its reason, never silently
