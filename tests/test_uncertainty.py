@@ -263,3 +263,43 @@ def test_a_held_out_check_of_a_claim_over_robots_draws_both_and_rolls_each_out_o
     assert on_robots.states == nominal.states == 3
     assert on_robots.gap_max != nominal.gap_max  # other robots, other returns
     assert expert.plant.model_sha256() == task.make_plant(0).model_sha256()
+
+
+# ----------------------------------------------------------------------------- the success claim
+def test_the_success_claim_certifies_a_policy_that_holds_the_pendulum_with_one_expert_call(tmp_path: Path) -> None:
+    """Starts near upright on robots from the swing-ups' set: the feedback policy of one answer holds every one, so
+    the streak certifies P[success] >= p and the expert is asked only where the data must grow (once: no data)."""
+    text = EXAMPLE.read_text()
+    text = text.replace("hinge = { position = [-3.14159, 3.14159] }", "hinge = { position = [-0.05, 0.05] }")
+    text = text.replace("horizon = 1000 ", "horizon = 100  ").replace("last_seconds = 1.0", "last_seconds = 0.5")
+    (tmp_path / "pendulum.xml").write_text((EXAMPLE.parent / "pendulum.xml").read_text())
+    (tmp_path / "task.toml").write_text(text)
+    name = str(tmp_path / "task.toml")
+    task = get_task(name)
+    expert = task.make_expert(0, 100)
+    config = build_config(
+        name, 0, LipschitzConstant(50.0, "user"), 130.0, horizon=100, certify="success", policy="feedback",
+        uncertainty=1.0,
+    )  # fmt: skip
+    loop = build_loop(config, expert)
+    result = loop.run(60)
+    assert result.certificate is not None
+    assert result.oracle_calls == 1 and result.episodes == 1 + config.spec.streak_required(1)
+    assert all(row.policy_success for row in result.rows[1:])
+    statement = result.certificate.statement
+    assert "P_((s0, theta)~rho x Theta)[the policy's rollout from s0 meets the task's success criterion] >= 0.9" in (
+        statement
+    )
+    assert "the pole within 8 degrees of upright" in statement and "claims nothing about" in statement
+    assert result.certificate.proven
+    assert not any("L bounds" in item for item in result.certificate.assumptions)
+
+
+def test_the_success_claim_needs_a_criterion(tmp_path: Path) -> None:
+    text = EXAMPLE.read_text()
+    (tmp_path / "pendulum.xml").write_text((EXAMPLE.parent / "pendulum.xml").read_text())
+    (tmp_path / "task.toml").write_text(text[: text.index("[success]")] + text[text.index("[uncertainty]") :])
+    name = str(tmp_path / "task.toml")
+    config = build_config(name, 0, LipschitzConstant(50.0, "user"), 50.0, horizon=50, certify="success")
+    with pytest.raises(ValueError, match="certify=success judges the policy's own rollout"):
+        build_loop(config, get_task(name).make_expert(0, 50))

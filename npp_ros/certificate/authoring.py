@@ -80,7 +80,9 @@ def author_certificate(
     the set of robots each episode drew from, in words ("": the exact model)."""
     measured = success if success is not None else MeasuredSuccess(None)
     certify = spec.certify
-    if certify == "oracle":
+    if certify == "success":
+        value = measured.criterion or "the task's success criterion"
+    elif certify == "oracle":
         value = f"the expert's own H-step return V^E_H (H = {horizon}), as the oracle reports it"
     elif certify == "rollout" and basis is not None:
         value = basis.value
@@ -111,6 +113,7 @@ def author_certificate(
     )
 
 
+L_FREE = ("oracle", "success")  # the checked quantities whose claim rests on no Lipschitz constant
 ROBOT_DRAW = "(s0, theta)~rho x Theta"  # what a claim under model uncertainty is a probability over
 
 
@@ -134,7 +137,7 @@ def robot_assumptions(spec: CertificationSpec, robots: str) -> tuple[str, ...]:
         "independent of s0 and of the run so far",
         "the robot is one of Theta: the plant's model with those parameters, delay and noise; nothing else differs",
     ]
-    if spec.certify != "oracle":
+    if spec.certify not in L_FREE:
         items.append(
             "L bounds the slope of the value for every robot in Theta, and V_ub from data of one robot bounds "
             "another's value: NOT checked, so a certificate under uncertainty that rests on L is not proven"
@@ -151,7 +154,7 @@ def is_proven(spec: CertificationSpec, basis: ValueBasis | None) -> bool:
     """Whether the claim follows from its assumptions, rather than resting on a test or an L that cannot hold."""
     if spec.rule == "paper":
         return False
-    if spec.certify != "oracle" and no_lipschitz_bound(basis):
+    if spec.certify not in L_FREE and no_lipschitz_bound(basis):
         return False  # the claim rests on an L that cannot exist for these values
     if spec.certify == "surrogate":
         # Theorem 3.4's argument (and the condition the basis checks) is about stored actions replayed open loop.
@@ -171,7 +174,11 @@ def assumptions(spec: CertificationSpec, basis: ValueBasis | None) -> tuple[str,
         "initial states are independent draws from rho, independent of the run so far",
         "the plant is deterministic, so one rollout's return is the policy's value at s0",
     ]
-    if spec.certify == "rollout":
+    if spec.certify == "success":
+        items = ["the success criterion is judged on the true states of the policy's own rollout from s0", *common,
+                 "no Lipschitz constant and no expert value is needed: the claim is about success alone, and says "
+                 "nothing of optimality"]  # fmt: skip
+    elif spec.certify == "rollout":
         assert basis is not None
         items = [lipschitz, "the expert's stored values equal its value function at the data points",
                  basis.tail_detail, *common]  # fmt: skip

@@ -44,14 +44,16 @@ from npp_ros.policy.feedback import PAPER_POLICY, POLICY_KINDS, PolicyKind
 from npp_ros.policy.lipschitz import LipschitzConstant
 
 Condition = Literal["i", "ii"]
-CheckedQuantity = Literal["rollout", "oracle", "surrogate"]
+CheckedQuantity = Literal["rollout", "oracle", "surrogate", "success"]
 StoppingRule = Literal["sequential", "mixture", "paper"]
 CONDITIONS: tuple[str, ...] = get_args(Condition)
 # The rule a run uses unless it names one, per checked quantity, as measured on real runs (docs, "Which rule
 # is the default"): the mixture rule needs fewer checks for a simulated policy that stays frozen below
 # 0.98, but on the pendulum swing-up (oracle) and lqr_2_1 (rollout) it needed more episodes than the
 # streak, whose failures keep teaching the policy while a verification holds its data back.
-DEFAULT_RULES: dict[str, StoppingRule] = {"rollout": "sequential", "oracle": "sequential", "surrogate": "sequential"}
+DEFAULT_RULES: dict[str, StoppingRule] = {
+    "rollout": "sequential", "oracle": "sequential", "surrogate": "sequential", "success": "sequential"
+}  # fmt: skip
 CERTIFY_MODES: tuple[str, ...] = get_args(CheckedQuantity)
 STOPPING_RULES: tuple[str, ...] = get_args(StoppingRule)
 
@@ -62,7 +64,9 @@ QUANTITY = {
     "rollout": "V_ub(s0) + tail(s0) - R^pi(s0)",
     "oracle": "V^E(s0) - R^pi(s0)",
     "surrogate": "V_ub(s0) - V_lb(s0)",
+    "success": "the task's success criterion on the policy's own rollout from s0",
 }
+SUCCESS_CHECK = {True: 0.0, False: 1.0}  # certify=success: the checked quantity is 1 - [the rollout succeeded]
 
 
 def check_spec_choices(
@@ -128,7 +132,10 @@ class CertificationSpec:
             raise ValueError("condition (ii) needs diam(S0) > 0")
 
     def passes(self, checked: float | None) -> bool:
-        """Whether one check passed: the checked quantity is known and at most epsilon (inf and NaN fail)."""
+        """Whether one check passed: the checked quantity is known and at most epsilon (inf and NaN fail); for the
+        success claim, the rollout met the criterion (SUCCESS_CHECK: 0), whatever epsilon."""
+        if self.certify == "success":
+            return checked == SUCCESS_CHECK[True]
         return checked is not None and checked <= self.epsilon
 
     # ------------------------------------------------------------------ the tests' budgets
@@ -166,6 +173,15 @@ class CertificationSpec:
         gap = "V^E(s0) - R^pi(s0)" if self.certify == "oracle" else "V(s0) - R^pi(s0)"
         confidence = f"With probability at least {1 - self.delta:.4g}"
         how = f"test {test} of a sequentially valid rule" if self.rule == "sequential" else "the paper's one-shot rule"
+        if self.certify == "success":  # ``value`` is the criterion in words
+            return (
+                f"{confidence}, P_(s0~rho)[the policy's rollout from s0 meets the task's success criterion] >= "
+                f"{self.p:.4g} for {policy}, the criterion being {value} ("
+                + (f"{episodes_used} checks with {failures} failed, verification {test} of the mixture rule"
+                   if self.rule == "mixture" else f"{episodes_used} successful rollouts in a row, {how}")
+                + "). It claims nothing about how well the policy does beside that criterion, nor about any "
+                "expert's return."
+            )  # fmt: skip
         if self.rule == "mixture":
             mixture = math.exp(log_mixture) if log_mixture is not None else math.nan
             return (

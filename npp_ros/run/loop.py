@@ -12,6 +12,8 @@ Order within an episode, per mode:
   (updated) policy drives the episode, its return recorded for information.
 - ``rollout``: the current policy drives the episode first; the check V_ub + tail - R^pi decides,
   and a failed check sends s0 to the oracle.
+- ``success``: the current policy drives the episode first; the check is whether its rollout met the task's
+  success criterion (no expert value involved), and a failed check sends s0 to the oracle.
 - ``oracle``: the current policy drives the episode and the oracle answers for s0 in every
   episode; the check is V^E(s0) - R^pi(s0). A test must see one frozen policy, so trajectories
   from passed checks are held back (stored at once, never lost) and join the policy's data when
@@ -42,7 +44,13 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from npp_ros.certificate.authoring import MeasuredSuccess, author_certificate
-from npp_ros.certificate.certifier import Certificate, CertificationSpec, CertificationStatus, Certifier
+from npp_ros.certificate.certifier import (
+    SUCCESS_CHECK,
+    Certificate,
+    CertificationSpec,
+    CertificationStatus,
+    Certifier,
+)
 from npp_ros.certificate.mixture import MixtureCertifier, certifier_for
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
@@ -192,6 +200,11 @@ class NPPLoop:
             raise ValueError(f"certify={certify} checks the policy's own return: it needs the policy's rollouts")
         if config.explore > 0 and explorer is None:
             raise ValueError("explore > 0 needs an explorer (npp_ros.run.explore.RolloutExplorer)")
+        if certify == "success" and (success is None or replay is None):
+            raise ValueError(
+                "certify=success judges the policy's own rollout on the task's success criterion: it needs a task "
+                "that states one (a task file's [success]) and the policy's replay"
+            )
         if certify == "rollout" and (basis is None or basis.tail is None):
             detail = basis.tail_detail if basis is not None else "the expert states no value basis"
             raise ValueError(f"certify=rollout needs an upper bound on the H-step value at s0 ({detail}); use oracle")
@@ -303,10 +316,15 @@ class NPPLoop:
             trajectory = replace(trajectory, expert_return=float(ret))
         return trajectory
 
-    def _check(self, s0: FloatArray, v_ub: float, policy_return: float | None, answer: Trajectory | None) -> float:
+    def _check(
+        self, s0: FloatArray, v_ub: float, policy_return: float | None, answer: Trajectory | None, robot: Robot | None
+    ) -> float:
         """The checked quantity at s0; +inf when it cannot be computed (no policy yet, no return)."""
         if len(self.policy_data) == 0 or (self.spec.certify != "surrogate" and policy_return is None):
             return math.inf
+        if self.spec.certify == "success":
+            met = self._policy_success(s0, robot)
+            return math.inf if met is None else SUCCESS_CHECK[met]
         if self.spec.certify == "rollout":
             assert self.basis is not None and self.basis.tail is not None and policy_return is not None
             return v_ub + self.basis.tail(s0) - policy_return
@@ -332,7 +350,7 @@ class NPPLoop:
             policy_return = self._drive(episode, s0, robot)
             if mode == "oracle":
                 trajectory = self._ask_oracle(s0, robot)
-            checked = self._check(s0, v_ub, policy_return, trajectory)
+            checked = self._check(s0, v_ub, policy_return, trajectory, robot)
             if not self.spec.passes(checked) and trajectory is None:
                 trajectory = self._ask_oracle(s0, robot)
         failed = not self.spec.passes(checked)
