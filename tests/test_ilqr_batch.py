@@ -165,3 +165,26 @@ def test_a_pool_shares_the_cores_among_its_workers() -> None:
         assert pool.threads * pool.workers <= max(cores, pool.workers)
     with ExpertPool("pendulum_swingup", 0, SHORT, ExpertOptions(threads=3), workers=2) as pool:
         assert pool.threads == 3  # an explicit count is the caller's choice
+
+
+def test_an_expert_that_planned_on_another_robot_answers_as_a_fresh_one() -> None:
+    """A batch copies its model when made: after a request on one drawn robot, a request on another plans on that
+    other robot's model (derivatives and gains too), as an expert that never saw the first one does."""
+    from npp_ros.tasks.uncertainty import SWINGUP_UNCERTAINTY, as_robot
+
+    task = get_task("cartpole_swingup")
+    options = ExpertOptions(time_budget=120.0, max_iterations=5, threads=1)
+    robots = SWINGUP_UNCERTAINTY.resolved(task.make_plant(2).physics.model)
+    first, second = robots.draw(2, 1), robots.draw(2, 0)
+    s0 = np.array([0.1, 3.0, 0.0, 0.0])
+    used = task.make_expert(2, 80, options)
+    with as_robot(used.plant, first):
+        used.trajectory(s0)
+    with as_robot(used.plant, second):
+        after = used.trajectory(s0)
+    fresh = task.make_expert(2, 80, options)
+    with as_robot(fresh.plant, second):
+        want = fresh.trajectory(s0)
+    assert after.gains is not None and want.gains is not None
+    for name in ("states", "actions", "values", "gains"):
+        np.testing.assert_array_equal(getattr(after, name), getattr(want, name))

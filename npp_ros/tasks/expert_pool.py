@@ -9,6 +9,9 @@ depends on the machine's speed either way, and comes back named as such.
 Workers are started fresh ("spawn"), never forked from a process that runs threads. Each worker's
 iLQR takes its derivatives on ``threads`` threads (ExpertOptions.threads; by default the cores over
 the workers, at least 1), so the pool never runs more threads than there are cores.
+
+A request may name a drawn robot (npp_ros.tasks.uncertainty): its worker plans on it, the worker's model made into
+that robot for the request and nominal again after it, so the answer is the in-process privileged expert's.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.tasks.registry import Expert, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros.tasks.uncertainty import Robot, as_robot
 from npp_ros.trajopt.batch_steps import default_threads
 from npp_ros.trajopt.expert import OptimizingExpert
 
@@ -49,9 +53,14 @@ def _build_expert(task: str, seed: int, horizon: int, options: ExpertOptions) ->
     _EXPERT = get_task(task).make_expert(seed, horizon, options)
 
 
-def _answer(state: FloatArray, horizon: int) -> PooledAnswer:
+def _answer(state: FloatArray, horizon: int, robot: Robot | None = None) -> PooledAnswer:
     expert = _EXPERT
     assert expert is not None, "the worker's initializer builds its expert"
+    with as_robot(expert.plant, robot):
+        return _planned(expert, state, horizon)
+
+
+def _planned(expert: Expert, state: FloatArray, horizon: int) -> PooledAnswer:
     stops = expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
     reason, started = None, time.process_time()
     if isinstance(expert, OptimizingExpert):  # trajectory() is solve()'s trajectory; solve() also says why it stopped
@@ -80,9 +89,10 @@ class ExpertPool:
             initargs=(task, int(seed), int(horizon), options),
         )
 
-    def submit(self, state: FloatArray, horizon: int = 0) -> Future[PooledAnswer]:
-        """The trajectory from ``state`` (``horizon`` 0: the expert's own), computed by a free worker."""
-        return self._pool.submit(_answer, np.asarray(state, dtype=np.float64), int(horizon))
+    def submit(self, state: FloatArray, horizon: int = 0, robot: Robot | None = None) -> Future[PooledAnswer]:
+        """The trajectory from ``state`` (``horizon`` 0: the expert's own), computed by a free worker, planned on
+        ``robot`` (None: the nominal model)."""
+        return self._pool.submit(_answer, np.asarray(state, dtype=np.float64), int(horizon), robot)
 
     def close(self) -> None:
         """Drop waiting requests and let the workers go; a running request finishes in its worker."""

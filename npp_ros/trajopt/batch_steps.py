@@ -13,6 +13,10 @@ independent simulations of one model:
 Both give the numbers of the one-at-a-time code in :mod:`npp_ros.trajopt.dynamics` bit for bit (every
 floating-point operation is the same operation on the same operands), so they change how fast a
 request is answered, never its answer.
+
+A batch copies its model when it is made, so a batch kept between requests is made again when the model's
+physical parameters have changed since (a drawn robot, npp_ros.tasks.uncertainty, edits the model in place):
+every request is planned on the model as it is at that request.
 """
 
 from __future__ import annotations
@@ -41,6 +45,19 @@ def check_threads(threads: int) -> int:
     return int(threads)
 
 
+# The model fields a drawn robot edits, and those mj_setConst derives from them: a batch made before they changed
+# holds a stale copy of the model.
+PHYSICAL_FIELDS = (
+    "body_mass", "body_inertia", "actuator_gear", "dof_damping", "dof_frictionloss", "dof_armature",
+    "body_subtreemass", "body_invweight0", "dof_invweight0", "actuator_acc0",
+)  # fmt: skip
+
+
+def physical_values(model: Any) -> bytes:
+    """The model's physical parameters as they are now, to compare with a batch's copy."""
+    return b"".join(np.ascontiguousarray(getattr(model, name)).tobytes() for name in PHYSICAL_FIELDS)
+
+
 class _Rows:
     """A batch of ``nsim`` simulations, each starting where ``mj_resetData`` leaves an MjData."""
 
@@ -48,6 +65,7 @@ class _Rows:
         import mujoco
         from mujoco import batch as mj_batch
 
+        self.physical = physical_values(model)  # what the batch's copy of the model holds
         self.batch = mj_batch.Batch(model, nsim, threads)
         data = mujoco.MjData(model)  # freshly made: as mj_resetData leaves it
         spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
@@ -59,6 +77,10 @@ class _Rows:
 
     def reset(self) -> None:
         self.batch.state[:] = self.reset_row
+
+    def current(self, model: Any) -> bool:
+        """Whether the batch's copy of the model still holds the model's physical parameters."""
+        return self.physical == physical_values(model)
 
 
 class BatchDifferences:
@@ -81,7 +103,7 @@ class BatchDifferences:
         n = states.shape[1]
         nq = n // 2
         width = 2 * (n + m)  # simulations per step: +-eps on each state entry, then on each control
-        if self._rows is None or self._rows.batch.nsim != horizon * width:
+        if self._rows is None or self._rows.batch.nsim != horizon * width or not self._rows.current(self.model):
             self._rows = None  # let the old batch's memory go before the new one takes its own
             self._rows = _Rows(self.model, horizon * width, self.threads)
         rows = self._rows
@@ -149,7 +171,7 @@ class BatchClosedLoops:
         n = ref_states.shape[1]
         nq = n // 2
         rows = self._rows.get(count)
-        if rows is None:
+        if rows is None or not rows.current(self.model):
             rows = self._rows[count] = _Rows(self.model, count, 1)
         rows.reset()
         step, qpos, qvel, ctrl, substeps = rows.batch.step, rows.qpos, rows.qvel, rows.ctrl, self.substeps

@@ -9,6 +9,10 @@ expert's by a pool of worker processes the thread hands them to, npp_ros.expert_
 executor keeps taking requests off the wire, so the node always knows its backlog: beyond
 `max_queue` waiting requests it answers at once with success = false and a message starting
 "busy:", instead of letting the middleware's queue overflow and drop requests silently.
+
+A request may name a drawn robot (model uncertainty, npp_ros.tasks.uncertainty): the expert then plans on it, its
+model made into that robot for the request and nominal again after it (in a worker process too), as the in-process
+privileged expert does. A task whose expert cannot plan on a robot refuses such a request, saying why.
 """
 
 from __future__ import annotations
@@ -32,12 +36,13 @@ from npp_ros.policy.dataset import Trajectory
 from npp_ros.policy.vectors import finite_vector, state_digest
 from npp_ros.tasks.expert_pool import ExpertPool, PooledAnswer, default_workers
 from npp_ros.tasks.registry import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
+from npp_ros.tasks.uncertainty import Robot, as_robot, supports_robots
 from npp_ros.trajopt.batch_steps import default_threads
 from npp_ros.trajopt.expert import STOP_HELP
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
-from npp_ros_graph.transport.convert import state_layout, trajectory_to_response
+from npp_ros_graph.transport.convert import robot_from_field, state_layout, trajectory_to_response
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
@@ -101,7 +106,9 @@ success = false and a precise message.
 
 subscribes  /{PLANT} (npp_interfaces/msg/PlantDescription, latched): the plant to model
 serves      /{EXPERT_SERVICE} (npp_interfaces/srv/ExpertTrajectory)
-              request:  float64[] state (qpos then qvel), uint32 horizon (0 = the plant's horizon)
+              request:  float64[] state (qpos then qvel), uint32 horizon (0 = the plant's horizon),
+                        string robot (a drawn robot to plan on, '' = the nominal model; refused by an
+                        expert that cannot plan on one)
               response: success, message, state_dim, action_dim, row-major states, actions, values
 
 {parameter_help(PARAMETERS)}
@@ -122,12 +129,13 @@ class ExpertNode(Node):
         self._pool_for: tuple[str, int, int] | None = None  # the plant they model: task, seed, horizon
         self._pool_budget_stops = 0  # answers of the pool the time budget cut (under _counting)
         self._counting = threading.Lock()
-        self._jobs: Mailbox[tuple[Expert, np.ndarray, int, Future]] = Mailbox()
+        self._jobs: Mailbox[tuple[Expert, np.ndarray, int, Robot | None, Future]] = Mailbox()
         self._worker = threading.Thread(target=self._work, name="npp-expert-worker", daemon=True)
         self._worker.start()
         self.expert: Expert | None = None
         self.description: PlantDescription | None = None
         self.refusal: str | None = None  # set when the described plant cannot be modelled
+        self.plans_on_robot = False  # whether the modelled task's expert can plan on a drawn robot
         self.run_seal = RunSeal.from_environment()
         self.seal: RunSeal | None = None  # the run's seal for the modelled plant
         self._plant_sub = self.create_subscription(PlantDescription, PLANT, self.on_plant, LATCHED_READER_QOS)
@@ -197,6 +205,9 @@ class ExpertNode(Node):
             self.get_logger().error(self.refusal)
             return
         self.expert, self.seal = expert, self.run_seal.for_plant(mine)
+        self.plans_on_robot = bool(getattr(get_task(desc.task), "plans_on_robot", False)) and supports_robots(
+            expert.plant
+        )
         if self.workers > 1 and isinstance(expert, StopsAtTimeBudget):
             self._pool_for = (desc.task, int(desc.seed), int(desc.horizon))
         self.get_logger().info(
@@ -214,8 +225,11 @@ class ExpertNode(Node):
         while the executor takes further requests; the backlog is counted here rather than hidden in
         the middleware's queue.
         """
+        robot: Robot | None = None
         try:
             problem = self._problem(request.state, int(request.horizon))
+            if problem is None:
+                robot, problem = self._robot(request.robot)
         except Exception as exc:  # never let an exception escape into the executor
             problem = f"internal error while checking the request: {exc}"
         if problem is not None:
@@ -233,7 +247,7 @@ class ExpertNode(Node):
         done = Future()
         self.waiting += 1
         try:
-            self._jobs.put((expert, np.asarray(request.state, dtype=np.float64), int(request.horizon), done))
+            self._jobs.put((expert, np.asarray(request.state, dtype=np.float64), int(request.horizon), robot, done))
             traj: Trajectory = await done
         except Exception as exc:
             self.get_logger().error(f"expert request failed: {type(exc).__name__}: {exc}")
@@ -241,21 +255,24 @@ class ExpertNode(Node):
         finally:
             self.waiting -= 1
         response.success = True
-        response.message = f"{len(traj)} steps of {expert.task} seed {expert.seed}"
+        response.message = f"{len(traj)} steps of {expert.task} seed {expert.seed}" + (
+            "" if robot is None else f" on the robot {robot.describe()}"
+        )
         response.plant = fingerprint
         return seal.seal(trajectory_to_response(traj, response), answering=request)
 
     def _work(self) -> None:
         """Worker thread: one trajectory at a time, in arrival order; wakes the executor when one is done."""
         while (job := self._jobs.take()) is not None:
-            expert, state, horizon, done = job
+            expert, state, horizon, robot, done = job
             if self._pool_for is not None:
-                self._hand_to_pool(expert, state, horizon, done)
+                self._hand_to_pool(expert, state, horizon, robot, done)
                 continue
             stops = expert.budget_stops if isinstance(expert, StopsAtTimeBudget) else 0
             started = time.monotonic()
             try:
-                done.set_result(expert.trajectory(state, horizon or expert.horizon))
+                with as_robot(expert.plant, robot):  # the model is nominal again after the request
+                    done.set_result(expert.trajectory(state, horizon or expert.horizon))
             except Exception as exc:  # reported to the waiting request, never kills the worker
                 done.set_exception(exc)
             else:
@@ -274,7 +291,7 @@ class ExpertNode(Node):
             if executor is not None:
                 executor.wake()
 
-    def _hand_to_pool(self, expert: Expert, state: np.ndarray, horizon: int, done: Future) -> None:
+    def _hand_to_pool(self, expert: Expert, state: np.ndarray, horizon: int, robot: Robot | None, done: Future) -> None:
         """Worker thread: pass a request to a free worker process, without waiting for its answer."""
         if self._pool is None:
             assert self._pool_for is not None
@@ -283,7 +300,7 @@ class ExpertNode(Node):
                 f"computing trajectories in {self.workers} worker processes, {self._pool.threads} iLQR threads each"
             )
         started = time.monotonic()
-        self._pool.submit(state, horizon).add_done_callback(
+        self._pool.submit(state, horizon, robot).add_done_callback(
             lambda answer: self._pooled_answer(expert, state, done, started, answer)
         )
 
@@ -340,6 +357,21 @@ class ExpertNode(Node):
                 f"{what} exceeds max_horizon {self.max_horizon} (parameter max_horizon); ask for 1..{self.max_horizon}"
             )
         return None
+
+    def _robot(self, field: str) -> tuple[Robot | None, str | None]:
+        """(the robot a request names, or None for the nominal model; why it cannot be planned on, or None)."""
+        try:
+            robot = robot_from_field(field)
+        except ValueError as exc:  # a damaged record: say what is wrong with it
+            return None, str(exc)
+        if robot is None or self.plans_on_robot:
+            return robot, None
+        assert self.description is not None
+        return None, (
+            f"cannot plan on a drawn robot: the expert of {self.description.task} plans on its nominal model only "
+            "(model uncertainty needs an expert that plans on the robot it is asked about); ask with robot '' or "
+            "run without uncertainty"
+        )
 
     def _refuse(
         self, response: ExpertTrajectory.Response, message: str, request: ExpertTrajectory.Request

@@ -4,6 +4,10 @@ It publishes a state, then waits: only an action stamped with that state's time 
 so a slow or restarted policy can never make it skip or double a step. Anything else arriving on
 the action topic is ignored with a (throttled) warning. The plant description goes out latched so
 that an expert started at any time models exactly this plant.
+
+Under model uncertainty a reset names the episode's drawn robot (npp_ros.tasks.uncertainty): the plant's model is
+that robot for the episode and nominal again after it, the policy reads the robot's noisy states and the plant
+applies its delayed commands, through the same RobotEffects as the in-process rollout, so the return is the same.
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,12 +28,14 @@ from sensor_msgs.msg import JointState
 from npp_ros.policy.vectors import finite_vector
 from npp_ros.tasks.registry import MAX_HORIZON, Plant, Task, check_horizon, describe_tasks, get_task
 from npp_ros.tasks.rollout import episode_return
+from npp_ros.tasks.uncertainty import Robot, RobotEffects, as_robot, supports_robots
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
 from npp_ros_graph.transport.convert import (
     action_from_joint_state,
     float64_array,
     plant_description,
+    robot_from_field,
     rollout_result,
     stamp,
     state_to_joint_state,
@@ -84,7 +91,8 @@ subscribes  /{ACTION} (sensor_msgs/JointState: effort = action, name = actuated 
 serves      /{RESET_SERVICE} (npp_interfaces/srv/ResetEpisode: empty state = sample s0 ~ rho for
             the given episode index, else reset to the given state; asked again for the same run,
             episode, attempt and state it does not restart the episode but says where it stands,
-            and sends a finished episode's result again, so a result lost in a pause is not lost)
+            and sends a finished episode's result again, so a result lost in a pause is not lost;
+            a robot names the drawn robot the episode runs on, '' the nominal model)
 
 {parameter_help(PARAMETERS)}
 """
@@ -109,13 +117,17 @@ class SimNode(Node):
         self.rewards: list[float] = []
         self.initial_state = np.zeros(0)
         self.state_stamp: Time | None = None
+        # The episode's drawn robot (None: nominal): its model held for the episode, its delay and noise.
+        self.robot: Robot | None = None
+        self.effects: RobotEffects | None = None
+        self._as_robot = ExitStack()
         # Which data the policy drove the running episode with ("trajectories held", from each action's seal).
         self.drivers: set[str] = set()
         self.run_seal = RunSeal.from_environment()
         self.plant_seal: RunSeal | None = None  # the run key's seal for this plant, once built
         self.seal: RunSeal | None = None  # the seal of the run the current episode belongs to (set by its reset)
-        # The reset that started the current episode (run, episode, attempt, s0), and its result once finished.
-        self._started: tuple[str, int, int, tuple[float, ...]] | None = None
+        # The reset that started the current episode (run, episode, attempt, s0, robot), and its result once finished.
+        self._started: tuple[str, int, int, tuple[float, ...], str] | None = None
         self._result: EpisodeResult | None = None
         self._last_state: JointState | None = None
         self._last_sent = 0.0
@@ -180,7 +192,7 @@ class SimNode(Node):
             seal.check(request, "the reset request")
         except SealError as exc:
             return f"{exc}; only this run's supervisor resets the sim", ""
-        started = (request.run, int(request.episode), int(request.attempt), tuple(request.state))
+        started = (request.run, int(request.episode), int(request.attempt), tuple(request.state), request.robot)
         if started == self._started:
             if self.state_stamp is not None:
                 return None, f"episode {self.episode} under way at step {self.steps}"
@@ -195,8 +207,18 @@ class SimNode(Node):
                 s0 = finite_vector(request.state, plant.state_dim, "state", layout)
             except ValueError as exc:
                 return str(exc), ""
+        try:
+            robot = robot_from_field(request.robot)
+        except ValueError as exc:
+            return str(exc), ""
+        if robot is not None and not supports_robots(plant):
+            return f"the plant {self.task} cannot be made into a drawn robot (not a MuJoCo model)", ""
         if self.state_stamp is not None:
             self.get_logger().info(f"episode {self.episode} abandoned after {self.steps} steps by a reset")
+        self._as_robot.close()  # the last episode's robot, if it was abandoned: nominal before the next one
+        self._as_robot.enter_context(as_robot(plant, robot))
+        self.robot = robot
+        self.effects = None if robot is None else RobotEffects(robot, plant.action_dim)
         self.initial_state = plant.reset(s0)
         self.seal, self._started, self._result = seal, started, None
         self.episode = int(request.episode)
@@ -204,7 +226,7 @@ class SimNode(Node):
         self.rewards.clear()
         self.drivers.clear()
         self._publish_state()
-        return None, f"episode {self.episode} started"
+        return None, f"episode {self.episode} started" + ("" if robot is None else f" on the robot {robot.describe()}")
 
     # -------------------------------------------------------------- lockstep
     def on_action(self, msg: JointState) -> None:
@@ -241,7 +263,7 @@ class SimNode(Node):
             u = action_from_joint_state(msg, plant.actuated_joint_names)
         except ValueError as exc:
             return str(exc)
-        self.rewards.append(plant.step(u))
+        self.rewards.append(plant.step(u if self.effects is None else self.effects.command(u)))
         self.drivers.add(driver)
         self.steps += 1
         if self.steps >= self.horizon:
@@ -253,7 +275,8 @@ class SimNode(Node):
     def _publish_state(self) -> None:
         assert self.plant is not None and self.seal is not None
         self.state_stamp = stamp(self.steps * self.dt_ns)
-        msg = state_to_joint_state(self.plant.state(), self.plant.joint_names, self.state_stamp)
+        state = self.plant.state() if self.effects is None else self.effects.observe(self.plant.state())
+        msg = state_to_joint_state(state, self.plant.joint_names, self.state_stamp)
         self._send(self.seal.seal_header(msg, str(self.episode)))
 
     def _send(self, msg: JointState) -> None:
@@ -273,14 +296,18 @@ class SimNode(Node):
 
     def _finish(self) -> None:
         total = episode_return(self.rewards)
-        result = rollout_result(self.episode, total, self.steps, self.initial_state, stamp(self.steps * self.dt_ns))
+        result = rollout_result(
+            self.episode, total, self.steps, self.initial_state, stamp(self.steps * self.dt_ns), self.robot
+        )
         self.state_stamp = None  # no more states until the next reset
+        self._as_robot.close()  # the model is nominal again between episodes
         assert self.seal is not None
         # The context names the data the policy drove with: a return counts only for the policy it certifies.
         self._result = self.seal.seal_header(result, ",".join(sorted(self.drivers)))
         self.done_pub.publish(self._result)
         self.get_logger().info(
             f"episode {self.episode} done: {self.steps} steps, return {total:.3f}"
+            + ("" if self.robot is None else f", on the robot {self.robot.describe()}")
             + (f", {self.ignored_actions} actions ignored so far" if self.ignored_actions else "")
         )
 

@@ -40,6 +40,7 @@ from npp_ros.run.records import RunFileError
 from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import WriterLock
 from npp_ros.tasks.registry import by_task, get_task
+from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
 from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_HELP, STOP_MODES
 from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default_run_dir
 from npp_ros_graph.graph.description import graph_parameters, node_argv
@@ -108,6 +109,7 @@ def parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     ap.add_argument("--policy", choices=POLICY_KINDS, default=DEFAULT_POLICY, help=POLICY_HELP)
     ap.add_argument("--explore", type=float, default=0.0, metavar="RADIUS", help=EXPLORE_HELP)
+    ap.add_argument("--uncertainty", type=float, default=0.0, metavar="FACTOR", help=UNCERTAINTY_HELP)
     ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
     ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")
@@ -352,6 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         supervisor={"epsilon": task_or_number_value(args.epsilon), "lipschitz": str(args.lipschitz),
                     "certify": args.certify,
                     "rule": args.rule, "policy": args.policy, "explore": float(args.explore),
+                    "uncertainty": float(args.uncertainty),
                     "max_episodes": args.max_episodes, "rollouts": not args.no_rollouts},
     )  # fmt: skip
     for signum in (signal.SIGHUP, signal.SIGTERM):

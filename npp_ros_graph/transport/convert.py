@@ -29,6 +29,7 @@ from npp_ros.policy.vectors import finite_vector
 from npp_ros.run.loop import RunConfig
 from npp_ros.run.records import EpisodeRow
 from npp_ros.tasks.registry import Plant, control_space
+from npp_ros.tasks.uncertainty import Robot
 
 NS_PER_S = 1_000_000_000
 
@@ -190,6 +191,22 @@ def state_layout(plant: PlantDescription) -> str:
     return f"qpos then qvel of {len(plant.joint_names)} joints of {plant.task}"
 
 
+# ----------------------------------------------------------------------------- robots
+def robot_to_field(robot: Robot | None) -> str:
+    """A drawn robot as the ``robot`` field of a reset, an expert request or a rollout report ('' = nominal)."""
+    return "" if robot is None else robot.record()
+
+
+def robot_from_field(text: str) -> Robot | None:
+    """The robot a ``robot`` field names (None: the nominal model); MessageError naming what is wrong."""
+    if not text:
+        return None
+    try:
+        return Robot.from_record(text)
+    except ValueError as exc:
+        raise MessageError(f"robot: {exc}") from None
+
+
 # ----------------------------------------------------------------------------- episodes
 def gap_report(row: EpisodeRow, config: RunConfig, time: Time) -> GapReport:
     """One episode's decision as /npp/gap reports it."""
@@ -216,7 +233,8 @@ def gap_report(row: EpisodeRow, config: RunConfig, time: Time) -> GapReport:
 
 
 def episode_result(row: EpisodeRow, steps: int, time: Time) -> EpisodeResult:
-    """One episode's outcome as /npp/episode reports it: NaN return and 0 steps when the policy did not drive."""
+    """One episode's outcome as /npp/episode reports it: NaN return and 0 steps when the policy did not drive;
+    the robot it ran on under model uncertainty ('' for the exact model)."""
     driven = row.policy_return is not None
     msg = EpisodeResult(
         episode=row.episode,
@@ -226,21 +244,24 @@ def episode_result(row: EpisodeRow, steps: int, time: Time) -> EpisodeResult:
         expert_value_known=row.expert_value is not None,
         expert_value=row.expert_value if row.expert_value is not None else 0.0,
         v_lb=row.v_lb,
+        robot=row.robot or "",
     )
     msg.header.stamp = time
     return msg
 
 
 def rollout_result(
-    episode: int, policy_return: float, steps: int, initial_state: ArrayLike, time: Time
+    episode: int, policy_return: float, steps: int, initial_state: ArrayLike, time: Time, robot: Robot | None = None
 ) -> EpisodeResult:
-    """The sim's report of an episode the policy drove (it knows neither V* nor the bounds)."""
+    """The sim's report of an episode the policy drove (it knows neither V* nor the bounds), naming the robot
+    it ran on."""
     msg = EpisodeResult(
         episode=episode,
         policy_return=policy_return,
         steps=steps,
         initial_state=float64_array(initial_state),
         expert_value_known=False,
+        robot=robot_to_field(robot),
     )
     msg.header.stamp = time
     return msg

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from npp_interfaces.msg import Certificate as CertificateMsg
-from npp_interfaces.srv import ExpertTrajectory
+from npp_interfaces.srv import ExpertTrajectory, ResetEpisode
 from sensor_msgs.msg import JointState
 
 from npp_ros.certificate.certifier import Certificate, CertificationSpec
@@ -17,6 +17,7 @@ from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.records import EpisodeRow
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.tools.dashboard import Hub, episode_entry, load_run
 from npp_ros_graph.transport.convert import (
     CERTIFICATE_RENAMED,
@@ -27,6 +28,9 @@ from npp_ros_graph.transport.convert import (
     episode_result,
     gap_report,
     plant_description,
+    robot_from_field,
+    robot_to_field,
+    rollout_result,
     stamp,
     stamp_ns,
     state_from_joint_state,
@@ -169,6 +173,36 @@ def test_gap_report_and_episode_result_carry_the_row() -> None:
 def test_an_episode_the_policy_did_not_drive_reports_nan_and_no_steps() -> None:
     result = episode_result(row(), 1000, stamp(0))
     assert math.isnan(result.policy_return) and result.steps == 0 and not result.expert_value_known
+
+
+ROBOT = Robot((("mass", "pole", 1.1), ("gear", "torque", 0.85)), action_delay=1, state_noise=0.02, noise_seed=42)
+
+
+def test_a_robot_round_trips_through_the_reset_the_expert_request_and_the_rollout_report() -> None:
+    """The one text form (Robot.record) in every message that names an episode's robot; '' is the nominal model."""
+    reset = ResetEpisode.Request(state=[0.1, 0.2], episode=3, run="r", robot=robot_to_field(ROBOT))
+    request = ExpertTrajectory.Request(state=[0.1, 0.2], run="r", robot=robot_to_field(ROBOT))
+    report = rollout_result(3, 12.5, 80, [0.1, 0.2], stamp(0), ROBOT)
+    for field in (reset.robot, request.robot, report.robot):
+        assert robot_from_field(field) == ROBOT
+    assert robot_to_field(None) == "" and robot_from_field("") is None
+    assert rollout_result(3, 12.5, 80, [0.1, 0.2], stamp(0)).robot == ""
+    assert episode_result(row(robot=ROBOT.record()), 80, stamp(0)).robot == ROBOT.record()
+    assert episode_result(row(), 80, stamp(0)).robot == ""
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ("{not json", "not a robot record"),
+        ('{"scales": []}', "KeyError"),
+        (ROBOT.record().replace("1.1", "-1.1"), "mass"),
+    ],
+)
+def test_a_damaged_robot_field_is_refused_with_the_reason(text: str, fragment: str) -> None:
+    with pytest.raises(MessageError, match=r"^robot: ") as err:
+        robot_from_field(text)
+    assert fragment in str(err.value)
 
 
 def test_every_certificate_field_reaches_the_message() -> None:

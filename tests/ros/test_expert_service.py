@@ -15,6 +15,7 @@ from npp_interfaces.srv import ExpertTrajectory
 from rclpy.client import Client
 
 from npp_ros.tasks.lqr import LQRExpert, LQRPlant
+from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import EXPERT_SERVICE, LATCHED_QOS, PLANT
 
@@ -74,6 +75,25 @@ def test_bad_requests_get_precise_errors_and_the_node_keeps_serving(
         assert fragment in answer.message, answer.message
     assert len(answer.states) == len(answer.actions) == len(answer.values) == 0
     s0 = np.array([0.5, -0.5, 0.1, 0.0])
+    check_good(client.call(service, request(s0, 30)), expert_2_1, s0, 30)
+
+
+def test_an_expert_that_plans_on_its_nominal_model_only_refuses_a_drawn_robot(
+    expert_client: tuple[RosClient, Client], expert_2_1: LQRExpert
+) -> None:
+    """The closed-form lqr expert cannot plan on a robot: asked about one, it says so rather than answer for the
+    nominal model; a damaged robot record is refused naming it; the nominal request is served as before."""
+    client, service = expert_client
+    s0 = np.array([0.5, -0.5, 0.1, 0.0])
+    robot = Robot((("mass", "body_0", 1.1),), action_delay=1)
+    asked = request(s0, 30)
+    asked.robot = robot.record()
+    answer = client.call(service, asked)
+    assert not answer.success and len(answer.states) == 0
+    assert "cannot plan on a drawn robot" in answer.message and "lqr_2_1" in answer.message, answer.message
+    asked.robot = "{broken"
+    answer = client.call(service, asked)
+    assert not answer.success and answer.message.startswith("robot: not a robot record"), answer.message
     check_good(client.call(service, request(s0, 30)), expert_2_1, s0, 30)
 
 

@@ -20,6 +20,7 @@ from sensor_msgs.msg import JointState
 
 from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
 from npp_ros.tasks.rollout import rollout
+from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.transport.seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
@@ -67,13 +68,14 @@ class SimHandle:
                 unique.append(msg)
         return unique
 
-    def reset_to(self, state: list[float], episode: int = 0) -> ResetEpisode.Response:
-        """Reset and wait for the episode's first state (re-sent if our subscription matched late)."""
+    def reset_to(self, state: list[float], episode: int = 0, robot: str = "") -> ResetEpisode.Response:
+        """Reset (on a drawn robot's record, '' nominal) and wait for the episode's first state (re-sent if our
+        subscription matched late)."""
         deadline = time.monotonic() + TIMEOUT
         self.episode = episode
         while True:
             seen = len(self.states)
-            request = self.seal.seal(ResetEpisode.Request(state=state, episode=episode, run=RUN))
+            request = self.seal.seal(ResetEpisode.Request(state=state, episode=episode, run=RUN, robot=robot))
             answer = self.client.call(self.reset, request, TIMEOUT)
             self.seal.check(answer, "the reset answer", answering=request)
             if not answer.success:
@@ -194,6 +196,47 @@ def test_lockstep_episode_follows_the_plant_and_reports_its_return(sim: SimHandl
     sim.client.wait_for(lambda: len(sim.results) > results, TIMEOUT, "the result sent again")
     assert sim.results[-1] == result
     assert sim.nothing_arrives(states)
+
+
+def _drive(sim: SimHandle, controller: Callable[[np.ndarray], np.ndarray]) -> EpisodeResult:
+    """Answer each state the sim publishes with ``controller(state)`` until it reports the episode."""
+    results = len(sim.results)
+    msg = sim.states[-1]
+    for t in range(HORIZON):
+        seen = len(sim.states)
+        sim.act(controller(as_state(msg)).tolist(), msg.header.stamp)
+        if t < HORIZON - 1:
+            msg = sim.next_state(seen)
+    sim.client.wait_for(lambda: len(sim.results) > results, TIMEOUT, "the episode result")
+    return sim.results[-1]
+
+
+def test_an_episode_on_a_drawn_robot_returns_the_in_process_rollouts_return(
+    sim: SimHandle, expert_2_1: LQRExpert
+) -> None:
+    """The reset's robot is the plant for that episode only: its masses and gear, its delayed commands and the noise
+    on the states the policy reads, as rollout() applies them, so the return is the in-process one bit for bit."""
+    robot = Robot(
+        (("mass", "body_0", 1.3), ("gear", "motor_0", 0.7), ("damping", "joint_1", 1.4)), 2, 0.01, noise_seed=5
+    )
+    s0 = [0.4, -0.3, 0.2, 0.1]
+    controller = lambda x: -expert_2_1.K @ x  # noqa: E731  # reads the noisy states it is sent
+    answer = sim.reset_to(s0, episode=7, robot=robot.record())
+    assert answer.success and "on the robot" in answer.message, answer.message
+    on_robot = _drive(sim, controller)
+    assert (on_robot.episode, on_robot.robot) == (7, robot.record())  # the report names the robot it ran
+    plant = LQRPlant("lqr_2_1", 0)
+    assert on_robot.policy_return == rollout(plant, controller, s0, HORIZON, robot).total_return
+
+    # The next episode, nominal: the sim's model is the task's again, and so is the return.
+    assert sim.reset_to(s0, episode=8).success
+    nominal = _drive(sim, controller)
+    assert nominal.robot == "" and nominal.policy_return == rollout(plant, controller, s0, HORIZON).total_return
+    assert nominal.policy_return != on_robot.policy_return
+
+    # A damaged record is refused with the reason, and starts nothing.
+    refused = sim.reset_to(s0, episode=9, robot='{"scales": "no"}')
+    assert not refused.success and "not a robot record" in refused.message, refused.message
 
 
 def _replayer(actions: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:

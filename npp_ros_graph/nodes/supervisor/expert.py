@@ -15,8 +15,9 @@ from rclpy.task import Future
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.tasks.answer_check import AnswerCheck
+from npp_ros.tasks.uncertainty import Robot, as_robot
 from npp_ros_graph.runtime.deadlines import RESEND_S, call_with_deadline
-from npp_ros_graph.transport.convert import float64_array, trajectory_from_response
+from npp_ros_graph.transport.convert import float64_array, robot_to_field, trajectory_from_response
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, NOT_READY
 
@@ -42,6 +43,9 @@ class RosExpert:
     checked like any other and reaches the loop when the loop asks for that s0, so it cannot change a
     test that is running. One lost in a pause or a restart is asked for again the usual way; answers
     asked ahead of a run that then certifies are never used (at most as many as are asked ahead).
+
+    Under model uncertainty each request names the episode's robot, the expert plans on it, and the answer is
+    checked on the supervisor's plant made into that robot; an answer asked ahead is kept for its s0 and robot.
     """
 
     def __init__(
@@ -57,23 +61,30 @@ class RosExpert:
         timeout: float,
         retries: int,
         check: AnswerCheck,
-        ahead: Callable[[], Sequence[FloatArray]] = tuple,
+        ahead: Callable[[], Sequence[tuple[FloatArray, Robot | None]]] = tuple,
     ) -> None:
         self.client, self.plant, self.seal, self.run_id = client, plant, seal, run_id
         self.stop, self.logger, self.servers = stop, logger, servers
         self.timeout, self.retries, self.check = timeout, retries, check
         self.ahead = ahead
-        self._early: dict[bytes, tuple[ExpertTrajectory.Request, Future]] = {}  # s0's bytes -> request, answer
+        # (s0's bytes, robot) -> request, answer
+        self._early: dict[tuple[bytes, str], tuple[ExpertTrajectory.Request, Future]] = {}
 
-    def _request(self, initial_state: FloatArray) -> ExpertTrajectory.Request:
-        return ExpertTrajectory.Request(state=float64_array(initial_state), horizon=0, run=self.run_id)
+    def _request(self, initial_state: FloatArray, robot: Robot | None) -> ExpertTrajectory.Request:
+        return ExpertTrajectory.Request(
+            state=float64_array(initial_state), horizon=0, run=self.run_id, robot=robot_to_field(robot)
+        )
+
+    @staticmethod
+    def _key(initial_state: FloatArray, robot: Robot | None) -> tuple[bytes, str]:
+        return np.asarray(initial_state, dtype=np.float64).tobytes(), robot_to_field(robot)
 
     def ask_ahead(self) -> None:
-        """Ask now for the s0 the next episodes will ask about (see the class docstring)."""
-        for state in self.ahead():
-            key = np.asarray(state, dtype=np.float64).tobytes()
+        """Ask now for the s0 (and robots) the next episodes will ask about (see the class docstring)."""
+        for state, robot in self.ahead():
+            key = self._key(state, robot)
             if key not in self._early and self.client.service_is_ready():
-                request = self._request(state)
+                request = self._request(state, robot)
                 self._early[key] = (request, self.client.call_async(request))
 
     def _early_answer(self, request: ExpertTrajectory.Request, future: Future) -> ExpertTrajectory.Response | None:
@@ -104,20 +115,21 @@ class RosExpert:
             return None
         return response
 
-    def trajectory(self, initial_state: FloatArray) -> Trajectory:
-        early = self._early.pop(np.asarray(initial_state, dtype=np.float64).tobytes(), None)
+    def trajectory(self, initial_state: FloatArray, robot: Robot | None = None) -> Trajectory:
+        """The expert's checked answer from ``initial_state``, planned on ``robot`` (None: the nominal model)."""
+        early = self._early.pop(self._key(initial_state, robot), None)
         self.ask_ahead()
         if early is not None and (response := self._early_answer(*early)) is not None:
             try:
-                return self._checked(response, initial_state)
+                return self._checked(response, initial_state, robot)
             except ValueError as exc:
                 self.logger.warning(f"refused the expert's answer asked for ahead: {exc}; asking again")
         last = "no answer"
         for attempt in range(1, self.retries + 1):
-            response, last = self._attempt(initial_state)
+            response, last = self._attempt(initial_state, robot)
             if response is not None:
                 try:
-                    return self._checked(response, initial_state)
+                    return self._checked(response, initial_state, robot)
                 except ValueError as exc:  # DatasetError, AnswerError: the answer is wrong, not the link
                     last = f"refused the expert's answer: {exc}"
             self.logger.warning(f"expert call {attempt}/{self.retries} failed: {last}")
@@ -125,13 +137,17 @@ class RosExpert:
                 self.stop.wait(min(self.timeout, RETRY_PAUSE_S * 2 ** (attempt - 1)))
         raise ExpertUnavailable(f"the expert did not deliver after {self.retries} attempts: {last}")
 
-    def _checked(self, response: ExpertTrajectory.Response, initial_state: FloatArray) -> Trajectory:
-        """The answer as a trajectory once it passes the answer check; its ValueError names the failed check."""
+    def _checked(
+        self, response: ExpertTrajectory.Response, initial_state: FloatArray, robot: Robot | None
+    ) -> Trajectory:
+        """The answer as a trajectory once it passes the answer check, replayed on the robot it was planned on;
+        its ValueError names the failed check."""
         answer = trajectory_from_response(response)
-        self.check(answer, initial_state)
+        with as_robot(self.check.plant, robot):
+            self.check(answer, initial_state)
         return answer
 
-    def _attempt(self, initial_state: FloatArray) -> tuple[ExpertTrajectory.Response | None, str]:
+    def _attempt(self, initial_state: FloatArray, robot: Robot | None) -> tuple[ExpertTrajectory.Response | None, str]:
         """One attempt: a trajectory within expert_timeout, or why not.
 
         "busy:" and "not ready:" refusals (an expert with a full queue, or just restarted and still
@@ -140,7 +156,7 @@ class RosExpert:
         """
         deadline = time.monotonic() + self.timeout
         pause = RETRY_PAUSE_S
-        request = self._request(initial_state)
+        request = self._request(initial_state, robot)
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not self.client.wait_for_service(timeout_sec=remaining):

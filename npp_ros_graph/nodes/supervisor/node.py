@@ -41,10 +41,11 @@ from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
-from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
+from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz, robot_fn
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.answer_check import AnswerCheck
 from npp_ros.tasks.registry import by_task, get_task
+from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP, Robot
 from npp_ros_graph.nodes.supervisor.expert import RosExpert
 from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
 from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollouts
@@ -100,6 +101,7 @@ PARAMETERS = (
     Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
     Param("policy", DEFAULT_POLICY, POLICY_HELP, choices=POLICY_KINDS),
     Param("explore", 0.0, EXPLORE_HELP, 0.0),
+    Param("uncertainty", 0.0, UNCERTAINTY_HELP, 0.0),
     Param("certify", TASK_CHOICE, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
           "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
           choices=(TASK_CHOICE, *CERTIFY_MODES), read=task_or_choice),
@@ -139,6 +141,7 @@ class SupervisorSettings:
     rule: StoppingRule | None  # None: the checked quantity's default
     policy: str
     explore: float
+    uncertainty: float
     p: float
     delta: float
     max_episodes: int
@@ -311,6 +314,7 @@ class SupervisorNode(Node):
             task, plant.seed, lipschitz, epsilon,
             condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=s.certify, rule=s.rule,  # type: ignore[arg-type]
             policy=s.policy, explore=s.explore,  # type: ignore[arg-type]  # the parameter's choices are the kinds
+            uncertainty=s.uncertainty,
         )  # fmt: skip
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -361,15 +365,19 @@ class SupervisorNode(Node):
         """One trajectory to the policy (and whoever listens), sealed for this run."""
         self.trajectory_pub.publish(self.trajectory_msg(index, trajectory))
 
-    def upcoming_states(self, config: RunConfig, count: int) -> Callable[[], list[FloatArray]]:
-        """The s0 of the `count` episodes after the running one, where every episode asks the expert (oracle)."""
+    def upcoming_states(self, config: RunConfig, count: int) -> Callable[[], list[tuple[FloatArray, Robot | None]]]:
+        """The s0 (and, under model uncertainty, the robot) of the `count` episodes after the running one, where
+        every episode asks the expert (oracle)."""
         if config.spec.certify != "oracle" or count == 0:
             return list
-        s0 = initial_state_fn(config.task, config.seed)
+        s0, robots = initial_state_fn(config.task, config.seed), robot_fn(config)
 
-        def upcoming() -> list[FloatArray]:
+        def upcoming() -> list[tuple[FloatArray, Robot | None]]:
             loop = self.loop
-            return [] if loop is None else [s0(k) for k in range(loop.next_episode + 1, loop.next_episode + 1 + count)]
+            if loop is None:
+                return []
+            episodes = range(loop.next_episode + 1, loop.next_episode + 1 + count)
+            return [(s0(k), None if robots is None else robots(k)) for k in episodes]
 
         return upcoming
 

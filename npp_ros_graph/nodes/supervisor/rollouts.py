@@ -19,8 +19,9 @@ from std_msgs.msg import UInt32
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.run.loop import EpisodeInterrupted
+from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.runtime.deadlines import RESEND_S, call_with_deadline
-from npp_ros_graph.transport.convert import float64_array
+from npp_ros_graph.transport.convert import float64_array, robot_to_field
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import RESET_SERVICE
 
@@ -91,7 +92,9 @@ class RosRollouts:
     asked for again every RESEND_S by repeating the reset, which the sim answers without restarting the
     episode (it sends a finished episode's result again); an attempt that has run `timeout` seconds with
     no result, or whose result was earned by a policy over other data, is run again from the same s0
-    (the plant is deterministic and the policy under test frozen, so the return is the same). While it
+    (the plant is deterministic and the policy under test frozen, so the return is the same). Under model
+    uncertainty the reset names the episode's robot, and only a result the sim says it ran on that robot
+    counts. While it
     waits it says for what; when the node closes it raises EpisodeInterrupted and nothing is recorded.
 
     It gets what it uses: the reset client, the run's seal and identity, the handshake the node's
@@ -124,14 +127,17 @@ class RosRollouts:
         else:
             self.logger.info(text, throttle_duration_sec=10.0)
 
-    def run_episode(self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy) -> float:
+    def run_episode(
+        self, episode: int, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None
+    ) -> float:
         held = policy.dataset.num_trajectories
+        robot_field = robot_to_field(robot)
         attempt = 0
         while True:
             self._policy_up_to_date(episode, held)
             request = self.seal.seal(
                 ResetEpisode.Request(state=float64_array(initial_state), episode=episode, attempt=attempt,
-                                     run=self.run_id)
+                                     run=self.run_id, robot=robot_field)
             )  # fmt: skip
             outcome = self._result(episode, request)
             self.waiting = ""
@@ -142,6 +148,12 @@ class RosRollouts:
                 )
                 continue
             result, driven_with = outcome
+            if result.robot != robot_field:
+                self.logger.error(
+                    f"episode {episode}: the sim ran it on {result.robot or 'the nominal model'}, not on "
+                    f"{robot_field or 'the nominal model'}; running the episode again"
+                )
+                continue
             if driven_with == str(held):
                 return float(result.policy_return)
             self.logger.error(
