@@ -303,3 +303,12 @@ def test_the_success_claim_needs_a_criterion(tmp_path: Path) -> None:
     config = build_config(name, 0, LipschitzConstant(50.0, "user"), 50.0, horizon=50, certify="success")
     with pytest.raises(ValueError, match="certify=success judges the policy's own rollout"):
         build_loop(config, get_task(name).make_expert(0, 50))
+
+
+def test_the_success_claims_progress_says_met_or_failed_not_a_gap_against_epsilon() -> None:
+    from npp_ros.run.progress import checked_text
+
+    assert checked_text(0.0, 130.0, "success") == "success       met"
+    assert checked_text(1.0, 130.0, "success") == "success    FAILED"
+    assert checked_text(12.5, 130.0, "oracle") == "checked    12.50 / eps 130"
+    assert checked_text(float("inf"), 50.0, "rollout", "rollout") == "rollout      inf / eps 50"

@@ -166,7 +166,9 @@ def main(argv: list[str] | None = None) -> int:
             certify=args.certify, rule=args.rule, policy=args.policy, explore=args.explore,
             uncertainty=args.uncertainty,
         )  # fmt: skip
-        status = StatusLine(epsilon, args.condition, max_episodes=args.max_episodes, prefix="npp-learn: ")
+        status = StatusLine(
+            epsilon, args.condition, max_episodes=args.max_episodes, prefix="npp-learn: ", certify=config.spec.certify
+        )
         loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", rollouts=args.rollouts, observers=[status])
     except (ValueError, RunFileError) as exc:
         print(f"npp-learn: {exc}", file=sys.stderr)

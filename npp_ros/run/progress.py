@@ -12,9 +12,16 @@ from npp_ros.run.loop import Observer
 from npp_ros.run.records import EpisodeRow
 
 
-def status_text(row: EpisodeRow, epsilon: float, status: CertificationStatus, condition: str) -> str:
+def checked_text(checked_gap: float, epsilon: float, certify: str, label: str = "checked") -> str:
+    """The checked quantity against what it must not exceed; the success claim's check as met or FAILED."""
+    if certify == "success":
+        met = "no policy" if math.isinf(checked_gap) else "met" if checked_gap == 0 else "FAILED"
+        return f"success {met:>9}"
+    return f"{label} {'inf' if math.isinf(checked_gap) else f'{checked_gap:.2f}':>8} / eps {epsilon:g}"
+
+
+def status_text(row: EpisodeRow, epsilon: float, status: CertificationStatus, condition: str, certify: str = "") -> str:
     """One line: the checked gap against epsilon, and the current test's streak against what it needs."""
-    checked = "inf" if row.checked_gap == float("inf") else f"{row.checked_gap:8.2f}"
     mark = "ORACLE" if row.oracle_called else "quiet "
     streak = (
         f"test {status.test} streak {status.quiet_episodes}/{status.required}"
@@ -27,7 +34,7 @@ def status_text(row: EpisodeRow, epsilon: float, status: CertificationStatus, co
         failed = f"{status.failures} failed"
         streak = f"verification {status.test}: {status.window} checks, {failed}, needs {status.required}"
     return (
-        f"episode {row.episode + 1:5d} | checked {checked} / eps {epsilon:g} {mark} | "
+        f"episode {row.episode + 1:5d} | {checked_text(row.checked_gap, epsilon, certify)} {mark} | "
         f"|D| {row.dataset_size:8d} | oracle calls {row.oracle_calls:4d} | {streak}"
     )
 
@@ -66,8 +73,10 @@ class StatusLine(Observer):
         *,
         max_episodes: int | None = None,
         prefix: str = "",
+        certify: str = "",
     ) -> None:
         self.epsilon = epsilon
+        self.certify = certify  # the checked quantity: the success claim's line says met or FAILED
         self.condition = condition
         self.stream = stream or sys.stderr
         self.tty = self.stream.isatty()
@@ -79,7 +88,7 @@ class StatusLine(Observer):
         self._pending = ""
 
     def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
-        text = status_text(row, self.epsilon, status, self.condition)
+        text = status_text(row, self.epsilon, status, self.condition, self.certify)
         now = time.monotonic()
         line = None
         if self.max_episodes is not None and not self.unreachable:

@@ -24,6 +24,7 @@ from pathlib import Path
 from diagnostic_msgs.msg import DiagnosticArray
 from npp_interfaces.msg import Certificate, EpisodeResult, GapReport
 
+from npp_ros.run.progress import checked_text
 from npp_ros_graph.client import GraphClient
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, health_lines
 from npp_ros_graph.runtime.node import leave_if_teardown_hangs
@@ -38,10 +39,10 @@ TEARDOWN_S = 20.0  # from the exit's start (the certificate, or the loop's end) 
 
 def gap_line(msg: GapReport) -> str:
     """One episode: the gap its certification mode checked against epsilon, and the current test's streak."""
-    checked = "inf" if math.isinf(msg.checked_gap) else f"{msg.checked_gap:.2f}"
     mark = "ORACLE" if msg.oracle_called else "quiet"
+    checked = checked_text(msg.checked_gap, msg.epsilon, msg.certify, msg.certify or "gap")
     return (
-        f"[gap]     episode {msg.episode:5d}  {msg.certify or 'gap'} {checked:>8} / eps {msg.epsilon:g}  {mark:<6} "
+        f"[gap]     episode {msg.episode:5d}  {checked}  {mark:<6} "
         f"|D| {msg.dataset_size:8d}  oracle calls {msg.oracle_calls:4d}  "
         f"test {msg.test} streak {msg.quiet_episodes}/{msg.quiet_required}"
     )
