@@ -162,6 +162,12 @@ class ModelMonitor:
         self._state = None
         self._actions.clear()
 
+    def reset(self) -> None:
+        """Forget everything: a new activation starts with an empty window and counts."""
+        self.restart()
+        self.recent.clear()
+        self.checked = self.exceeded = 0
+
     def observe(self, raw: FloatArray, action: FloatArray) -> Check | None:
         """The robot is at ``raw`` and ``action`` was sent in answer: check the transition that led here."""
         state, check = np.asarray(raw, dtype=np.float64), None

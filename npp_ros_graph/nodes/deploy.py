@@ -14,7 +14,9 @@ greedy action, clamped to the actuator limits, in the controller's joint order. 
 cannot act on is refused with its reason and does not count as fresh. A watchdog thread sends the
 safe command when no fresh command went out for `state_timeout` seconds, and commanding resumes when
 usable states flow again; its decision and the fresh commands are serialized, so a safe command never
-follows a fresh answer.
+follows a fresh answer. For a run certified on a set of robots, the model monitor (npp_ros.deployment.monitor)
+checks each transition against the set after the command went out: WARN while the robot's transitions leave
+it, and with on_model_mismatch stop, a stop.
 
 /diagnostics says what is true now: OK while states flow and commands go out (or while the robot has
 not published yet), WARN while states are stale or refused, ERROR for a refused configure; the last
@@ -49,7 +51,9 @@ from npp_ros.deployment.commands import COMMAND_INTERFACES, CommandLimits, check
 from npp_ros.deployment.coverage import Coverage
 from npp_ros.deployment.gate import Acceptance, Deployment, GateRefusal, load_deployment
 from npp_ros.deployment.joints import JointLayout, NonFiniteState, RobotStateError, parse_names, stored_state
+from npp_ros.deployment.monitor import ModelMonitor
 from npp_ros.deployment.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
+from npp_ros.deployment.robot_set import robots_of
 from npp_ros.deployment.signing import load_public_keys
 from npp_ros.deployment.timing import Watchdog, percentiles
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, WARN, DiagnosticsReporter, Health
@@ -67,6 +71,8 @@ NUMBERS = re.compile(r"[-+]?\d+(?:\.\d*)?(?:e[-+]?\d+)?")
 # Why the node stopped by itself: shown (WARN) while it is inactive, until the next configure or activate.
 STOPPED_OUTSIDE = "stopped outside the certificate's coverage (stop_outside_coverage)"
 MODEL_CHANGED = "the robot's model changed"
+MODEL_MISMATCH = "the robot's transitions left the certified set of robots (on_model_mismatch stop)"
+MISMATCH_ACTIONS = ("warn", "stop")
 
 # Read at configure, so an operator may change them while the node is unconfigured.
 Changeable = functools.partial(Param, read_only=False)
@@ -102,6 +108,9 @@ PARAMETERS = (
     Changeable("coverage_radius", 0.0, "distance from the policy's data beyond which a state is reported as outside "
                "the certificate's coverage; 0 = the farthest a checked s0 of the run lay from it", 0.0),
     Changeable("stop_outside_coverage", False, "deactivate at the first state outside the coverage (or non-finite)"),
+    Changeable("on_model_mismatch", "warn", "a run certified on a set of robots: what to do when the robot's "
+               "transitions leave what the set explains (the model monitor): warn on /diagnostics, or also stop "
+               "(deactivate, the safe command sent)", choices=MISMATCH_ACTIONS),
 )  # fmt: skip
 
 
@@ -126,6 +135,7 @@ class DeploySettings:
     state_timeout: float
     coverage_radius: float
     stop_outside_coverage: bool
+    on_model_mismatch: str
 
     def __post_init__(self) -> None:
         self.acceptance()
@@ -183,6 +193,8 @@ class DeployNode(LifecycleNode):
         self.layout: JointLayout | None = None
         self.limits: CommandLimits | None = None
         self.coverage: Coverage | None = None
+        self.monitor: ModelMonitor | None = None  # a run certified on a set of robots: its transitions are watched
+        self._monitor_arrival = -1  # the arrival count of the last state the monitor took
         self.refusal = ""  # the gate's last reason, shown until a configure passes
         self.active = False
         self.description: Description | None = None
@@ -368,6 +380,8 @@ class DeployNode(LifecycleNode):
             check_command_interface(plant, settings.command_interface)
             layout = JointLayout.of_plant(plant, parse_names(settings.command_joints))
             coverage = Coverage.of_deployment(deployment, settings.coverage_radius)
+            robots = robots_of(deployment.metadata)
+            monitor = None if robots.empty else ModelMonitor.of_plant(plant, robots)
         except ValueError as exc:  # a setting the run's plant cannot take
             return self._refuse("configure", str(exc))
         except Exception as exc:
@@ -379,7 +393,7 @@ class DeployNode(LifecycleNode):
             self.get_logger().info(provenance)
         else:  # unsigned, or a signature nobody asked to check: the operator should know
             self.get_logger().warning(provenance)
-        self.deployment, self.layout, self.coverage = deployment, layout, coverage
+        self.deployment, self.layout, self.coverage, self.monitor = deployment, layout, coverage, monitor
         self.fingerprint, self.fingerprint_source = fingerprint, source
         self.limits = CommandLimits.of_plant(plant, settings.effort_limit)
         self.refusal = self._stopped_because = self._stopped_for = ""
@@ -394,6 +408,11 @@ class DeployNode(LifecycleNode):
             f"{list(layout.command_joints)} on {self.command_pub.topic_name} ({settings.command_interface}), "
             f"limits {self.limits.describe()}, coverage radius {coverage.radius:.4g}"
         )
+        if monitor is not None:
+            self.get_logger().info(
+                f"model monitor: {len(monitor.corners)} corners of the certified set ({robots.describe()}); "
+                f"on_model_mismatch {settings.on_model_mismatch}"
+            )
         if math.isinf(coverage.radius):
             self.get_logger().warning(
                 "no checked s0 outside the policy's data calibrates the coverage radius: set coverage_radius"
@@ -409,6 +428,9 @@ class DeployNode(LifecycleNode):
         self._periods.clear()
         self._last_arrival = self._answered_at = None
         self._arrived_since_activation = 0
+        self._monitor_arrival = -1
+        if self.monitor is not None:
+            self.monitor.reset()
         self._since_fresh = dict.fromkeys(self._since_fresh, 0)
         self._refused_at = -math.inf
         self._stale = self._stopped_because = self._stopped_for = ""
@@ -460,7 +482,7 @@ class DeployNode(LifecycleNode):
         if self.command_pub is not None:
             self.destroy_publisher(self.command_pub)
             self.command_pub = None
-        self.deployment = self.layout = self.limits = self.coverage = None
+        self.deployment = self.layout = self.limits = self.coverage = self.monitor = None
         self.fingerprint = self.fingerprint_source = ""
         self._raw, self._last_answered = None, None
 
@@ -579,6 +601,29 @@ class DeployNode(LifecycleNode):
             self._stale = ""
             self.get_logger().info("joint states flow again: commanding resumes")
             self.diagnostics.publish()
+        self._watch_model(raw, action, outcome == "resumed")
+
+    def _watch_model(self, raw: np.ndarray, action: np.ndarray, resumed: bool) -> None:
+        """After the command went out: check the transition into this state against the certified set."""
+        monitor = self.monitor
+        if monitor is None:
+            return
+        if resumed or self._arrived_since_activation != self._monitor_arrival + 1:
+            monitor.restart()  # a state skipped (overtaken, refused) or a stale spell: no one-step transition
+        self._monitor_arrival = self._arrived_since_activation
+        was_outside = monitor.outside
+        monitor.observe(raw, action)
+        if not monitor.outside:
+            return
+        problem = f"the robot's transitions leave the certified set of robots: {monitor.summary()}"
+        if not was_outside:
+            self.event(problem)
+        if self.settings.on_model_mismatch == "stop" and self.active:
+            self.get_logger().error(f"{problem}; on_model_mismatch is stop: deactivating")
+            self._stopping_for = MODEL_MISMATCH
+            self.trigger_deactivate()
+            return
+        self._warn("model mismatch", problem)
 
     def _refused_state(self, exc: RobotStateError) -> None:
         """A state the policy cannot act on: counted, named in the log and on /diagnostics, never fresh."""
@@ -639,6 +684,8 @@ class DeployNode(LifecycleNode):
             values["policy"] = deployment.describe()
             values["run provenance"] = f"{deployment.seal.describe()}; {deployment.signed}"
             values["robot model fingerprint"] = f"{self.fingerprint[:12]}... from {self.fingerprint_source}"
+            if self.monitor is not None:
+                values["model monitor"] = self.monitor.summary()
             if deployment.overridden:
                 values["gate overridden"] = "; ".join(deployment.overridden)
         description = self.description
@@ -664,7 +711,8 @@ class DeployNode(LifecycleNode):
         doing = f"{self.lifecycle}: not commanding"
         if self._stopped_because and self.lifecycle == "inactive":
             doing += f" ({self._stopped_because})"
-        return Health(doing, values, WARN if self._stopped_for in (STOPPED_OUTSIDE, MODEL_CHANGED) else OK)
+        stopped = (STOPPED_OUTSIDE, MODEL_CHANGED, MODEL_MISMATCH)
+        return Health(doing, values, WARN if self._stopped_for in stopped else OK)
 
     def _active_health(self, values: dict[str, object]) -> Health:
         deployment = self.deployment
@@ -675,6 +723,10 @@ class DeployNode(LifecycleNode):
             usable = "joint states stopped" if not any(self._since_fresh.values()) else "joint states unusable"
             doing = f"active, {usable}: safe command sent; commanding resumes when usable states flow"
             return Health(doing, values, WARN, self._stale)
+        monitor = self.monitor
+        if monitor is not None and monitor.outside and self._answered_at is not None:
+            doing = "active: commanding the robot, whose transitions leave the certified set of robots"
+            return Health(doing, values, WARN, monitor.summary())
         recent = time.monotonic() - self._refused_at < RECENT_S
         if self._answered_at is None:
             if recent:
