@@ -19,6 +19,13 @@ simulated time (lockstep).
 Its model: the MJCF it runs, published once on /robot_description (std_msgs/String, transient local
 and reliable, as robot_state_publisher publishes a URDF), from which npp-deploy computes the model
 fingerprint its gate checks.
+
+Another robot than the task's model, for tests and for trying a deployment on a set of robots: ``robot`` (a
+robot record, npp_ros.tasks.uncertainty) and the per-parameter scales (``mass_scale``, ``gear_scale``, ...,
+each multiplying every element of its kind, on top of the record) change its model, and its description
+with it; ``action_delay`` holds each command that many control steps, ``state_noise`` adds noise to the
+joint states it publishes. ``publish_description:=nominal`` publishes the task's own MJCF whatever it runs:
+a robot that changed without saying so.
 """
 
 from __future__ import annotations
@@ -38,8 +45,11 @@ from std_msgs.msg import Float64MultiArray, String
 
 from npp_ros.deployment.joints import JointLayout, parse_names, parse_vector
 from npp_ros.deployment.robot_model import mjcf_fingerprint, model_mjcf
+from npp_ros.deployment.robot_set import robot_mjcf
 from npp_ros.policy.vectors import finite_vector
 from npp_ros.tasks.registry import TASK_NAMES, Plant, get_task
+from npp_ros.tasks.uncertainty import PARAMETERS as UNCERTAIN
+from npp_ros.tasks.uncertainty import ModelParameters, Robot, RobotEffects, model_elements
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.node import ThrottledWarnings, run_node
 from npp_ros_graph.transport.convert import float64_array, stamp
@@ -63,6 +73,17 @@ PARAMETERS = (
     Param("robot_description_topic", "/robot_description", "where its model goes, as MJCF text (latched)"),
     Param("command_joints", "", "the controller's joints in command order, comma-separated; empty = the model's "
           "actuated joints"),
+    Param("robot", "", "the robot it is, as a robot record (JSON, npp_ros.tasks.uncertainty.Robot.record: scales "
+          "per element, action delay, state noise); empty = the task's model"),
+    *(Param(f"{name}_scale", 1.0, f"multiplies every {kind}'s {name} (on top of `robot`): {what}", 1e-6)
+      for name, (kind, what) in UNCERTAIN.items()),
+    Param("action_delay", 0, "control steps each command is held back before the actuator applies it (on top of "
+          "`robot`'s)", 0, 50),
+    Param("state_noise", 0.0, "standard deviation of the noise added to each published position and velocity "
+          "(instead of `robot`'s when > 0)", 0.0),
+    Param("publish_description", "robot", "what goes on robot_description_topic: the MJCF of the model it runs "
+          "(robot), or the task's own whatever it runs (nominal: a changed robot that does not say so)",
+          choices=("robot", "nominal")),
 )  # fmt: skip
 
 
@@ -81,11 +102,36 @@ class RobotSettings:
     command_topic: str
     robot_description_topic: str
     command_joints: str
+    robot: str
+    mass_scale: float
+    gear_scale: float
+    damping_scale: float
+    frictionloss_scale: float
+    armature_scale: float
+    action_delay: int
+    state_noise: float
+    publish_description: str
 
     def __post_init__(self) -> None:
         task = get_task(self.task)
         if self.initial_state.strip():
             parse_vector(self.initial_state, task.state_dim, "initial_state")
+        if self.robot.strip():
+            Robot.from_record(self.robot)  # a ValueError saying what is wrong with it
+
+    def robot_of(self, plant: Plant) -> Robot:
+        """The robot it runs: the record's, with every per-parameter scale multiplied in."""
+        given = Robot.from_record(self.robot) if self.robot.strip() else Robot()
+        factors = {(p, n): f for p, n, f in given.scales}
+        elements = model_elements(plant.physics.model)  # type: ignore[attr-defined]
+        for name, (kind, _) in UNCERTAIN.items():
+            scale = float(getattr(self, f"{name}_scale"))
+            if scale != 1.0:
+                for element in elements[kind]:
+                    factors[(name, element)] = factors.get((name, element), 1.0) * scale
+        noise = self.state_noise if self.state_noise > 0 else given.state_noise
+        scales = tuple((p, n, f) for (p, n), f in factors.items())
+        return Robot(scales, given.action_delay + self.action_delay, noise, given.noise_seed)
 
 
 USAGE = f"""npp-robot: a task's MuJoCo plant as a ros2_control robot (node "npp_robot").
@@ -114,6 +160,8 @@ class RobotNode(Node):
         self._command: np.ndarray | None = None  # the latest command, in the task's actuator order
         self._fresh = False  # a command arrived since the last step
         self._applied = np.zeros(0)
+        self.robot = Robot()
+        self._effects: RobotEffects | None = None
         self.steps = 0
         self.held_steps = 0  # real time: steps taken with a command that was already applied before
         self.ignored_commands = 0
@@ -139,6 +187,9 @@ class RobotNode(Node):
         try:
             plant = task.make_plant(settings.seed)
             layout = JointLayout.of_plant(plant, parse_names(settings.command_joints))
+            nominal_mjcf = model_mjcf(plant)
+            robot = settings.robot_of(plant)
+            ModelParameters(plant.physics.model).apply(robot)  # its own model: nothing else holds it
         except Exception as exc:  # run_node turns this into a clean exit with the reason
             raise StartupError(f"cannot build the robot {settings.task} seed {settings.seed}: {exc}") from exc
         if settings.initial_state.strip():
@@ -154,9 +205,13 @@ class RobotNode(Node):
         )
         self._state_msg = JointState(name=list(plant.joint_names))
         self._applied = np.zeros(plant.action_dim)
-        self.plant, self.layout = plant, layout
-        mjcf = model_mjcf(plant)
-        if mjcf is None:
+        self.plant, self.layout, self.robot = plant, layout, robot
+        self._effects = RobotEffects(robot, plant.action_dim)
+        mjcf = nominal_mjcf if settings.publish_description == "nominal" else robot_mjcf(plant, robot)
+        if settings.publish_description == "nominal" and mjcf is not None:
+            self.description_pub.publish(String(data=mjcf))
+            described = f"the task's own MJCF on {settings.robot_description_topic}, not the model it runs"
+        elif mjcf is None:
             described = f"no description on {settings.robot_description_topic} (its plant names no MJCF)"
         elif mjcf_fingerprint(plant, mjcf) != plant.model_sha256():  # published, it must be the model it runs
             described = f"no description on {settings.robot_description_topic} (its MJCF compiles to another model)"
@@ -165,7 +220,8 @@ class RobotNode(Node):
             described = f"its MJCF on {settings.robot_description_topic}"
         mode = "lockstep" if settings.lockstep else f"real time, every {plant.dt * 1e3:g} ms"
         self.get_logger().info(
-            f"robot {settings.task} seed {settings.seed} ready ({mode}): joints {plant.joint_names}, commands for "
+            f"robot {settings.task} seed {settings.seed} ready ({mode}), {robot.describe()}: joints "
+            f"{plant.joint_names}, commands for "
             f"{list(layout.command_joints)} on {settings.command_topic}, s0 {np.round(s0, 6).tolist()}; "
             f"model fingerprint {plant.model_sha256()}, {described}"
         )
@@ -198,7 +254,8 @@ class RobotNode(Node):
 
     # ---------------------------------------------------------------- stepping
     def _step(self, action: np.ndarray) -> None:
-        assert self.plant is not None
+        assert self.plant is not None and self._effects is not None
+        action = self._effects.command(action)  # after the robot's delay, if it has one
         self.plant.step(action)
         self._applied = action
         self.steps += 1
@@ -238,8 +295,11 @@ class RobotNode(Node):
         data = self.plant.physics.data
         msg = self._state_msg
         msg.header.stamp = when
-        msg.position = float64_array(data.qpos[self._qpos])
-        msg.velocity = float64_array(data.qvel[self._qvel])
+        raw = np.concatenate([data.qpos[self._qpos], data.qvel[self._qvel]])
+        if self._effects is not None:
+            raw = self._effects.observe(raw)  # the robot's noise on what it reports, if it has some
+        msg.position = float64_array(raw[: len(self._qpos)])
+        msg.velocity = float64_array(raw[len(self._qpos) :])
         msg.effort = float64_array(np.where(self._effort_of >= 0, self._applied[self._effort_of], 0.0))
         self._last_sent = time.monotonic()
         self.state_pub.publish(msg)

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from deploy_runs import EPSILON, FINGERPRINT, HORIZON, SEED, TASK, bad_folders, make_run
+from deploy_runs import EPSILON, FINGERPRINT, HORIZON, SEED, TASK, bad_folders, make_run, with_robots
 from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.srv import SetParameters
@@ -552,3 +552,30 @@ def test_npp_trial_rehearses_the_certified_run_on_the_real_time_robot(runs, tmp_
         if episode["fresh_command_share"] == 1.0:  # no command missed its period: the in-process episode exactly
             assert episode["robot_return"] == episode["in_process_return"], episode
     assert "npp-trial" in (tmp_path / "trial.md").read_text()
+
+
+def test_a_robot_outside_the_certified_set_is_found_by_the_monitor_and_stops_it_when_asked(
+    runs, launch, ros_client, tmp_path: Path
+) -> None:
+    """A run certified on a set of robots (its metadata records the set: tests/deploy_runs.py) and an npp-robot
+    whose gear is 3 times the model's while it publishes the nominal MJCF: the gate accepts the description
+    (the nominal model lies in the set), the monitor then finds the transitions outside it: WARN with the
+    measure and the bound, and with on_model_mismatch stop the node deactivates and sends the safe command."""
+    good, _ = runs
+    robots = with_robots(good, tmp_path / "robots")
+    launch("npp-robot", {"gear_scale": 3.0, "publish_description": "nominal"})
+    proc = launch("npp-deploy")
+    client = ros_client("monitor_test")
+    deploy = Deploy(client)
+    deploy.deploy(robots, fingerprint=None, state_timeout=2.0)
+    health = deploy.health_where(lambda h: "leave the certified set" in h.doing, "the monitor's warning")
+    assert health.level == WARN and "against the set's bound" in health.error, health
+    assert "robot: the nominal model, inside the certified set" in str(health.values["policy"])
+    assert "model monitor: " in launch.log(proc) and "corners of the certified set" in launch.log(proc)
+
+    assert deploy.transition("deactivate") and deploy.transition("cleanup")
+    deploy.deploy(robots, fingerprint=None, state_timeout=2.0, on_model_mismatch="stop")
+    health = deploy.health_where(lambda h: h.values["lifecycle state"] == "inactive", "it stopped")
+    assert health.level == WARN and "left the certified set of robots" in health.doing, health.doing
+    client.wait_for(lambda: deploy.commands[-1][1] == [0.0], 30.0, "the safe command")
+    assert "on_model_mismatch is stop: deactivating" in launch.log(proc)
