@@ -36,6 +36,7 @@ from npp_ros_graph.transport.expert_api import (
     AnswerSeal,
     SealError,
     answer_seal,
+    robot_refusal,
 )
 
 LQR_TASKS = ("lqr_2_1", "lqr_6_2")
@@ -128,6 +129,8 @@ class ExternalLQRExpert(Node):
 
     def problem(self, request: ExpertTrajectory.Request) -> str:
         assert self.description is not None
+        if request.robot:  # its Riccati solution is the nominal plant's: it cannot plan on a drawn robot
+            return robot_refusal(self.description.task)
         n = int(self.description.state_dim)
         state = list(request.state)
         if len(state) != n or not all(math.isfinite(x) for x in state):

@@ -43,6 +43,7 @@ from npp_ros_graph.runtime.diagnostics import ERROR, OK, DiagnosticsReporter, He
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import robot_from_field, state_layout, trajectory_to_response
+from npp_ros_graph.transport.expert_api import robot_refusal
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
@@ -367,11 +368,7 @@ class ExpertNode(Node):
         if robot is None or self.plans_on_robot:
             return robot, None
         assert self.description is not None
-        return None, (
-            f"cannot plan on a drawn robot: the expert of {self.description.task} plans on its nominal model only "
-            "(model uncertainty needs an expert that plans on the robot it is asked about); ask with robot '' or "
-            "run without uncertainty"
-        )
+        return None, robot_refusal(self.description.task)
 
     def _refuse(
         self, response: ExpertTrajectory.Response, message: str, request: ExpertTrajectory.Request

@@ -10,8 +10,15 @@ and seals each answer with the run's key before returning it::
         self.seal = answer_seal(description)   # SealError: not this run's sim (another key)
 
     def on_request(request, response):
-        ... fill success, message, state_dim, action_dim, states, actions, values, expert_return ...
+        if request.robot:                          # a drawn robot: plan on it, or refuse saying why
+            response.success, response.message = False, robot_refusal(self.task)
+        else:
+            ... fill success, message, state_dim, action_dim, states, actions, values, expert_return ...
         return self.seal.seal(response, request)   # sets response.plant, then the tag
+
+A request's ``robot`` names a drawn robot (a run under model uncertainty, npp_ros.tasks.uncertainty; '' for the
+nominal model): an expert answers it only by planning on that robot, and one that plans on its nominal model only
+refuses it, with :func:`robot_refusal`'s reason, rather than answer for another plant.
 
 The run's key comes from ``NPP_RUN_KEY`` in the environment (npp-run sets it for its nodes; export
 the same key for an expert started by hand). What this module names is kept stable across npp_ros
@@ -28,10 +35,20 @@ from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, LATCHED_READER_
 
 PLANT_TOPIC = PLANT
 PLANT_QOS = LATCHED_READER_QOS  # a reader's: one description per publisher, so a stranger's cannot hide the run's
+NOMINAL_ONLY = "cannot plan on a drawn robot"  # how a refusal of a request that names a robot starts
 __all__ = [
-    "BUSY", "EXPERT_SERVICE", "KEY_ENV", "NOT_READY", "PLANT_QOS", "PLANT_TOPIC", "SERVICE_QOS", "AnswerSeal",
-    "SealError", "answer_seal",
+    "BUSY", "EXPERT_SERVICE", "KEY_ENV", "NOMINAL_ONLY", "NOT_READY", "PLANT_QOS", "PLANT_TOPIC", "SERVICE_QOS",
+    "AnswerSeal", "SealError", "answer_seal", "robot_refusal",
 ]  # fmt: skip
+
+
+def robot_refusal(task: str) -> str:
+    """The refusal of an expert that plans on its nominal model only, asked about a drawn robot: a run under model
+    uncertainty stops with this reason instead of storing an answer for the nominal plant."""
+    return (
+        f"{NOMINAL_ONLY}: the expert of {task} plans on its nominal model only (model uncertainty needs an expert "
+        "that plans on the robot a request names); ask with robot '' or run without uncertainty"
+    )
 
 
 @dataclass(frozen=True)

@@ -10,13 +10,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
+from expert_checks import TIMEOUT, request, wait_until_modelling
 from misbehaving_expert import FAULTS
 from npp_interfaces.msg import Certificate
+from npp_interfaces.srv import ExpertTrajectory
 
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.uncertainty import Robot
+from npp_ros_graph.transport.expert_api import robot_refusal
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
-from npp_ros_graph.transport.topics import CERTIFICATE, LATCHED_READER_QOS
+from npp_ros_graph.transport.topics import CERTIFICATE, EXPERT_SERVICE, LATCHED_READER_QOS
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -83,3 +87,21 @@ def test_a_wrong_answer_is_refused_with_the_reason_and_nothing_is_stored(
     assert "Algorithm 1 stopped: the expert did not deliver after 2 attempts" in log
     with RunStore.open(run_dir / "run.sqlite") as store:
         assert store.load_dataset().num_trajectories == 0 and store.episodes() == []
+
+
+def test_an_external_expert_refuses_a_drawn_robot_as_the_contract_says(
+    launch: Launcher, ros_client: Callable[..., RosClient]
+) -> None:
+    """The example plans on its nominal Riccati solution only: a request naming a robot gets the contract's
+    refusal, and a nominal one is answered as before."""
+    namespace = "/robotless"
+    launch("npp-sim", {"task": "lqr_2_1", "horizon": 30}, namespace=namespace)
+    launch(EXAMPLE, namespace=namespace)
+    client = ros_client("robot_request", namespace=namespace)
+    service = client.client(ExpertTrajectory, EXPERT_SERVICE, TIMEOUT)
+    wait_until_modelling(client, service)
+    asked = request([0.3, -0.2, 0.1, 0.0], 10)
+    asked.robot = Robot((("mass", "body_0", 1.1),)).record()
+    answer = client.call(service, asked)
+    assert not answer.success and answer.message == robot_refusal("lqr_2_1"), answer.message
+    assert client.call(service, request([0.3, -0.2, 0.1, 0.0], 10)).success
