@@ -59,6 +59,7 @@ def test_no_false_alarm_inside_the_set_and_robots_outside_it_are_found(task_name
         "gear x2.5": every("actuator", "gear", 2.5, task_name),
         "gear x0.4": every("actuator", "gear", 0.4, task_name),
         "mass x4": every("body", "mass", 4.0, task_name),
+        "damping x5": every("joint", "damping", 5.0, task_name),
         "delay 3": Robot((), action_delay=3),
     }
     found = {}
