@@ -293,6 +293,12 @@ def test_the_success_claim_certifies_a_policy_that_holds_the_pendulum_with_one_e
     assert "the pole within 8 degrees of upright" in statement and "claims nothing about" in statement
     assert result.certificate.proven
     assert not any("L bounds" in item for item in result.certificate.assumptions)
+    from npp_ros.run.evaluation import check_success, held_out_robots
+
+    states = np.array([task.initial_state(9, k) for k in range(10)])
+    robots = held_out_robots(config.uncertainty, 0, 10)
+    held_out = check_success(loop.policy, task, task.make_plant(0), states, 100, p=0.9, delta=0.1, robots=robots)
+    assert held_out.states == 10 and held_out.succeeded == 10 and not held_out.rejected
 
 
 def test_the_success_claim_needs_a_criterion(tmp_path: Path) -> None:

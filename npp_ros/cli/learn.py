@@ -18,12 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
+from npp_ros.certificate.authoring import L_FREE
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.certificate.choices import LIPSCHITZ_HELP
 from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int, task_name
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.policy.lipschitz import LipschitzWarning
-from npp_ros.run.evaluation import check_policy, held_out_robots
+from npp_ros.run.evaluation import check_policy, check_success, held_out_robots
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.loop import NPPLoop, RunResult
 from npp_ros.run.progress import Counter, StatusLine, unreachable_text
@@ -198,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     sys.stderr.flush()
 
     evaluation = None
+    succeeded = None
     if args.evaluate > 0 and len(loop.dataset):
         rng = np.random.default_rng([args.seed, 1 << 30])  # a stream the run never used for s0
         states = np.array([task.sample_initial_state(rng) for _ in range(args.evaluate)])
@@ -205,7 +207,13 @@ def main(argv: list[str] | None = None) -> int:
         policy = loop.policy
         if certificate is not None and certificate.policy_trajectories != loop.policy_data.num_trajectories:
             policy = policy_for(loop.dataset.prefix(certificate.policy_trajectories), config.spec, args.task, args.seed)
-        evaluation = check_policy(
+        if config.spec.certify == "success":
+            succeeded = check_success(
+                policy, task, task.make_plant(args.seed), states, args.horizon, p=args.p, delta=args.delta,
+                robots=held_out_robots(config.uncertainty, args.seed, args.evaluate),
+                progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
+            )  # fmt: skip
+        evaluation = None if config.spec.certify == "success" else check_policy(
             policy, task, task.make_plant(args.seed), expert, states, args.horizon,
             epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.spec.certify == "oracle",
             progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
@@ -226,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         "lipschitz": asdict(lipschitz),
         "certificate": result.certificate.record() if result.certificate else None,
         "lipschitz_checks": [{"slope": c.slope, "source": c.source, "ok": c.ok} for c in checks],
-        "lipschitz_assumed": config.spec.certify != "oracle",  # whether the claim rests on L (the checks matter)
+        "lipschitz_assumed": config.spec.certify not in L_FREE,  # whether the claim rests on L (the checks matter)
         "success": {"criterion": task.success.describe() if task.success else None, **asdict(counts)},
         "ended": ended,
         "episodes_to_certify": loop.certifier.status().episodes_to_certify,  # at best, after the last episode
@@ -243,11 +251,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  ended           {ENDINGS[ended]}" + (f": {why}" if why else ""))
         print(f"  {loop.measured_success().sentence()}")
     print(f"  L source detail  {lipschitz.detail}")
-    if config.spec.certify == "oracle":  # V^E(s0) - R^pi(s0) involves no L: there is nothing for a check to break
-        print("  L               the policy's choice: oracle mode's claim does not rest on L, so no L check applies")
+    if config.spec.certify in L_FREE:  # V^E(s0) - R^pi(s0) and success involve no L: no check can break them
+        print(f"  L               the policy's choice: {config.spec.certify} mode's claim does not rest on L, so no L "
+              "check applies")  # fmt: skip
     else:
         for check in checks:
             print(f"  L check         {'ok  ' if check.ok else 'FAIL'} {check.message()}")
+    if succeeded is not None:
+        print(
+            f"  evaluation      {succeeded.states} fresh draws"
+            + (" of (s0, robot)" if config.uncertainty else " of s0")
+            + f": the policy succeeded on {succeeded.succeeded} ({succeeded.fraction:.1%}; binomial test of >= "
+            f"{args.p:g}: p = {succeeded.p_value:.2g})"
+        )
+        summary["evaluation"] = {"rollouts": succeeded.states, "succeeded": succeeded.succeeded,
+                                 "fraction_succeeded": succeeded.fraction, "binomial_p_value": succeeded.p_value,
+                                 "robots": bool(config.uncertainty)}  # fmt: skip
     if evaluation is not None:
         print(
             f"  evaluation      {evaluation.states} fresh s0, gap to {evaluation.reference}: median "

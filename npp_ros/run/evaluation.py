@@ -22,6 +22,7 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.registry import Expert, Plant, StopsAtTimeBudget, Task
 from npp_ros.tasks.rollout import rollout, rollout_batch
+from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot
 
 CHUNK = 100  # rollouts stepped in lockstep
@@ -38,10 +39,13 @@ def policy_rollouts(
     chunk: int = CHUNK,
     progress: Callable[[int, int], None] | None = None,
     robots: Sequence[Robot] | None = None,
+    met: FloatArray | None = None,
+    criterion: SuccessCriterion | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """The policy's H-step return from each s0, and the largest |grad V^expert| along each rollout
     (NaN where the expert's value slope is not known in closed form). With ``robots``, s0 k is rolled out on
-    robot k (one at a time: each robot is its own model)."""
+    robot k (one at a time: each robot is its own model). With ``criterion``, ``met[k]`` is 1 where rollout k met it,
+    else 0."""
     returns = np.empty(len(states))
     slopes = np.empty(len(states))
     if progress is not None:
@@ -49,12 +53,14 @@ def policy_rollouts(
     for lo in range(0, len(states), chunk):
         hi = min(lo + chunk, len(states))
         if robots is None:
-            runs = rollout_batch(plant, policy.act, states[lo:hi], horizon)
+            runs = rollout_batch(plant, policy.controller(), states[lo:hi], horizon)
         else:
-            runs = [rollout(plant, policy.act, states[k], horizon, robots[k]) for k in range(lo, hi)]
+            runs = [rollout(plant, policy.controller(), states[k], horizon, robots[k]) for k in range(lo, hi)]
         for k, run in enumerate(runs):
             returns[lo + k] = run.total_return
             slopes[lo + k] = math.nan if slope is None else float(np.max(slope(run.states)))
+            if met is not None and criterion is not None:
+                met[lo + k] = float(criterion.met(run.states))
         if progress is not None:
             progress(hi, len(states))
     return returns, slopes
@@ -181,3 +187,45 @@ def held_out_robots(uncertainty: str, seed: int, count: int) -> list[Robot] | No
         return None
     robots = UncertaintySet.from_record(uncertainty)
     return [robots.draw(seed, HELD_OUT_EPISODES + k) for k in range(count)]
+
+
+@dataclass(frozen=True)
+class SuccessCheck:
+    """A policy against fresh draws for the success claim: does P[the rollout meets the criterion] >= p survive?"""
+
+    states: int
+    succeeded: int
+    fraction: float
+    p_value: float  # P[X <= succeeded] for X ~ Binomial(states, p): small means the claim is contradicted
+    rejected: bool  # p_value < delta
+    wall_time: float
+
+
+def check_success(
+    policy: NonparametricPolicy,
+    task: Task,
+    plant: Plant,
+    states: FloatArray,
+    horizon: int,
+    *,
+    p: float,
+    delta: float,
+    robots: Sequence[Robot] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    chunk: int = CHUNK,
+) -> SuccessCheck:
+    """Rolls ``policy`` out from ``states`` (on ``robots``, one each, where given) and counts the rollouts that met
+    the task's success criterion: the held-out test of a success claim, which asks no expert anything."""
+    if task.success is None:
+        raise ValueError(f"{task.name} states no success criterion: there is no success claim to check")
+    started = time.perf_counter()
+    met = np.zeros(len(states))
+    policy_rollouts(
+        plant, policy, states, horizon, None, chunk=chunk, progress=progress, robots=robots, met=met,
+        criterion=task.success,
+    )  # fmt: skip
+    succeeded = int(met.sum())
+    p_value = float(binom.cdf(succeeded, len(states), p))
+    return SuccessCheck(
+        len(states), succeeded, succeeded / len(states), p_value, p_value < delta, time.perf_counter() - started
+    )
