@@ -216,7 +216,11 @@ class SimNode(Node):
         if self.state_stamp is not None:
             self.get_logger().info(f"episode {self.episode} abandoned after {self.steps} steps by a reset")
         self._as_robot.close()  # the last episode's robot, if it was abandoned: nominal before the next one
-        self._as_robot.enter_context(as_robot(plant, robot))
+        try:
+            self._as_robot.enter_context(as_robot(plant, robot))
+        except ValueError as exc:  # a robot of another model (an element this one lacks): nothing was changed
+            self.state_stamp = None
+            return f"robot: {exc}", ""
         self.robot = robot
         self.effects = None if robot is None else RobotEffects(robot, plant.action_dim)
         self.initial_state = plant.reset(s0)

@@ -237,6 +237,8 @@ def test_an_episode_on_a_drawn_robot_returns_the_in_process_rollouts_return(
     # A damaged record is refused with the reason, and starts nothing.
     refused = sim.reset_to(s0, episode=9, robot='{"scales": "no"}')
     assert not refused.success and "not a robot record" in refused.message, refused.message
+    foreign = sim.reset_to(s0, episode=9, robot=Robot((("mass", "pole", 1.1),)).record())  # another model's body
+    assert not foreign.success and "no body 'pole'" in foreign.message, foreign.message
 
 
 def _replayer(actions: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
