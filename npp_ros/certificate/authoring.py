@@ -185,10 +185,10 @@ def assumptions(spec: CertificationSpec, basis: ValueBasis | None) -> tuple[str,
     elif spec.certify == "oracle":
         items = ["the expert's reported return at s0 is the return of the trajectory it gives", *common,
                  "no Lipschitz constant is needed; the claim is relative to the expert's own return"]  # fmt: skip
-    elif spec.policy == "feedback":
-        items = [lipschitz, "Theorem 3.4 (V_lb <= V^pi) for the feedback policy, so that the surrogate gap bounds "
-                 "the true gap: NOT checked; its argument holds for stored actions replayed open loop, and for a "
-                 "feedback law it would need L (1 - gamma L_g) >= L_rg, with L_g and L_rg the slopes in the state of "
+    elif spec.policy in ("feedback", "path"):
+        items = [lipschitz, f"Theorem 3.4 (V_lb <= V^pi) for the {spec.policy} policy, so that the surrogate gap "
+                 "bounds the true gap: NOT checked; its argument holds for stored actions replayed open loop, and for "
+                 "a feedback law it would need L (1 - gamma L_g) >= L_rg, with L_g and L_rg the slopes in the state of "
                  "the closed-loop step and reward at every data point",
                  "initial states are independent draws from rho"]  # fmt: skip
     else:

@@ -111,7 +111,8 @@ class CertificationSpec:
     """What the run must certify, about which policy, and the L it rests on.
 
     ``diameter`` is diam(S0), needed by condition (ii) only. ``policy`` is how the certified policy acts at its
-    chosen data point (npp_ros.policy.feedback): the paper's open-loop action, or the expert's feedback law.
+    chosen data point (npp_ros.policy.feedback): the paper's open-loop action, the expert's feedback law, or that law
+    along the stored trajectory it follows (npp_ros.policy.path).
     """
 
     condition: Condition
@@ -170,6 +171,12 @@ class CertificationSpec:
         """The claim in words: about which value, for which policy, at which confidence."""
         acts = "its stored actions, open loop" if self.policy == "open-loop" else "its experts' feedback gains"
         policy = f"the greedy policy over the first {policy_trajectories} expert trajectories, acting with {acts}"
+        if self.policy == "path":
+            policy = (
+                f"the path-following policy over the first {policy_trajectories} expert trajectories, which follows "
+                "the stored trajectory it chose on V_lb step by step with its expert's feedback gains while the "
+                "state stays near it, and chooses again on V_lb when it leaves"
+            )
         gap = "V^E(s0) - R^pi(s0)" if self.certify == "oracle" else "V(s0) - R^pi(s0)"
         confidence = f"With probability at least {1 - self.delta:.4g}"
         how = f"test {test} of a sequentially valid rule" if self.rule == "sequential" else "the paper's one-shot rule"

@@ -144,7 +144,7 @@ def _pass_gate(run: StoredRun, acceptance: Acceptance) -> Deployment:
     data = dataset if count == dataset.num_trajectories else dataset.prefix(count)
     seed = run.metadata.seed
     policy = policy_for(data, run.spec, run.task.name, seed)
-    policy.act(data.states[0])  # builds the search index now: the first state on the robot must not wait for it
+    policy.v_lb(data.states[0])  # builds the search index now: the first state on the robot must not wait for it
     outside = [row.initial_state for row in rows if row.trajectory is None or row.trajectory >= count]
     checked_starts = np.array(outside, dtype=np.float64).reshape(len(outside), run.metadata.state_dim)
     return Deployment(

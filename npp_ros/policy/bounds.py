@@ -6,7 +6,9 @@ Q_lb(s, a) = max_i Q_i - L(|s - s_i| + |a - a_i|)   (2), Q_ub mirrored (4).
 The policy chooses i*, the maximiser of (1); ties go to the smallest index (Remark 3.2), which is
 what ``np.argmax`` returns. It acts with a_{i*} (the paper's open-loop policy) or, given the task's
 :class:`~npp_ros.policy.feedback.ControlSpace`, with the expert's feedback law at i*
-(npp_ros.policy.feedback). Distances are accumulated coordinate by
+(npp_ros.policy.feedback), or follows the stored trajectory it chose (npp_ros.policy.path, the one
+kind with memory within an episode). A task's invariant state entries are left out of every distance
+(their difference is 0). Distances are accumulated coordinate by
 coordinate in a fixed order, so a single query and the same state inside a batch give the same
 floating-point numbers, bit for bit.
 
@@ -18,14 +20,16 @@ Q_ub, which add an action term, stay brute force.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from npp_ros.policy.dataset import Dataset, DatasetError, FloatArray
-from npp_ros.policy.feedback import ControlSpace, PolicyKind, feedback_actions
+from npp_ros.policy.feedback import FEEDBACK_KINDS, ControlSpace, PolicyKind, check_policy_kind, feedback_actions
 from npp_ros.policy.kdtree import BoundIndex
+from npp_ros.policy.path import follow, trajectory_slack
 from npp_ros.policy.vectors import bounded
 
 # Upper limit on the (queries x points) block evaluated at once, to bound memory.
@@ -54,13 +58,51 @@ def pairwise_distances(points: FloatArray, queries: FloatArray) -> FloatArray:
     return np.sqrt(acc)
 
 
+class MeasuredData:
+    """The dataset as the policy's distance sees it: the invariant entries left out (their difference is 0).
+
+    Duck-types the parts of :class:`Dataset` the search reads (states, values, size, version); its states are a
+    copy, brought up to date when the dataset grows.
+    """
+
+    def __init__(self, dataset: Dataset, measured: tuple[int, ...]) -> None:
+        self.dataset = dataset
+        self.measured = list(measured)
+        self.state_dim = len(measured)
+        self._states = np.empty((0, self.state_dim))
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    @property
+    def version(self) -> int:
+        return self.dataset.version
+
+    @property
+    def values(self) -> FloatArray:
+        return self.dataset.values
+
+    @property
+    def states(self) -> FloatArray:
+        size = len(self.dataset)
+        if self._states.shape[0] != size:
+            new = self.dataset.states[self._states.shape[0] : size, self.measured]
+            self._states = np.ascontiguousarray(np.concatenate([self._states, new]))
+        return self._states
+
+
 class NonparametricPolicy:
     """Bounds and greedy actions over a live :class:`Dataset`, exact.
 
     ``index`` (default on) answers V_lb / V_ub with the kd-tree index; ``compress`` (default on)
     lets that index skip points that can never attain a bound (the dataset keeps them). Both
     return exactly what the brute force returns. ``control`` None acts open loop (the paper's
-    policy); a task's ControlSpace makes it act with the expert's feedback gain at the chosen point.
+    policy); a task's ControlSpace makes it act with the expert's feedback gain at the chosen point, unless
+    ``kind`` says otherwise (open-loop with a control space: stored actions, the space's invariant entries
+    left out of the distance; path: npp_ros.policy.path).
+
+    The path policy remembers, per batch row, the point it acted at last: :meth:`controller` (or :meth:`reset`)
+    starts a new episode. The greedy kinds have no memory; for them both are no-ops.
     """
 
     def __init__(
@@ -71,6 +113,7 @@ class NonparametricPolicy:
         index: bool = True,
         compress: bool = True,
         control: ControlSpace | None = None,
+        kind: PolicyKind | None = None,
     ) -> None:
         if not np.isfinite(lipschitz) or lipschitz <= 0:
             raise ValueError(f"the Lipschitz constant must be finite and > 0, got {lipschitz!r}")
@@ -79,14 +122,30 @@ class NonparametricPolicy:
         if control is not None and len(control.action_low) != dataset.action_dim:
             actuators = len(control.action_low)
             raise ValueError(f"the control space has {actuators} actuators, the data {dataset.action_dim}")
+        kind = check_policy_kind(kind or ("open-loop" if control is None else "feedback"))
+        if kind in FEEDBACK_KINDS and control is None:
+            raise ValueError(f"the {kind} policy needs the task's control space (its angles and actuator range)")
         self.dataset = dataset
         self.lipschitz = float(lipschitz)
         self.control = control
-        self.index = BoundIndex(dataset, self.lipschitz, compress=compress) if index else None
+        self.kind: PolicyKind = kind
+        invariant = control is not None and bool(control.invariant)
+        # What every distance is measured on: the data itself, or its copy without the invariant entries.
+        self.measured = MeasuredData(dataset, control.measured) if invariant and control is not None else None
+        self.metric: Dataset | MeasuredData = dataset if self.measured is None else self.measured
+        self.index = BoundIndex(self.metric, self.lipschitz, compress=compress) if index else None  # type: ignore[arg-type]
+        self._cursor: NDArray[np.int64] | None = None  # path: the point each episode acted at last
+        self._slack = np.zeros(0)  # path: r of each stored trajectory (npp_ros.policy.path)
 
-    @property
-    def kind(self) -> PolicyKind:
-        return "open-loop" if self.control is None else "feedback"
+    # ----------------------------------------------------------------- episodes
+    def reset(self) -> None:
+        """A new episode (or batch of episodes in lockstep) starts: the path policy forgets its path."""
+        self._cursor = None
+
+    def controller(self) -> Callable[[ArrayLike], FloatArray]:
+        """The policy's action for a rollout from s0 (one, or a batch in lockstep): :meth:`act`, reset first."""
+        self.reset()
+        return self.act
 
     # ----------------------------------------------------------------- validation
     def _states(self, states: ArrayLike) -> tuple[FloatArray, bool]:
@@ -117,6 +176,8 @@ class NonparametricPolicy:
     # ----------------------------------------------------------------- core search
     def _search(self, queries: FloatArray, offsets: FloatArray | None, lower: bool) -> BoundQuery:
         """max_i (Q_i - L d_i) if lower else min_j (Q_j + L d_j); d may include an action term."""
+        if self.measured is not None:
+            queries = np.ascontiguousarray(queries[:, self.measured.measured])
         if offsets is None and self.index is not None:
             value, index = self.index.search(queries, lower)
             return BoundQuery(value, index)
@@ -131,7 +192,7 @@ class NonparametricPolicy:
         q, L = data.values, self.lipschitz
         for lo in range(0, count, block):
             hi = min(lo + block, count)
-            dist = pairwise_distances(data.states, queries[lo:hi])
+            dist = pairwise_distances(self.metric.states, queries[lo:hi])
             if offsets is not None:
                 dist += offsets[lo:hi]
             scores = q - L * dist if lower else q + L * dist
@@ -191,20 +252,48 @@ class NonparametricPolicy:
         return int(index[0]) if single else index
 
     def _greedy(self, batch: FloatArray) -> NDArray[np.int64]:
+        return self._lower_nonempty(batch).index
+
+    def _lower_nonempty(self, batch: FloatArray) -> BoundQuery:
         if len(self.dataset) == 0:
             raise EmptyDatasetError("the dataset is empty: the policy has no action to give")
-        return self._search(batch, None, lower=True).index
+        return self._search(batch, None, lower=True)
+
+    def _follow(self, batch: FloatArray, found: BoundQuery) -> NDArray[np.int64]:
+        """The path policy's point for each row (npp_ros.policy.path), remembered for the next step."""
+        cursor = self._cursor
+        if cursor is None:
+            cursor = np.full(len(batch), -1, dtype=np.int64)
+        elif len(cursor) != len(batch):
+            raise ValueError(
+                f"the path policy follows {len(cursor)} episodes, asked for {len(batch)} states: reset() it (or "
+                "take a controller()) when another rollout starts"
+            )
+        offsets = np.asarray(self.dataset.trajectory_offsets, dtype=np.int64)
+        states = self.metric.states
+        known = len(self._slack)
+        if known < self.dataset.num_trajectories:
+            self._slack = np.concatenate([self._slack, trajectory_slack(states, offsets, known)])
+        queries = batch if self.measured is None else batch[:, self.measured.measured]
+        chosen = follow(
+            cursor, found.index, found.value, queries, states, self.dataset.values, self.lipschitz, offsets, self._slack
+        )
+        self._cursor = chosen
+        return chosen
 
     def act(self, states: ArrayLike) -> FloatArray:
-        """pi(s): a_{i*} (open loop, always an action from the dataset, Remark 3.2), or the feedback law at i*."""
+        """pi(s): a_{i*} (open loop, always an action from the dataset, Remark 3.2), or the feedback law at i*
+        (for the path policy: at the point of its path, the next step of the same episode)."""
         return self.act_at(states)[0]
 
     def act_at(self, states: ArrayLike) -> tuple[FloatArray, int | NDArray[np.int64]]:
         """pi(s) and i*, the chosen point (a robot checks its coverage there without another search)."""
         batch, single = self._states(states)
-        index = self._greedy(batch)
-        if self.control is None:
+        found = self._lower_nonempty(batch)
+        index = found.index if self.kind != "path" else self._follow(batch, found)
+        if self.kind == "open-loop":
             actions = self.dataset.actions[index]
         else:
+            assert self.control is not None
             actions = feedback_actions(self.dataset, index, batch, self.control)
         return (actions[0].copy(), int(index[0])) if single else (actions.copy(), index)

@@ -1,7 +1,7 @@
 """Which action the policy takes at its chosen data point: the stored one, or the expert's feedback law there.
 
-Both policies choose the data point i* exactly as the paper does (the maximiser of V_lb, npp_ros.policy.bounds).
-They differ only in the action at i*:
+The first two policies choose the data point i* exactly as the paper does (the maximiser of V_lb,
+npp_ros.policy.bounds) at every step. They differ only in the action at i*:
 
 - ``open-loop`` (the paper): a = a_i*, the stored action, replayed whatever the state;
 - ``feedback``: a = clamp(a_i* + K_i* (s - s_i*)), the expert's own local policy around its trajectory (iLQR's
@@ -11,6 +11,14 @@ They differ only in the action at i*:
 
 On an unstable plant a state a little off the stored path needs a correction that a stored action does not hold:
 the feedback policy carries it. A point whose expert gave no gain has K = 0 and acts open loop.
+
+The third, ``path`` (npp_ros.policy.path), acts as ``feedback`` does but remembers its choice within an episode: it
+follows the stored trajectory it chose, time index by time index, while the state stays near it, and chooses again
+on V_lb when it leaves.
+
+A task may declare ``invariant`` state entries (positions that change neither dynamics nor reward, e.g. a rotary
+pendulum's arm angle): every policy's distance and the feedback difference take those entries' difference as 0,
+as if the state were shifted onto the stored point's position there.
 """
 
 from __future__ import annotations
@@ -24,14 +32,17 @@ from numpy.typing import ArrayLike, NDArray
 
 from npp_ros.policy.dataset import Dataset, FloatArray
 
-PolicyKind = Literal["open-loop", "feedback"]
+PolicyKind = Literal["open-loop", "feedback", "path"]
 POLICY_KINDS: tuple[str, ...] = get_args(PolicyKind)
 PAPER_POLICY: PolicyKind = "open-loop"
 DEFAULT_POLICY: PolicyKind = "feedback"  # what a run uses unless it names one: the better measured (docs/results.md)
 POLICY_HELP = (
-    "how the policy acts at the data point it chooses on V_lb: open-loop (the paper's: the stored action) or "
-    f"feedback (the stored action plus the expert's feedback gain times the state difference); default {DEFAULT_POLICY}"
+    "how the policy acts at the data point it chooses on V_lb: open-loop (the paper's: the stored action), "
+    "feedback (the stored action plus the expert's feedback gain times the state difference), or path (feedback "
+    "along the stored trajectory it chose, followed step by step while the state stays near it); "
+    f"default {DEFAULT_POLICY}"
 )
+FEEDBACK_KINDS: tuple[str, ...] = ("feedback", "path")  # the kinds that act with the expert's gains
 
 
 def wrap_angle(angle: ArrayLike) -> FloatArray:
@@ -51,17 +62,23 @@ class ControlSpace:
     """How a task's states differ and how far its actuators reach: what the feedback law needs of the plant.
 
     ``angles`` are the state entries stored wrapped to (-pi, pi]; ``action_low`` and ``action_high`` the
-    actuator range (infinite where an actuator has no limit).
+    actuator range (infinite where an actuator has no limit); ``invariant`` the state entries (positions) whose
+    value changes neither the dynamics nor the reward: their difference is taken as 0.
     """
 
     state_dim: int
     angles: tuple[int, ...]
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]
+    invariant: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if any(not 0 <= i < self.state_dim for i in self.angles):
             raise ValueError(f"angle entries {self.angles} must lie in [0, {self.state_dim})")
+        if any(not 0 <= i < self.state_dim for i in self.invariant):
+            raise ValueError(f"invariant entries {self.invariant} must lie in [0, {self.state_dim})")
+        if len(set(self.invariant)) == self.state_dim:
+            raise ValueError("every state entry is invariant: the policy would have no distance to choose by")
         if len(self.action_low) != len(self.action_high):
             raise ValueError("action_low and action_high must have one entry per actuator")
         low, high = np.asarray(self.action_low), np.asarray(self.action_high)
@@ -69,20 +86,30 @@ class ControlSpace:
             raise ValueError(f"the action range [{self.action_low}, {self.action_high}] is not a range")
 
     @classmethod
-    def of(cls, state_dim: int, angles: Sequence[int], low: ArrayLike, high: ArrayLike) -> ControlSpace:
+    def of(
+        cls, state_dim: int, angles: Sequence[int], low: ArrayLike, high: ArrayLike, invariant: Sequence[int] = ()
+    ) -> ControlSpace:
         return cls(
             int(state_dim),
             tuple(int(i) for i in angles),
             tuple(float(x) for x in np.ravel(low)),
             tuple(float(x) for x in np.ravel(high)),
+            tuple(sorted({int(i) for i in invariant})),
         )
 
+    @property
+    def measured(self) -> tuple[int, ...]:
+        """The state entries the policy's distance measures: all but the invariant ones."""
+        return tuple(i for i in range(self.state_dim) if i not in self.invariant)
+
     def difference(self, states: FloatArray, references: FloatArray) -> FloatArray:
-        """s - s_ref with the angle entries wrapped (rows of equal shape)."""
+        """s - s_ref with the angle entries wrapped and the invariant entries 0 (rows of equal shape)."""
         diff = states - references
         if self.angles:
             index = list(self.angles)
             diff[..., index] = wrap_angle(diff[..., index])
+        if self.invariant:
+            diff[..., list(self.invariant)] = 0.0
         return diff
 
     def clamp(self, actions: FloatArray) -> FloatArray:

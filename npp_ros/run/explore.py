@@ -53,7 +53,7 @@ class PolicyReplay:
     def rollout(self, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None) -> Rollout:
         key = (np.asarray(initial_state, dtype=np.float64).tobytes(), len(policy.dataset), robot)
         if self._last is None or self._policy is not policy or self._key != key:
-            self._last = rollout(self.plant, policy.act, initial_state, self.horizon, robot)
+            self._last = rollout(self.plant, policy.controller(), initial_state, self.horizon, robot)
             self._policy, self._key = policy, key
         return self._last
 

@@ -162,11 +162,10 @@ class RunResult:
 
 
 def make_policy(data: Dataset, spec: CertificationSpec, control: ControlSpace | None) -> NonparametricPolicy:
-    """The policy a run's spec names over ``data``: the greedy choice on V_lb with the spec's L, acting open loop
-    or with the expert's feedback in the task's control space. Every place that acts for a run builds it here."""
-    if spec.policy == "feedback" and control is None:
-        raise ValueError("the feedback policy needs the task's control space (its angles and actuator range)")
-    return NonparametricPolicy(data, spec.lipschitz.value, control=control if spec.policy == "feedback" else None)
+    """The policy a run's spec names over ``data``: the choice on V_lb with the spec's L (its distance blind to the
+    task's invariant entries), acting open loop, with the expert's feedback, or along the path it chose, in the
+    task's control space. Every place that acts for a run builds it here."""
+    return NonparametricPolicy(data, spec.lipschitz.value, control=control, kind=spec.policy)
 
 
 class NPPLoop:
@@ -215,7 +214,7 @@ class NPPLoop:
         self.observers = list(observers)
         self.expert_value = expert_value
         self.basis = basis
-        self.control = control if self.spec.policy == "feedback" else None
+        self.control = control
         self.explorer = explorer if config.explore > 0 else None
         self.success = success
         self.replay = replay  # None: the policy's success is not judged (the expert's still is)

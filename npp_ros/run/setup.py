@@ -228,8 +228,7 @@ def task_control_space(task: str, seed: int) -> ControlSpace:
 def policy_for(data: Dataset, spec: CertificationSpec, task: str, seed: int) -> NonparametricPolicy:
     """The policy ``spec`` names over ``data`` for this task's plant: what a run's checks, its evaluations and a
     robot act with."""
-    control = task_control_space(task, seed) if spec.policy == "feedback" else None
-    return make_policy(data, spec, control)
+    return make_policy(data, spec, task_control_space(task, seed))
 
 
 def initial_state_fn(task: str, seed: int) -> Callable[[int], FloatArray]:
@@ -295,7 +294,7 @@ def build_loop(
         observers=observers,
         expert_value=task.expert_value(expert),
         basis=value_basis(expert, config.spec.lipschitz.value),
-        control=task_control_space(config.task, config.seed) if config.spec.policy == "feedback" else None,
+        control=task_control_space(config.task, config.seed),
         explorer=RolloutExplorer(replay, config.explore) if config.explore and replay is not None else None,
         success=task.success,
         replay=replay if driver is not None else None,

@@ -12,6 +12,11 @@ is answered: the callback first takes any states that arrived after its own off 
 state overtaken by a newer one before it was answered is dropped (counted on
 /npp/policy/dropped_states and in the log). Under a state stream faster than the policy, it
 answers the newest state and never builds a queue.
+
+The path policy (npp_ros.policy.path) remembers its path within an episode: the node starts it afresh on an
+episode's first state (the sim's state stamped 0, which every reset publishes first, a repeated episode too) and
+on a state of another episode; a state it already answered (the sim's watchdog sends it again) gets the same
+action again without advancing the path, so a rollout through the graph is the in-process one.
 """
 
 from __future__ import annotations
@@ -111,6 +116,9 @@ class PolicyNode(Node):
         self._dropped_answering = 0
         self.answered = 0
         self._dropped_reported = 0
+        # The state answered last (episode, stamp) and its action: the path policy's episode and step.
+        self._answered_key: tuple[str, int, int] | None = None
+        self._answered_action: np.ndarray | None = None
         self._warn = ThrottledWarnings(self)
         self.action_pub = self.create_publisher(JointState, ACTION, CONTROL_QOS)
         self.status_pub = self.create_publisher(UInt32, POLICY_STATUS, LATCHED_QOS)
@@ -228,8 +236,8 @@ class PolicyNode(Node):
             assert self.dataset is not None and self.plant is not None
             try:
                 kind = check_policy_kind(response.policy)
-                control = control_space_from(self.plant) if kind == "feedback" else None
-                policy = NonparametricPolicy(self.dataset, response.lipschitz, control=control)
+                control = control_space_from(self.plant)
+                policy = NonparametricPolicy(self.dataset, response.lipschitz, control=control, kind=kind)
             except ValueError as exc:
                 self._catch_up_needed = True
                 self._warn("policy", f"cannot act as the supervisor asks: {exc}")
@@ -259,6 +267,7 @@ class PolicyNode(Node):
             self.run, self.seal = run, seal
             self.dataset = Dataset(self.plant.state_dim, self.plant.action_dim)
             self.policy = None
+            self._answered_key = None
 
     # ---------------------------------------------------------------- acting
     @property
@@ -345,7 +354,7 @@ class PolicyNode(Node):
         self._last_answered = arrival
         assert self.policy is not None and self.seal is not None
         try:
-            action = refill_action(self._action, self.policy.act(state), stamp)
+            action = refill_action(self._action, self._act(state, stamp, episode), stamp)
             # The context says which episode it answers and which data chose it (the sim reports the latter).
             held = self.policy.dataset.num_trajectories
             self.action_pub.publish(self.seal.seal_header(action, f"{episode}/{held}"))
@@ -353,6 +362,19 @@ class PolicyNode(Node):
             self.get_logger().error(f"could not answer a state: {type(exc).__name__}: {exc}")
             return
         self.answered += 1
+
+    def _act(self, state: np.ndarray, stamp: Time, episode: str) -> np.ndarray:
+        """The policy's action for this state of this episode (data lock held): the episode's first state starts
+        the policy afresh; a state answered already gets its action again."""
+        assert self.policy is not None
+        key = (episode, stamp.sec, stamp.nanosec)
+        if self.policy.kind == "path" and key == self._answered_key and self._answered_action is not None:
+            return self._answered_action
+        if self._answered_key is None or key[1:] == (0, 0) or episode != self._answered_key[0]:
+            self.policy.reset()
+        self._answered_action = self.policy.act(state)
+        self._answered_key = key
+        return self._answered_action
 
     def report_dropped(self) -> None:
         dropped = self.dropped
