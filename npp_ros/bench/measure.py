@@ -348,11 +348,11 @@ def targets(cases: list[Case], scaling: list[dict[str, Any]]) -> list[dict[str, 
 
 
 def compression_of_runs(run_dirs: list[Path], progress: Progress) -> list[dict[str, Any]]:
-    from npp_ros.run.store import RunStore
+    from npp_ros.run.store import RUN_FILE, RunStore
 
     rows = []
     for run in run_dirs:
-        store = RunStore.open(run / "run.sqlite" if run.is_dir() else run)
+        store = RunStore.open(run / RUN_FILE if run.is_dir() else run)
         data = store.load_dataset()
         meta = store.metadata
         t = time.perf_counter()

@@ -37,6 +37,7 @@ from npp_ros.run.setup import (
     policy_for,
     resolve_lipschitz,
 )
+from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task, task_label
 from npp_ros.tasks.sources import short_name
 from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
@@ -159,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         )  # fmt: skip
         expert = task.make_expert(args.seed, args.horizon, options)
         lipschitz = resolve_lipschitz(
-            args.task, args.lipschitz, expert, seed=args.seed, horizon=args.horizon, run_file=run_dir / "run.sqlite"
+            args.task, args.lipschitz, expert, seed=args.seed, horizon=args.horizon, run_file=run_dir / RUN_FILE
         )
         config = build_config(
             args.task, args.seed, lipschitz, epsilon,
@@ -170,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         status = StatusLine(
             epsilon, args.condition, max_episodes=args.max_episodes, prefix="npp-learn: ", certify=config.spec.certify
         )
-        loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", rollouts=args.rollouts, observers=[status])
+        loop = build_loop(config, expert, store_path=run_dir / RUN_FILE, rollouts=args.rollouts, observers=[status])
     except (ValueError, RunFileError) as exc:
         print(f"npp-learn: {exc}", file=sys.stderr)
         return 2

@@ -22,6 +22,7 @@ from npp_ros.deployment.signing import (
     signature_reasons,
 )
 from npp_ros.run.records import RunFileError
+from npp_ros.run.store import RUN_FILE
 
 
 def parser() -> argparse.ArgumentParser:
@@ -55,7 +56,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"{signature.signer}")  # fmt: skip
         else:
             folder = run_folder(args.folder)
-            digest = sealed_digest(folder / "run.sqlite")
+            digest = sealed_digest(folder / RUN_FILE)
             reasons, said = signature_reasons(folder, digest, load_public_keys(args.trusted))
             if reasons:
                 print(f"npp-sign: {'; '.join(reasons)}", file=sys.stderr)

@@ -1,5 +1,5 @@
-"""Deploying a certified run on a robot, without ROS: the gate that reads a run file's certificate (gate,
-stored_run), the robot's model fingerprint (robot_model), its joints (joints), what it is commanded (commands),
+"""Deploying a certified run on a robot, without ROS: the gate that checks a run file's certificate (gate, over
+npp_ros.run.read), the robot's model fingerprint (robot_model), its joints (joints), what it is commanded (commands),
 how far its states lie from the data (coverage), the watchdog (timing), and signed runs (signing). npp-deploy,
 npp-robot and npp-sign call these.
 

@@ -12,7 +12,7 @@ It refuses:
 
 An operator may override the certificate and fingerprint checks (``Acceptance.override``), and every
 overridden reason is kept for the log and /diagnostics. Nothing overrides a file the store cannot read
-(stored_run.py): its data are no run's, so there is no policy to deploy.
+(npp_ros/run/read.py): its data are no run's, so there is no policy to deploy.
 The run file's seal names any edit after the run, but an editor can seal again; trusted keys
 (``Acceptance.trusted_keys``, signing.py) make the gate require the signature of one of them over the seal.
 """
@@ -31,12 +31,13 @@ from npp_ros.certificate.certifier import Certificate
 from npp_ros.certificate.mixture import certifier_for
 from npp_ros.deployment.robot_set import gate_reasons
 from npp_ros.deployment.signing import signature_reasons
-from npp_ros.deployment.stored_run import RUN_FILE, StoredRun, read_run
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.run.read import Run, read_run
 from npp_ros.run.records import RunFileError, RunMetadata
 from npp_ros.run.seal import SealCheck
 from npp_ros.run.setup import policy_for
+from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import Plant, Task, UnknownTaskError
 
 UNSEALED = SealCheck("", ())
@@ -107,7 +108,7 @@ class Deployment:
 def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
     """The gate: the policy a run folder's certificate names, or a GateRefusal with every reason.
 
-    Only what the run file cannot give (stored_run.py) is reported as damage; any other error is raised as itself."""
+    Only what the run file cannot give (npp_ros.run.read) is reported as damage; any other error is raised as itself."""
     run_file = _run_file(Path(run_dir))
     try:
         run = read_run(run_file)
@@ -122,10 +123,10 @@ def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
     return dataclasses.replace(_pass_gate(run, acceptance), signed=signed)
 
 
-def _pass_gate(run: StoredRun, acceptance: Acceptance) -> Deployment:
-    dataset, certificate, rows = run.dataset, run.certificate, run.rows
+def _pass_gate(run: Run, acceptance: Acceptance) -> Deployment:
+    dataset, certificate, rows = run.dataset, run.certificate, run.episodes
     if dataset.num_trajectories == 0:
-        raise GateRefusal(f"{run.path} holds no expert trajectories: there is no policy to deploy")
+        raise GateRefusal(f"{run.file} holds no expert trajectories: there is no policy to deploy")
     inconsistent = [] if certificate is None else _inconsistencies(run, certificate)
     if inconsistent:
         what = "; ".join(inconsistent)
@@ -148,7 +149,7 @@ def _pass_gate(run: StoredRun, acceptance: Acceptance) -> Deployment:
     outside = [row.initial_state for row in rows if row.trajectory is None or row.trajectory >= count]
     checked_starts = np.array(outside, dtype=np.float64).reshape(len(outside), run.metadata.state_dim)
     return Deployment(
-        run.path, run.metadata, certificate, policy, run.task, plant, checked_starts, tuple(reasons), run.seal,
+        run.file, run.metadata, certificate, policy, run.task, plant, checked_starts, tuple(reasons), run.seal,
         robot=robot,
     )  # fmt: skip
 
@@ -198,7 +199,7 @@ def _certificate_reasons(
     return reasons
 
 
-def _inconsistencies(run: StoredRun, certificate: Certificate) -> list[str]:
+def _inconsistencies(run: Run, certificate: Certificate) -> list[str]:
     """Where the certificate disagrees with the run's metadata and episode log (replayed through the Certifier)."""
     spec = run.spec
     problems = [
@@ -214,14 +215,14 @@ def _inconsistencies(run: StoredRun, certificate: Certificate) -> list[str]:
     stored = run.dataset.num_trajectories
     if not 1 <= trajectories <= stored:
         return [f"it names {trajectories} trajectories, the run stores {stored}"]
-    if not 1 <= episodes <= len(run.rows):
-        return [f"it was issued at episode {episodes}, the log holds {len(run.rows)}"]
+    if not 1 <= episodes <= len(run.episodes):
+        return [f"it was issued at episode {episodes}, the log holds {len(run.episodes)}"]
     # Replay the run's checks through its rule, as a resumed run does: the certificate must be issued at its
     # episode, and its policy holds every trajectory asked for except those a frozen test held back.
     certifier = certifier_for(spec)
     stored = joined = 0
     status = None
-    for row in run.rows[:episodes]:
+    for row in run.episodes[:episodes]:
         passed = spec.passes(row.checked_gap)
         stored += row.trajectories_stored
         status = certifier.observe(math.inf if row.checked_gap is None else row.checked_gap, not passed)

@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from npp_ros.deployment.stored_run import RUN_FILE, checked_metadata, task_of
+from npp_ros.run.read import checked_metadata, task_of
 from npp_ros.run.records import RunFileError
-from npp_ros.run.store import RunStore
+from npp_ros.run.store import RUN_FILE, RunStore
 from npp_ros.tasks.registry import Plant, UnknownTaskError
 
 

@@ -25,7 +25,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from npp_ros.run.records import RunFileError
-from npp_ros.run.store import RunStore
+from npp_ros.run.store import RUN_FILE, RunStore
 
 SIGNATURE_FILE = "run.sig"
 SIGNATURE_FORMAT = "npp_ros.run-signature"
@@ -131,7 +131,7 @@ def sign_run(run: str | Path, private_key: Path) -> RunSignature:
     """Sign a run folder's seal digest; writes run.sig beside run.sqlite (replacing an earlier signature)."""
     folder = run_folder(run)
     key = load_private_key(private_key)
-    digest = sealed_digest(folder / "run.sqlite")
+    digest = sealed_digest(folder / RUN_FILE)
     public = key.public_key()
     signature = RunSignature(
         digest=digest,

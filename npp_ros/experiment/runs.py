@@ -28,6 +28,7 @@ from npp_ros.run.loop import NPPLoop, Observer
 from npp_ros.run.progress import status_text
 from npp_ros.run.records import EpisodeRow
 from npp_ros.run.setup import build_config, build_loop, policy_for, resolve_lipschitz
+from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import Expert, get_task
 
 
@@ -75,7 +76,7 @@ def run_arm_seed(
     run_dir.mkdir(parents=True, exist_ok=True)
     expert = make_expert(arm, seed, settings)
     lipschitz = resolve_lipschitz(
-        arm.task, arm.lipschitz, expert, seed=seed, horizon=settings.horizon, run_file=run_dir / "run.sqlite"
+        arm.task, arm.lipschitz, expert, seed=seed, horizon=settings.horizon, run_file=run_dir / RUN_FILE
     )
     epsilon = settings.epsilon_for(arm.task)
     config = build_config(
@@ -84,7 +85,7 @@ def run_arm_seed(
     )  # fmt: skip
     budget = settings.max_episodes[arm.task]
     progress = _EpisodeProgress(report, key, budget, epsilon, config.spec.condition)
-    loop = build_loop(config, expert, store_path=run_dir / "run.sqlite", observers=[progress])
+    loop = build_loop(config, expert, store_path=run_dir / RUN_FILE, observers=[progress])
     held_out_returns: ExpertReturns | None = None
     try:
         may_certify = loop.certificate is not None or loop.next_episode < budget  # else no held-out check follows

@@ -2,27 +2,25 @@
 
 What ``npp-learn`` does, without a terminal: :func:`learn` builds the run exactly as the command does
 (``npp_ros.run.setup``: the task's expert, L, config and loop) and runs Algorithm 1 to its certificate or its
-budget; :func:`read_run` opens any run folder (made by ``npp-learn``, ``npp-run`` or ``npp-experiment``) and
-gives its data, its episode log, its certificate as the typed record the loop resumes from, and the policy
-that certificate names. Both are exported by ``npp_ros`` itself.
+budget; :func:`read_run` (npp_ros.run.read, the one reader the deployment gate uses too) opens any run folder
+(made by ``npp-learn``, ``npp-run`` or ``npp-experiment``) and gives its data, its episode log, its certificate as
+the typed record the loop resumes from, and the policy that certificate names. Both are exported by ``npp_ros``
+itself.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
-from npp_ros.certificate.certifier import Certificate, CheckedQuantity, StoppingRule
-from npp_ros.policy.bounds import NonparametricPolicy
-from npp_ros.policy.dataset import Dataset
+from npp_ros.certificate.certifier import CheckedQuantity, StoppingRule
 from npp_ros.policy.feedback import DEFAULT_POLICY, PolicyKind
 from npp_ros.run.loop import RunResult
-from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
-from npp_ros.run.setup import build_config, build_loop, policy_for, resolve_lipschitz, spec_of
-from npp_ros.run.store import RunStore
+from npp_ros.run.read import Run, read_run
+from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
+from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import ExpertOptions, get_task
 
-RUN_FILE = "run.sqlite"
+__all__ = ["Run", "learn", "read_run"]
 
 
 def learn(
@@ -59,41 +57,3 @@ def learn(
     finally:
         if loop.store is not None:
             loop.store.close()
-
-
-@dataclass(frozen=True)
-class Run:
-    """One run folder as it is on disk: what it was made for, its data, its log, and its certificate."""
-
-    folder: Path
-    metadata: RunMetadata
-    dataset: Dataset
-    episodes: list[EpisodeRow]
-    certificate: Certificate | None
-
-    @property
-    def policy(self) -> NonparametricPolicy:
-        """The certificate's policy (its first trajectories, acting as its spec names); uncertified: all the data."""
-        spec = spec_of(self.metadata, get_task(str(self.metadata.task)).initial_state_diameter)
-        count = self.dataset.num_trajectories if self.certificate is None else self.certificate.policy_trajectories
-        data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
-        return policy_for(data, spec, str(self.metadata.task), int(self.metadata.seed))
-
-
-def read_run(folder: str | Path) -> Run:
-    """Open a run folder (or its run.sqlite) for reading; never takes the writer's lock, so a live run goes on.
-
-    Raises RunFileError for a folder with no readable run file, or a damaged one.
-    """
-    path = Path(folder)
-    run_file = path if path.is_file() else path / RUN_FILE
-    if not run_file.is_file():
-        raise RunFileError(f"{path} holds no {RUN_FILE}: no run was stored there")
-    with RunStore.open(run_file) as store, store.snapshot():
-        metadata, dataset, episodes = store.metadata, store.load_dataset(), store.episodes()
-        record = store.certificate()
-    certificate = None
-    if record is not None:
-        spec = spec_of(metadata, get_task(str(metadata.task)).initial_state_diameter)
-        certificate = Certificate.from_record(record, spec)
-    return Run(run_file.parent, metadata, dataset, episodes, certificate)

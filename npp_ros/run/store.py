@@ -78,6 +78,8 @@ from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
 from npp_ros.run.records import EPISODE_COLUMNS, LATER_COLUMNS, SUCCESS_COLUMNS, EpisodeRow, RunFileError, RunMetadata
 from npp_ros.run.seal import SealCheck, check_seal, write_seal
 
+RUN_FILE = "run.sqlite"  # a run folder's run file: every writer and reader names it by this
+
 FORMAT_NAME = "npp_ros.run"
 FORMAT_VERSION = 3  # 2: certification mode, stopping rule, checked gap and test per episode; 3: feedback gains
 READABLE_VERSIONS = (2, 3)

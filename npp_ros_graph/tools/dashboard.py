@@ -147,9 +147,9 @@ class Hub:
 def load_run(folder: Path, hub: Hub) -> None:
     """A run folder's run.sqlite: every stored episode, and the certificate if one was issued."""
     from npp_ros.run.records import RunFileError
-    from npp_ros.run.store import RunStore
+    from npp_ros.run.store import RUN_FILE, RunStore
 
-    path = folder / "run.sqlite" if folder.is_dir() else folder
+    path = folder / RUN_FILE if folder.is_dir() else folder
     try:
         with RunStore.open(path) as store:
             meta, rows, certificate = store.metadata, store.episodes(), store.certificate()

@@ -38,7 +38,7 @@ from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.records import RunFileError
 from npp_ros.run.setup import run_file_notice
-from npp_ros.run.store import WriterLock
+from npp_ros.run.store import RUN_FILE, WriterLock
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
 from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_HELP, STOP_MODES
@@ -279,7 +279,7 @@ def folder_in_use(run_dir: Path) -> str | None:
     the holder exactly as the supervisor would, but before any node starts.
     """
     try:
-        WriterLock.acquire(run_dir / "run.sqlite").release()
+        WriterLock.acquire(run_dir / RUN_FILE).release()
     except RunFileError as exc:
         return f"{exc}{_started_by(run_dir / 'run.lock')}"
     return None
@@ -396,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
         for signum in (signal.SIGHUP, signal.SIGTERM):
             signal.signal(signum, _ignore_further)
         if follower is not None:
-            notice = run_file_notice(run_dir / "run.sqlite")  # the expert's failure, before the certificate
+            notice = run_file_notice(run_dir / RUN_FILE)  # the expert's failure, before the certificate
             if notice:
                 say(("\n" if follower.tty else "") + "\n".join(f"npp-run: {line}" for line in notice))
             if follower.certificate is not None:

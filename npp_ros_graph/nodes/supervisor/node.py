@@ -42,7 +42,7 @@ from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
 from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz, robot_fn
-from npp_ros.run.store import RunStore
+from npp_ros.run.store import RUN_FILE, RunStore
 from npp_ros.tasks.answer_check import AnswerCheck
 from npp_ros.tasks.registry import by_task, get_task
 from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP, Robot
@@ -306,7 +306,7 @@ class SupervisorNode(Node):
         if isinstance(s.lipschitz, LipschitzConstant):
             lipschitz = s.lipschitz
         else:
-            run_file = Path(s.run_dir) / "run.sqlite"
+            run_file = Path(s.run_dir) / RUN_FILE
             lipschitz = resolve_lipschitz(
                 task, s.lipschitz, expert, seed=plant.seed, horizon=plant.horizon, run_file=run_file
             )
@@ -318,7 +318,7 @@ class SupervisorNode(Node):
         )  # fmt: skip
         run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
-        store = RunStore.open_or_create(run_dir / "run.sqlite", config.metadata())  # RunFileError: refuse
+        store = RunStore.open_or_create(run_dir / RUN_FILE, config.metadata())  # RunFileError: refuse
         try:  # closed also on Ctrl-C, so that the file is one self-contained file again
             assert self.plant_seal is not None
             self.run_id = store.run_id

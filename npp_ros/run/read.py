@@ -1,10 +1,12 @@
-"""A run file read for deployment, typed: its metadata and spec, its data, its episode log and its certificate.
+"""A run folder read back, typed and checked: its metadata and spec, its data, its episode log and its certificate.
 
-The certificate is read as the loop reads its own on resume (``Certificate.from_record`` for the spec the
-run's metadata records), after every stored value it rests on has been checked to be of its type. What
-the file cannot give (a refusal of the store itself: no readable file, a failed checksum, a missing table,
-values of another type, a recorded spec that is no spec) is a :class:`RunFileError`: damage or an edit.
-Anything else raised here is a bug, and is raised as itself.
+The one reader of a finished or live run file: ``npp_ros.read_run`` for a script, and the deployment gate
+(npp_ros.deployment.gate) before a robot moves, so both see the same run and refuse the same damage. The
+certificate is read as the loop reads its own on resume (``Certificate.from_record`` for the spec the run's
+metadata records), after every stored value it rests on has been checked to be of its type. What the file
+cannot give (a refusal of the store itself: no readable file, a failed checksum, a missing table, values of
+another type, a recorded spec that is no spec) is a :class:`RunFileError`: damage or an edit. Anything else
+raised here is a bug, and is raised as itself.
 """
 
 from __future__ import annotations
@@ -18,16 +20,15 @@ from pathlib import Path
 from typing import Any, Union, get_args, get_origin, get_type_hints
 
 from npp_ros.certificate.certifier import Certificate, CertificationSpec
+from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
 from npp_ros.run.seal import SealCheck, check_file
-from npp_ros.run.setup import spec_of
-from npp_ros.run.store import RunStore
+from npp_ros.run.setup import policy_for, spec_of
+from npp_ros.run.store import RUN_FILE, RunStore
 from npp_ros.tasks.registry import Task, get_task
 
-RUN_FILE = "run.sqlite"
-
-# The metadata the gate reads, with the type each must have (RunConfig.metadata() writes them).
+# The metadata a reader relies on, with the type each must have (RunConfig.metadata() writes them).
 METADATA_TYPES: dict[str, type] = {
     "task": str, "seed": int, "horizon": int, "state_dim": int, "action_dim": int,
     "condition": str, "epsilon": float, "p": float, "delta": float, "certify": str, "rule": str, "policy": str,
@@ -37,24 +38,46 @@ _KIND_NAMES = {str: "text", int: "an integer", float: "a number", bool: "true or
 
 
 @dataclass(frozen=True)
-class StoredRun:
-    """What a run file holds, typed. ``claimed`` is what its certificate record says it certifies (the spec's
-    fields as it stores them), which the gate compares with the run's own ``spec``."""
+class Run:
+    """One run file as it is on disk, checked: what it was made for, its data, its log and its certificate.
 
-    path: Path
+    ``claimed`` is what the certificate record says it certifies (the spec's fields as it stores them), which the
+    gate compares with the run's own ``spec``; ``seal`` is the file's seal, intact or absent (from before seals).
+    """
+
+    file: Path
     metadata: RunMetadata
     task: Task
     spec: CertificationSpec
     dataset: Dataset
-    rows: list[EpisodeRow]
+    episodes: list[EpisodeRow]
     certificate: Certificate | None
     claimed: dict[str, object]
     seal: SealCheck  # intact (or unsealed, from before seals): a broken seal is a RunFileError
 
+    @property
+    def folder(self) -> Path:
+        """The run folder (it holds the run file, its signature and the node logs)."""
+        return self.file.parent
 
-def read_run(run_file: Path) -> StoredRun:
-    """The run file's contents, typed; a RunFileError for what the file cannot give, an UnknownTaskError for a
-    task that does not load here."""
+    @property
+    def policy(self) -> NonparametricPolicy:
+        """The certificate's policy (its first trajectories, acting as its spec names); uncertified: all the data."""
+        count = self.dataset.num_trajectories if self.certificate is None else self.certificate.policy_trajectories
+        data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
+        return policy_for(data, self.spec, str(self.metadata.task), int(self.metadata.seed))
+
+
+def read_run(folder: str | Path) -> Run:
+    """A run folder (or its run.sqlite) read back; never takes the writer's lock, so a live run goes on.
+
+    A RunFileError for what the file cannot give (no run file, a broken seal, a missing table, values of
+    another type, a recorded spec that is no spec), an UnknownTaskError for a task that does not load here.
+    """
+    path = Path(folder)
+    run_file = path if path.is_file() else path / RUN_FILE
+    if not run_file.is_file():
+        raise RunFileError(f"{path} holds no {RUN_FILE}: no run was stored there")
     try:
         store = RunStore.open(run_file)
     except RunFileError:
@@ -82,12 +105,12 @@ def read_run(run_file: Path) -> StoredRun:
     except ValueError as exc:  # CertificationSpec's refusal of recorded values
         raise RunFileError(f"{run_file} records no valid specification: {exc}") from None
     if record is None:
-        return StoredRun(run_file, metadata, task, spec, dataset, rows, None, {}, seal)
+        return Run(run_file, metadata, task, spec, dataset, rows, None, {}, seal)
     if not isinstance(record, Mapping):
         raise RunFileError(f"{run_file}'s certificate is {type(record).__name__}, not a record")
     claimed = {name: record.get(name, RunMetadata.BEFORE_RECORDED.get(name)) for name in spec.record()}
     certificate = certificate_of(record, spec, run_file)
-    return StoredRun(run_file, metadata, task, spec, dataset, rows, certificate, claimed, seal)
+    return Run(run_file, metadata, task, spec, dataset, rows, certificate, claimed, seal)
 
 
 def _unsealed_by(run_file: Path, seal: SealCheck) -> str:
@@ -95,7 +118,7 @@ def _unsealed_by(run_file: Path, seal: SealCheck) -> str:
 
 
 def checked_metadata(metadata: RunMetadata, run_file: Path) -> RunMetadata:
-    """``metadata`` once every value the gate reads is present (a MissingMetadata otherwise) and of its type."""
+    """``metadata`` once every value a reader relies on is present (a MissingMetadata otherwise) and of its type."""
     for name, kind in METADATA_TYPES.items():
         value = getattr(metadata, name)
         if not holds(value, kind):
