@@ -7,14 +7,26 @@ The few things a Python user needs are exported here (see docs/tutorials/python.
     run = npp_ros.read_run("runs/mine")
     print(run.certificate.summary(), run.policy.act(run.dataset.states[0]))
 
-They load on first use, so ``import npp_ros.policy.dataset`` stays as light as it is. Each subpackage says
-what it may import; tests/test_layering.py holds the whole table and checks it.
+They load on first use, so ``import npp_ros.policy.dataset`` stays as light as it is; the imports under
+TYPE_CHECKING name them for type checkers and for tests/test_layering.py, which checks them against the
+table of what each part may import and against ``_EXPORTS``.
 """
 
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # `X as X`: re-exported
+    from npp_ros.certificate.certifier import Certificate as Certificate
+    from npp_ros.policy.bounds import NonparametricPolicy as NonparametricPolicy
+    from npp_ros.policy.feedback import POLICY_KINDS as POLICY_KINDS
+    from npp_ros.run.api import Run as Run
+    from npp_ros.run.api import learn as learn
+    from npp_ros.run.api import read_run as read_run
+    from npp_ros.tasks.registry import TASK_NAMES as TASK_NAMES
+    from npp_ros.tasks.registry import get_task as get_task
+    from npp_ros.tasks.registry import task_names as task_names
 
 _EXPORTS = {
     "learn": "npp_ros.run.api",
@@ -22,6 +34,7 @@ _EXPORTS = {
     "Run": "npp_ros.run.api",
     "get_task": "npp_ros.tasks.registry",
     "TASK_NAMES": "npp_ros.tasks.registry",
+    "task_names": "npp_ros.tasks.registry",
     "Certificate": "npp_ros.certificate.certifier",
     "NonparametricPolicy": "npp_ros.policy.bounds",
     "POLICY_KINDS": "npp_ros.policy.feedback",

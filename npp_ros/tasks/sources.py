@@ -11,7 +11,8 @@
   when its task is asked for; one that fails to import is refused by name with its error, and
   every other task still works. A plug-in cannot replace a built-in task (same name): it is
   listed as ignored. An entry point that names a built-in task with the built-in's own target is
-  that task, registered once (npp_ros's own package declares its acrobot that way).
+  that task, registered once (an install of npp_ros made while its pyproject.toml still declared its
+  acrobot as an entry point has one).
 - Task files: a path ending in ``.toml`` (npp_ros.tasks.task_file), accepted wherever a name is.
 
 :func:`merge` joins the plug-ins to the built-in tasks; npp_ros.tasks.registry holds the built-in

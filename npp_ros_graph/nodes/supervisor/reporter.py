@@ -52,6 +52,7 @@ class GraphReporter(Observer):
         self.gaps, self.episodes, self.certificates = gaps, episodes, certificates
         self.send_trajectory, self.seal, self.context = send_trajectory, seal, context
         self.clock, self.logger, self.config = clock, logger, config
+        self.epsilon = config.spec.epsilon  # the gap log's column, from the spec the reports are built from
         self.gap_log = run_dir / "gaps.csv"
         self.episode_log = run_dir / "episodes.csv"
         self.max_episodes = max_episodes  # says once when no certificate can come within it
@@ -66,7 +67,7 @@ class GraphReporter(Observer):
         _append(
             self.gap_log,
             GAP_COLUMNS,
-            [row.episode, row.gap, row.v_lb, row.v_ub, gap.epsilon, int(row.oracle_called), row.dataset_size,
+            [row.episode, row.gap, row.v_lb, row.v_ub, self.epsilon, int(row.oracle_called), row.dataset_size,
              row.oracle_calls, row.quiet_episodes],
         )  # fmt: skip
         append_episode_log(self.episode_log, row)  # the columns npp-learn writes too
