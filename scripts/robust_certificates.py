@@ -29,17 +29,19 @@ class Arm:
     uncertainty: float
     policy: str = "feedback"
     explore: float = 0.0
+    rule: str = "sequential"
 
     @property
     def name(self) -> str:
         task = Path(self.task).parent.name if self.task.endswith(".toml") else self.task
         extra = f"-explore{self.explore:g}" if self.explore else ""
+        extra += "" if self.rule == "sequential" else f"-{self.rule}"
         return f"{task}-{self.certify}-u{self.uncertainty:g}-{self.policy}{extra}"
 
     def command(self, seed: int, run_dir: Path, max_episodes: int, evaluate: int) -> list[str]:
         return [
             str(NPP_LEARN), "--task", self.task, "--seed", str(seed), "--certify", self.certify,
-            "--uncertainty", f"{self.uncertainty:g}", "--policy", self.policy, "--explore", f"{self.explore:g}",
+            "--uncertainty", f"{self.uncertainty:g}", "--policy", self.policy, "--explore", f"{self.explore:g}", "--rule", self.rule,
             "--max-episodes", str(max_episodes), "--evaluate", str(evaluate), "--run-dir", str(run_dir),
         ]  # fmt: skip
 
@@ -49,6 +51,8 @@ ARMS = {
     "pendulum-success-exact": Arm("pendulum_swingup", "success", 0.0),
     "pendulum-success-explore": Arm("pendulum_swingup", "success", 1.0, explore=0.15),
     "pendulum-success-half": Arm("pendulum_swingup", "success", 0.5),
+    "pendulum-success-mixture": Arm("pendulum_swingup", "success", 1.0, rule="mixture"),
+    "cartpole-success-mixture": Arm("cartpole_swingup", "success", 1.0, rule="mixture"),
     "pendulum-oracle": Arm("pendulum_swingup", "oracle", 1.0),
     "cartpole-success": Arm("cartpole_swingup", "success", 1.0),
     "cartpole-oracle": Arm("cartpole_swingup", "oracle", 1.0),

@@ -16,7 +16,10 @@ command, then stepping once per control period with the latest command held
 - on the swing-up tasks, whether the pole ended upright (within 8 degrees over the last half of the
   horizon), on the robot and in process.
 
-The s0 are draws from rho the run never made (episodes 10^6 + k of the run's own stream). Every run
+The s0 are draws from rho the run never made (episodes 10^6 + k of the run's own stream). A run certified on a
+set of robots (``--uncertainty``) is tried on robots drawn from its set the same way (npp-robot's ``robot``
+parameter; the in-process reference runs on the same robot), unless ``--robots nominal`` asks for its model; the
+robot's return is its reported efforts replayed on that robot's model. Every run
 of the tool gets its own ROS_DOMAIN_ID with localhost-only discovery. ``--out DIR`` writes
 DIR/trial.json and DIR/trial.md with the command, the date and the load average.
 """
@@ -44,10 +47,12 @@ from npp_ros.bench.report import write_report
 from npp_ros.deployment.gate import Acceptance, Deployment, load_deployment
 from npp_ros.deployment.joints import JointLayout, stored_state
 from npp_ros.tasks.rollout import rollout
+from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot
 from npp_ros_graph.bench.deploy import transition
 from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.transport.topics import JOINT_STATES
 
+MODEL = "the task's model"  # what the robot is when the run names no set or --robots nominal asks for it
 FIRST_TRIAL_EPISODE = 10**6  # s0 of episodes no run draws: fresh for the policy
 START_TIMEOUT_S = 120.0  # a robot process importing rclpy and MuJoCo on a busy machine
 # Every joint state of an episode is kept: the trial replays them all.
@@ -71,6 +76,7 @@ class TrialEpisode:
     replay_mismatches: int  # published states the model's replay of the robot's efforts does not reproduce
     robot_upright: bool | None  # swing-up tasks: the pole within 8 degrees over the last half; else None
     in_process_upright: bool | None
+    robot: str = ""  # the robot of a run certified on a set (Robot.record()); "" = the task's model
 
     @property
     def gap(self) -> float:
@@ -110,19 +116,24 @@ class TrialNode(Node):
 
 
 def judge(deployment: Deployment, episode: int, s0: np.ndarray, raws: np.ndarray, efforts: np.ndarray,
-          horizon: int) -> TrialEpisode:  # fmt: skip
-    """The robot's episode against the model and against the policy in process."""
+          horizon: int, drawn: Robot | None = None) -> TrialEpisode:  # fmt: skip
+    """The robot's episode against the model (the drawn robot's) and against the policy in process on it.
+
+    The efforts are the commands the actuator applied (after the robot's delay), so they are replayed on the
+    robot's model without a delay; the in-process reference meets the delay and the noise itself."""
     plant, policy = deployment.plant, deployment.policy
     layout = JointLayout.of_plant(plant)
     actions = np.array([layout.action(effort) for effort in efforts[:horizon]])
-    replayed = _raw_states(plant, s0, actions)
+    model_only = None if drawn is None else Robot(drawn.scales)
+    with as_robot(plant, model_only):
+        replayed = _raw_states(plant, s0, actions)
     mismatches = int(np.sum(np.any(replayed[1:] != raws[1 : horizon + 1], axis=1)))
-    robot = rollout(plant, _replayer(actions), s0, horizon)
+    robot = rollout(plant, _replayer(actions), s0, horizon, model_only)
     stored = np.array([stored_state(plant, raw) for raw in raws[:horizon]])
     fresh = float(
         np.mean([np.array_equal(policy.act(state), action) for state, action in zip(stored, actions, strict=True)])
     )
-    reference = rollout(plant, policy.act, s0, horizon)
+    reference = rollout(plant, policy.act, s0, horizon, drawn)
     first = bool(np.array_equal(actions[0], reference.actions[0]))
     angle = POLE_ANGLE.get(deployment.task.name)
     upright: tuple[bool | None, bool | None] = (None, None)
@@ -132,7 +143,10 @@ def judge(deployment: Deployment, episode: int, s0: np.ndarray, raws: np.ndarray
             worst_angle_degrees(states, angle, hold, acrobot) <= UPRIGHT_DEGREES
             for states in (stored, reference.states)
         )
-    return TrialEpisode(episode, robot.total_return, reference.total_return, fresh, first, mismatches, *upright)
+    record = "" if drawn is None else drawn.record()
+    return TrialEpisode(
+        episode, robot.total_return, reference.total_return, fresh, first, mismatches, *upright, robot=record
+    )
 
 
 def _replayer(actions: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
@@ -152,13 +166,18 @@ def _raw_states(plant: Any, s0: np.ndarray, actions: np.ndarray) -> np.ndarray:
 
 
 def run_episode(executor: SingleThreadedExecutor, node: TrialNode, deployment: Deployment, episode: int,
-                horizon: int, env: dict[str, str], logs: Path) -> TrialEpisode:  # fmt: skip
-    """One robot process from the episode's s0, for ``horizon`` real-time steps under npp-deploy."""
+                horizon: int, env: dict[str, str], logs: Path, robots: UncertaintySet | None = None,
+                ) -> TrialEpisode:  # fmt: skip
+    """One robot process from the episode's s0 (and, given ``robots``, as the episode's robot drawn from them),
+    for ``horizon`` real-time steps under npp-deploy."""
     task, seed = deployment.task, deployment.metadata.seed
     s0 = task.initial_state(seed, episode)
+    drawn = None if robots is None else robots.draw(seed, episode)
     node.expect(s0)
     params = {"task": task.name, "seed": str(seed), "initial_state": ",".join(repr(float(x)) for x in s0),
               "start_on_command": "true"}  # fmt: skip
+    if drawn is not None:
+        params["robot"] = drawn.record()
     ros_args = [arg for name, value in params.items() for arg in ("-p", f"{name}:={value}")]
     robot = spawn(["npp_ros_graph.nodes.robot", "--ros-args", *ros_args], env, logs / f"robot-{episode}.log")
     limit = START_TIMEOUT_S + 4 * horizon * deployment.plant.dt  # real time: the episode's duration on top
@@ -179,7 +198,7 @@ def run_episode(executor: SingleThreadedExecutor, node: TrialNode, deployment: D
         stop(robot)
     raws, efforts = np.array(node.raws), np.array(node.efforts)
     node.expect(np.zeros(0))
-    return judge(deployment, episode, s0, raws, efforts, horizon)
+    return judge(deployment, episode, s0, raws, efforts, horizon, drawn)
 
 
 def summary(rows: list[TrialEpisode], epsilon: float) -> dict[str, Any]:
@@ -217,7 +236,7 @@ def markdown(out: dict[str, Any]) -> str:
         f"{c['policy_trajectories']} trajectories in the policy, acting {out.get('policy', 'open-loop')}. npp-deploy "
         "loaded it through its gate "
         f"(no override); npp-robot ran each episode in real time ({out['control_period_ms']:g} ms period) "
-        "from a fresh s0.",
+        f"from a fresh s0, on {out.get('robots', MODEL)}.",
         "",
         "| episodes | return robot / in process (median) | gap in process - robot: median / p90 / max "
         "| within epsilon of in process | fresh commands (median, min) | replay mismatches "
@@ -244,6 +263,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--horizon", type=int, default=0, help="steps per episode (0: the run's H)")
     parser.add_argument("--logs", type=Path, default=None, help="folder for the nodes' logs (default: OUT/logs)")
     parser.add_argument("--out", type=Path, default=Path("runs/trial"), help="write OUT/trial.json and OUT/trial.md")
+    parser.add_argument(
+        "--robots",
+        choices=("drawn", "nominal"),
+        default="drawn",
+        help="a run certified on a set of robots: each episode's robot drawn from the set (drawn, the default) or "
+        "the task's model (nominal); a run on the exact model is always tried on it",
+    )
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error(f"--episodes must be at least 1, got {args.episodes}")
@@ -260,6 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     certificate = deployment.certificate
     assert certificate is not None  # the gate passed without an override: the run's own certificate
     horizon = args.horizon or meta.horizon
+    uncertainty = str(getattr(meta, "uncertainty", ""))
+    robots = UncertaintySet.from_record(uncertainty) if uncertainty and args.robots == "drawn" else None
     logs = args.logs or args.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     out: dict[str, Any] = {
@@ -271,6 +299,7 @@ def main(argv: list[str] | None = None) -> int:
         "certificate": {k: certificate.record()[k] for k in ("epsilon", "p", "delta", "certify", "rule",
                                                              "policy_trajectories")},
         "policy": deployment.policy.kind,
+        "robots": robots.describe() if robots is not None else MODEL,
     }  # fmt: skip
     rows: list[TrialEpisode] = []
     started = time.monotonic()
@@ -284,7 +313,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             transition(executor, node, "configure", 900.0)  # the gate; each episode activates and deactivates
             for k in range(args.episodes):
-                rows.append(run_episode(executor, node, deployment, FIRST_TRIAL_EPISODE + k, horizon, env, logs))
+                episode = FIRST_TRIAL_EPISODE + k
+                rows.append(run_episode(executor, node, deployment, episode, horizon, env, logs, robots))
                 r = rows[-1]
                 log(f"episode {k + 1}/{args.episodes} ({time.monotonic() - started:.0f} s): return robot "
                     f"{r.robot_return:.1f}, in process {r.in_process_return:.1f}, fresh commands "
