@@ -41,7 +41,8 @@ class Arm:
     def command(self, seed: int, run_dir: Path, max_episodes: int, evaluate: int) -> list[str]:
         return [
             str(NPP_LEARN), "--task", self.task, "--seed", str(seed), "--certify", self.certify,
-            "--uncertainty", f"{self.uncertainty:g}", "--policy", self.policy, "--explore", f"{self.explore:g}", "--rule", self.rule,
+            "--uncertainty", f"{self.uncertainty:g}", "--policy", self.policy, "--explore", f"{self.explore:g}",
+            "--rule", self.rule,
             "--max-episodes", str(max_episodes), "--evaluate", str(evaluate), "--run-dir", str(run_dir),
         ]  # fmt: skip
 
