@@ -195,6 +195,11 @@ class Task:
         """One s0 ~ rho, drawn from ``rng`` only (so a seed and episode give the same s0 everywhere)."""
         raise NotImplementedError
 
+    def invariant_entries(self) -> tuple[int, ...]:
+        """The state entries whose value changes neither dynamics nor reward (the policy's distance ignores them);
+        its plant's ``invariant``. None by default."""
+        return ()
+
     def analytic_lipschitz(self, expert: Expert) -> LipschitzConstant:
         """A bound on the expert's value slope it computes (the choice 'analytic'); by default refused, saying why."""
         raise ValueError(
@@ -341,4 +346,4 @@ def control_space(plant: Plant) -> ControlSpace:
     """How the plant's states differ and how far its actuators reach (npp_ros.policy.feedback)."""
     low = getattr(plant, "action_low", np.full(plant.action_dim, -np.inf))
     high = getattr(plant, "action_high", np.full(plant.action_dim, np.inf))
-    return ControlSpace.of(plant.state_dim, getattr(plant, "angles", ()), low, high)
+    return ControlSpace.of(plant.state_dim, getattr(plant, "angles", ()), low, high, getattr(plant, "invariant", ()))

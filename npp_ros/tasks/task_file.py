@@ -14,6 +14,7 @@ describes every key. In short::
     [state]
     joints = ["shoulder", "elbow"] # every joint of the model (hinge or slide), in the model's order
     wrap = ["shoulder"]            # hinge angles stored wrapped to (-pi, pi]
+    invariant = []                 # joints whose position changes neither dynamics nor reward (checked at load)
 
     [rho]                          # s0 uniform in these ranges; joints not named start at 0, at rest
     shoulder = { position = [-3.14, 3.14], velocity = [0.0, 0.0] }
@@ -106,6 +107,7 @@ class FilePlant(SuitePlant):
         self.fingerprint_fields = FINGERPRINT_FIELDS
         self.represent = definition.represent  # type: ignore[method-assign]  # the file's wrapping, per instance
         self.angles = tuple(definition.wrapped)
+        self.invariant = tuple(definition.invariant)  # the policy's distance ignores them (npp_ros.policy.feedback)
         self.seed = int(seed)
         self.physics = dm_mujoco.Physics.from_xml_path(str(definition.model_path))
         self._task = definition.reward
@@ -196,6 +198,10 @@ class FileTask(OptimizerTask):
         assert self.definition is not None
         return self.definition.sample_initial_state(rng)
 
+    def invariant_entries(self) -> tuple[int, ...]:
+        assert self.definition is not None
+        return tuple(self.definition.invariant)
+
     def epsilon(self, given: float | None) -> float:
         if given is not None:
             return float(given)
@@ -229,9 +235,60 @@ def load_task_file(name: str) -> FileTask:
     return _task(path, digest, content)
 
 
+INVARIANCE_SAMPLES = 8  # (state, action) pairs a declared invariance is checked on at load
+INVARIANCE_TOLERANCE = 1e-6  # a next state or reward may differ by this (relative to 1 + its size): rounding
+
+
+def check_invariance(definition: TaskDefinition) -> None:
+    """Refuse a ``[state] invariant`` joint whose position does change the dynamics or the reward.
+
+    For a few states (s0 ~ rho, velocities drawn wider) and actions (uniform over the actuator range) the plant
+    steps once from s and once from s with that joint's position shifted: a true invariance gives the same
+    reward and the same next state up to the shift. Sampled, so a check that passes is evidence, not a proof; a
+    check that fails is a counterexample, named in one line.
+    """
+    if not definition.invariant:
+        return
+    plant = FilePlant(definition)
+    rng = np.random.default_rng(0)
+    low = np.where(np.isfinite(plant.action_low), plant.action_low, -1.0)
+    high = np.where(np.isfinite(plant.action_high), plant.action_high, 1.0)
+    positions = plant.positions
+    for entry in definition.invariant:
+        joint = definition.joint_names[int(np.flatnonzero(plant.physics.model.jnt_qposadr == entry)[0])]
+        for _ in range(INVARIANCE_SAMPLES):
+            s = definition.sample_initial_state(rng)
+            s[positions:] += rng.normal(0.0, 1.0, plant.state_dim - positions)
+            u = rng.uniform(low, high)
+            shift = float(rng.uniform(-np.pi, np.pi))
+            moved = s.copy()
+            moved[entry] += shift
+            plant.reset(s)
+            reward = plant.step(u)
+            after = plant.raw_state()
+            plant.reset(moved)
+            moved_reward = plant.step(u)
+            moved_after = plant.raw_state()
+            moved_after[entry] -= shift
+            gap = float(np.max(np.abs(moved_after - after) / (1.0 + np.abs(after))))
+            reward_gap = abs(moved_reward - reward) / (1.0 + abs(reward))
+            if gap > INVARIANCE_TOLERANCE or reward_gap > INVARIANCE_TOLERANCE:
+                what = (
+                    f"the reward by {abs(moved_reward - reward):.3g}"
+                    if reward_gap > INVARIANCE_TOLERANCE
+                    else f"the next state by up to {float(np.max(np.abs(moved_after - after))):.3g}"
+                )
+                raise TaskFileError(
+                    f"task file {definition.path}: state.invariant: joint {joint!r} is not invariant: "
+                    f"shifting its position by {shift:.3g} changes {what} (state {np.round(s, 3).tolist()}, "
+                    f"action {np.round(u, 3).tolist()})"
+                )
+
+
 @functools.lru_cache(maxsize=32)
 def _task(path: Path, digest: str, content: bytes) -> FileTask:
     definition = parse(path, content)
+    check_invariance(definition)
     return FileTask(
         name=definition.name,
         state_dim=definition.state_dim,

@@ -16,7 +16,7 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.suite_plant import substeps_per_control_step
 from npp_ros.tasks.task_file_reader import Reader
 
-STATE_KEYS = {"joints", "wrap"}
+STATE_KEYS = {"joints", "wrap", "invariant"}
 RHO_KEYS = {"position", "velocity"}
 
 
@@ -93,8 +93,12 @@ def read_timestep(reader: Reader, doc: dict[str, Any], model: Any) -> float:
     return given
 
 
-def read_state(reader: Reader, doc: dict[str, Any], model: Any) -> tuple[tuple[str, ...], tuple[int, ...]]:
-    """``[state]``: the model's joints, every one in its order, and the qpos indices stored wrapped."""
+def read_state(
+    reader: Reader, doc: dict[str, Any], model: Any
+) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]:
+    """``[state]``: the model's joints, every one in its order, the qpos indices stored wrapped, and those of the
+    joints declared invariant (their position changes neither dynamics nor reward; checked on the model at load,
+    npp_ros.tasks.task_file.check_invariance)."""
     import mujoco
 
     joints = model_ids(model, "joint")
@@ -115,7 +119,16 @@ def read_state(reader: Reader, doc: dict[str, Any], model: Any) -> tuple[tuple[s
         if int(model.jnt_type[joints[name]]) != int(mujoco.mjtJoint.mjJNT_HINGE):
             raise reader.fail("state.wrap", f"joint {name!r} is not a hinge: only angles wrap")
         wrapped.append(int(model.jnt_qposadr[joints[name]]))
-    return tuple(model_joints), tuple(wrapped)
+    invariant = []
+    one_position = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+    for name in reader.names(state.get("invariant", []), "state.invariant"):
+        _known_joint(reader, "state.invariant", name, joints)
+        if int(model.jnt_type[joints[name]]) not in one_position:
+            raise reader.fail("state.invariant", f"joint {name!r} is not a hinge or a slide: it has no one position")
+        invariant.append(int(model.jnt_qposadr[joints[name]]))
+    if len(invariant) == len(model_joints):
+        raise reader.fail("state.invariant", "every joint is declared invariant: the policy would compare no position")
+    return tuple(model_joints), tuple(wrapped), tuple(sorted(invariant))
 
 
 def _known_joint(reader: Reader, key: str, name: str, joints: dict[str, int]) -> None:

@@ -73,6 +73,7 @@ class TaskDefinition:
     expert: dict[str, Any] = field(default_factory=dict)
     success: SuccessCriterion | None = None  # [success]: when an episode did the task (None: the file states none)
     uncertainty: UncertaintySet = EXACT  # [uncertainty]: what of the robot is uncertain (the exact model: nothing)
+    invariant: tuple[int, ...] = ()  # [state] invariant: qpos indices whose value changes neither dynamics nor reward
 
     @property
     def name(self) -> str:
@@ -119,7 +120,7 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
     model_path, model = load_model(reader, doc, path)
     dt = read_timestep(reader, doc, model)
     horizon, epsilon, lipschitz, certify = _run_defaults(reader, doc)
-    joint_names, wrapped = read_state(reader, doc, model)
+    joint_names, wrapped, invariant = read_state(reader, doc, model)
     actuator_names, actuated = read_actuators(reader, doc, model)
     low, high = read_rho(reader, doc, model)
     reward = read_reward(reader, doc, model)
@@ -132,7 +133,7 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
         model_path=model_path, dt=dt, horizon=horizon, epsilon=epsilon, lipschitz=lipschitz, certify=certify,
         joint_names=joint_names, actuator_names=actuator_names, actuated_joint_names=actuated,
         wrapped=wrapped, rho_low=low, rho_high=high, reward=reward, cost_terms=cost_terms, expert=options,
-        success=success, uncertainty=uncertainty,
+        success=success, uncertainty=uncertainty, invariant=invariant,
     )  # fmt: skip
 
 

@@ -21,6 +21,7 @@ action again without advancing the path, so a rollout through the graph is the i
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import threading
 import time
@@ -38,6 +39,7 @@ from std_msgs.msg import UInt32, UInt64
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, DatasetError
 from npp_ros.policy.feedback import check_policy_kind
+from npp_ros.tasks.registry import get_task
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
@@ -236,7 +238,9 @@ class PolicyNode(Node):
             assert self.dataset is not None and self.plant is not None
             try:
                 kind = check_policy_kind(response.policy)
-                control = control_space_from(self.plant)
+                # The sim describes angles and ranges; the task says which entries the distance ignores.
+                invariant = get_task(self.plant.task).invariant_entries()
+                control = dataclasses.replace(control_space_from(self.plant), invariant=invariant)
                 policy = NonparametricPolicy(self.dataset, response.lipschitz, control=control, kind=kind)
             except ValueError as exc:
                 self._catch_up_needed = True
