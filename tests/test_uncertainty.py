@@ -318,3 +318,14 @@ def test_the_success_claims_progress_says_met_or_failed_not_a_gap_against_epsilo
     assert checked_text(1.0, 130.0, "success") == "success    FAILED"
     assert checked_text(12.5, 130.0, "oracle") == "checked    12.50 / eps 130"
     assert checked_text(float("inf"), 50.0, "rollout", "rollout") == "rollout      inf / eps 50"
+
+
+def test_a_run_says_where_in_the_set_its_expert_failed() -> None:
+    from npp_ros.tasks.uncertainty import where_expert_failed
+
+    weak = Robot((("gear", "torque", 0.82), ("damping", "hinge", 1.4)), action_delay=1)
+    strong = Robot((("gear", "torque", 1.15), ("damping", "hinge", 0.6)))
+    assert where_expert_failed([weak, strong], [False, False]) == ""
+    text = where_expert_failed([weak, strong], [True, False])
+    assert text.startswith("the expert failed on 1 of 2 answers, on robots with gear of torque x[0.82, 0.82]")
+    assert "(all answers x[0.82, 1.15])" in text and "damping of hinge x[1.40, 1.40]" in text and "delay 1" in text

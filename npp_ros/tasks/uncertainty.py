@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 import weakref
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -396,3 +396,30 @@ UNCERTAINTY_HELP = (
     "nominal model. The expert plans on each episode's robot, the policy does not know it, and the certificate "
     "names the set"
 )
+
+
+def where_expert_failed(robots: Sequence[Robot], failed: Sequence[bool]) -> str:
+    """Where in the set the expert failed the task, in words ("" when it never did): the range each parameter
+    took over the robots of its failed answers beside the range it took over all of them, and their delays.
+
+    A set must stay within what the expert can do; this says which corner of it the expert could not."""
+    bad = [robot for robot, lost in zip(robots, failed, strict=True) if lost]
+    if not bad:
+        return ""
+
+    def spread(group: Sequence[Robot]) -> dict[tuple[str, str], tuple[float, float]]:
+        values: dict[tuple[str, str], list[float]] = {}
+        for robot in group:
+            for parameter, name, factor in robot.scales:
+                values.setdefault((parameter, name), []).append(factor)
+        return {key: (min(v), max(v)) for key, v in values.items()}
+
+    failing, every = spread(bad), spread(robots)
+    parts = [
+        f"{parameter} of {name} x[{low:.2f}, {high:.2f}] (all answers x[{every[parameter, name][0]:.2f}, "
+        f"{every[parameter, name][1]:.2f}])"
+        for (parameter, name), (low, high) in failing.items()
+    ]
+    delays = sorted({robot.action_delay for robot in bad})
+    parts.append(f"delay {', '.join(map(str, delays))}")
+    return f"the expert failed on {len(bad)} of {len(robots)} answers, on robots with " + "; ".join(parts)
