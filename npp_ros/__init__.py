@@ -22,6 +22,7 @@ if TYPE_CHECKING:  # `X as X`: re-exported
     from npp_ros.policy.bounds import NonparametricPolicy as NonparametricPolicy
     from npp_ros.policy.feedback import POLICY_KINDS as POLICY_KINDS
     from npp_ros.run.api import Run as Run
+    from npp_ros.run.api import RunRequest as RunRequest
     from npp_ros.run.api import learn as learn
     from npp_ros.run.api import read_run as read_run
     from npp_ros.tasks.registry import TASK_NAMES as TASK_NAMES
@@ -32,6 +33,7 @@ _EXPORTS = {
     "learn": "npp_ros.run.api",
     "read_run": "npp_ros.run.api",
     "Run": "npp_ros.run.api",
+    "RunRequest": "npp_ros.run.api",
     "get_task": "npp_ros.tasks.registry",
     "TASK_NAMES": "npp_ros.tasks.registry",
     "task_names": "npp_ros.tasks.registry",

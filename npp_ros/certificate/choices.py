@@ -38,10 +38,11 @@ def parse_lipschitz(choice: str | float) -> str | LipschitzConstant:
     if choice in LIPSCHITZ_CHOICES:
         return str(choice)
     try:
-        return LipschitzConstant(float(choice), "user", "given as a run setting")
+        value = float(choice)
     except ValueError:
         named = ", ".join(LIPSCHITZ_CHOICES)
         raise ValueError(f"lipschitz must be {named} or a finite number > 0, got {choice!r}") from None
+    return LipschitzConstant(value, "user", "given as a run setting")  # refuses a number that is no L, saying why
 
 
 def check_gamma(gamma: float) -> float:

@@ -7,6 +7,11 @@ an integer >= 1, got '0'`` and exit code 2, before any work or any file is writt
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from npp_ros.run.request import COUNT, INDEX, NUMBER, TASK, RunRequest, request_fields
+from npp_ros.run.request import TASK_HELP as TASK_HELP
 
 
 def _integer(text: str, least: int) -> int:
@@ -63,4 +68,56 @@ class ListTasks(argparse.Action):
         parser.exit()
 
 
-TASK_HELP = "a task: a registered name (see --list-tasks; plug-ins too) or a task file (path ending in .toml)"
+def flag(name: str) -> str:
+    """A request field's command-line option: ``max_episodes`` is ``--max-episodes``."""
+    return "--" + name.replace("_", "-")
+
+
+def add_run_arguments(
+    ap: argparse.ArgumentParser,
+    names: tuple[str, ...] | None = None,
+    *,
+    flags: Mapping[str, str] | None = None,
+    lists: tuple[str, ...] = (),
+    choices: Mapping[str, tuple[str, ...]] | None = None,
+    defaults: Mapping[str, Any] | None = None,
+    helps: Mapping[str, Callable[[str], str]] | None = None,
+) -> None:
+    """The request's fields (those named; all by default) as options, each with the request's one help text.
+
+    A command that differs says so by field: another option name (``flags``), several values side by side
+    (``lists``, each a list), other allowed values (``choices``) or defaults (``defaults``), and its help around
+    the request's (``helps``: the request's text in, the command's out). The parsed values keep the field's name.
+    """
+    flags, choices, defaults, helps = flags or {}, choices or {}, defaults or {}, helps or {}
+    types: dict[str, Callable[[str], Any]] = {
+        TASK: task_name,
+        INDEX: nonnegative_int,
+        COUNT: positive_int,
+        NUMBER: float,
+    }
+    for field, setting in request_fields(names):
+        name = field.name
+        default = defaults.get(name, field.default)
+        allowed = choices.get(name, setting.choices if setting.kind != "lipschitz" else ())
+        text = setting.text()
+        options: dict[str, Any] = {
+            "dest": name,
+            "default": [default] if name in lists and name not in defaults and default is not None else default,
+            "help": helps[name](text) if name in helps else text,
+        }
+        if name in lists:
+            options["nargs"] = "+"
+        if allowed:
+            options["choices"] = allowed
+        if setting.kind in types:
+            options["type"] = types[setting.kind]
+        if setting.metavar:
+            options["metavar"] = setting.metavar
+        ap.add_argument(flags.get(name, flag(name)), **options)
+
+
+def run_request(args: argparse.Namespace, **given: Any) -> RunRequest:
+    """The request a command's parsed options make (the fields it has), with ``given`` over them."""
+    values = {field.name: getattr(args, field.name) for field, _ in request_fields() if hasattr(args, field.name)}
+    return RunRequest(**{**values, **given})

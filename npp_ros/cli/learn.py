@@ -19,30 +19,18 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.certificate.authoring import L_FREE
-from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
-from npp_ros.certificate.choices import LIPSCHITZ_HELP
-from npp_ros.cli.args import TASK_HELP, ListTasks, nonnegative_int, positive_int, task_name
-from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
+from npp_ros.cli.args import ListTasks, add_run_arguments, nonnegative_int, run_request
 from npp_ros.policy.lipschitz import LipschitzWarning
 from npp_ros.run.evaluation import check_policy, check_success, held_out_robots
-from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.loop import NPPLoop, RunResult
 from npp_ros.run.progress import Counter, StatusLine, unreachable_text
 from npp_ros.run.records import RunFileError, write_episode_log
-from npp_ros.run.setup import (
-    build_config,
-    build_loop,
-    expert_notice,
-    lipschitz_checks,
-    policy_for,
-    resolve_lipschitz,
-)
+from npp_ros.run.request import FIELD_NAMES, resolve_run
+from npp_ros.run.setup import build_loop, expert_notice, lipschitz_checks, policy_for
 from npp_ros.run.store import RUN_FILE
-from npp_ros.tasks.registry import ExpertOptions, StopsAtTimeBudget, by_task, get_task, task_label
+from npp_ros.tasks.registry import StopsAtTimeBudget, get_task, task_label
 from npp_ros.tasks.sources import short_name
-from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
 from npp_ros.trajopt.batch_steps import default_threads
-from npp_ros.trajopt.expert import STOP_HELP, STOP_MODES, TIME_BUDGET_HELP
 
 
 def parser() -> argparse.ArgumentParser:
@@ -51,70 +39,14 @@ def parser() -> argparse.ArgumentParser:
         description=__doc__,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    ap.add_argument("--task", type=task_name, default="lqr_2_1", help=TASK_HELP)
+    add_run_arguments(ap, ("task",))
     ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
-    ap.add_argument("--seed", type=nonnegative_int, default=0, help="task seed (plant) and initial-state stream")
-    ap.add_argument(
-        "--epsilon",
-        type=float,
-        default=None,
-        help=f"target gap, in the task's return; default: the paper's ({by_task('paper_epsilon')}) or a task "
-        "file's key epsilon (a task with neither needs this option)",
-    )
-    ap.add_argument(
-        "--lipschitz",
-        default=None,
-        help=f"L: {LIPSCHITZ_HELP}; paper is {by_task('paper_lipschitz')}. Default: analytic where the task has "
-        "it, else a task file's key lipschitz (data when the file gives none), else paper",
-    )
-    ap.add_argument(
-        "--certify",
-        choices=CERTIFY_MODES,
-        default=None,
-        help="what each episode checks: rollout (V_ub + tail - the policy's own return; sound when L bounds the "
-        "value's slope), oracle (the expert's return - the policy's; the check needs no L, though the policy "
-        "chooses with one; relative to the expert) or surrogate (the paper's V_ub - V_lb; rests on Theorem 3.4). "
-        "Default: the task's "
-        f"({by_task('default_certify')}; oracle where the expert is suboptimal; a task file's key certify)",
-    )
-    ap.add_argument(
-        "--rule",
-        choices=STOPPING_RULES,
-        default=None,
-        help="when to stop: sequential (a streak of passes per policy, valid however often it is checked), "
-        "mixture (a 20-pass screen, then a failure-tolerant mixture test of the frozen policy, also valid) or "
-        "paper (the one-shot test of Theorem 4.1, to reproduce the paper); default: the checked quantity's "
-        f"({', '.join(f'{mode} {rule}' for mode, rule in DEFAULT_RULES.items())})",
-    )
-    ap.add_argument("--policy", choices=POLICY_KINDS, default=DEFAULT_POLICY, help=POLICY_HELP)
-    ap.add_argument("--explore", type=float, default=0.0, metavar="RADIUS", help=EXPLORE_HELP)
-    ap.add_argument("--uncertainty", type=float, default=0.0, metavar="FACTOR", help=UNCERTAINTY_HELP)
-    ap.add_argument("--condition", choices=("i", "ii"), default="i", help="Theorem 4.1 condition")
-    ap.add_argument("--p", type=float, default=0.9, help="probability level p of condition (i)")
-    ap.add_argument("--delta", type=float, default=0.1, help="confidence delta")
-    ap.add_argument(
-        "--horizon",
-        type=positive_int,
-        default=None,
-        help="episode length H; default: the task's (1000; a task file's key horizon)",
-    )
-    ap.add_argument("--gamma", type=float, default=1.0, help="discount; 1 = undiscounted H-step values")
-    ap.add_argument("--max-episodes", type=positive_int, default=1000, help="stop uncertified after this many episodes")
+    add_run_arguments(ap, tuple(name for name in FIELD_NAMES if name != "task"))
     ap.add_argument(
         "--stop-when-unreachable",
         action="store_true",
         help="end the run, uncertified, as soon as no certificate can come within --max-episodes (the episodes "
         "left are fewer than the rule needs at best: a streak's passes still missing); the run says so either way",
-    )
-    ap.add_argument("--time-budget", type=float, default=None, help=TIME_BUDGET_HELP)
-    ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=STOP_HELP)
-    ap.add_argument(
-        "--values",
-        choices=("window", "return-to-go"),
-        default=None,
-        help="what an iLQR expert stores as Q_t: window (the H-step return of s_t, the default: one value per "
-        "state) or return-to-go (depends on the time left, so rollout mode refuses it); default: a task file's "
-        "[expert] values, else window",
     )
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/learn-TASK-seedSEED")
     ap.add_argument(
@@ -149,25 +81,11 @@ def run_to_end(loop: NPPLoop, max_episodes: int, stop_when_unreachable: bool) ->
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     task = get_task(args.task)
-    args.horizon = task.default_horizon if args.horizon is None else args.horizon
     run_dir = args.run_dir or Path("runs") / f"learn-{short_name(args.task)}-seed{args.seed}"
     try:
-        epsilon = task.epsilon(args.epsilon)
         # one expert, alone in this process: its derivatives may take every core
-        options = ExpertOptions(
-            gamma=args.gamma, time_budget=args.time_budget, values=args.values, stop=args.expert_stop,
-            threads=default_threads(),
-        )  # fmt: skip
-        expert = task.make_expert(args.seed, args.horizon, options)
-        lipschitz = resolve_lipschitz(
-            args.task, args.lipschitz, expert, seed=args.seed, horizon=args.horizon, run_file=run_dir / RUN_FILE
-        )
-        config = build_config(
-            args.task, args.seed, lipschitz, epsilon,
-            condition=args.condition, p=args.p, delta=args.delta, horizon=args.horizon, gamma=args.gamma,
-            certify=args.certify, rule=args.rule, policy=args.policy, explore=args.explore,
-            uncertainty=args.uncertainty,
-        )  # fmt: skip
+        run = resolve_run(run_request(args), run_file=run_dir / RUN_FILE, threads=default_threads())
+        request, config, expert, epsilon, lipschitz = run.request, run.config, run.expert, run.epsilon, run.lipschitz
         status = StatusLine(
             epsilon, args.condition, max_episodes=args.max_episodes, prefix="npp-learn: ", certify=config.spec.certify
         )
@@ -175,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, RunFileError) as exc:
         print(f"npp-learn: {exc}", file=sys.stderr)
         return 2
+    args.horizon = request.horizon
 
     label = task_label(args.task)  # a task file's name key; its path and hash stay in the run file and summary.json
     print(f"npp-learn: {label} seed {args.seed}, epsilon {epsilon:g}, {lipschitz.describe()}", file=sys.stderr)

@@ -165,9 +165,7 @@ def uncertainty_record(task: str, seed: int, factor: float) -> str:
     robot can be drawn into, or its expert cannot plan on a drawn robot (the certificate's reference would be
     the nominal expert's, which this run does not claim).
     """
-    if not (math.isfinite(factor) and factor >= 0):
-        raise ValueError(f"the uncertainty factor must be finite and >= 0 (0: the exact model), got {factor!r}")
-    if factor == 0:
+    if check_uncertainty(factor) == 0:
         return ""
     definition = get_task(task)
     name = short_name(task)
@@ -180,6 +178,13 @@ def uncertainty_record(task: str, seed: int, factor: float) -> str:
             "each request), so no certificate under uncertainty can name its reference: uncertainty 0"
         )
     return definition.uncertainty.widened(factor).resolved(plant.physics.model).record()
+
+
+def check_uncertainty(factor: float) -> float:
+    """An uncertainty factor: finite and >= 0 (0: the exact model)."""
+    if not (math.isfinite(factor) and factor >= 0):
+        raise ValueError(f"the uncertainty factor must be finite and >= 0 (0: the exact model), got {factor!r}")
+    return float(factor)
 
 
 def robot_fn(config: RunConfig) -> Callable[[int], Robot] | None:
