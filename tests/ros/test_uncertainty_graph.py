@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from reference import decisions
 
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
@@ -31,13 +32,16 @@ BUDGET = 120.0  # seconds per request: never reached, so iterations decide (dete
 ITERATIONS = 5
 
 
-def test_a_run_under_uncertainty_gives_the_in_process_robots_returns_and_checks(tmp_path: Path) -> None:
+@pytest.mark.parametrize("certify", ["oracle", "success"])
+def test_a_run_under_uncertainty_gives_the_in_process_robots_returns_and_checks(tmp_path: Path, certify: str) -> None:
+    """The gap claim (oracle: the expert answers every episode) and the success claim (the expert only after a
+    failed check) alike."""
     run_dir = tmp_path / "graph"
     command = [
         sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--seed", str(SEED),
         "--horizon", str(HORIZON), "--epsilon", str(EPSILON), "--lipschitz", str(LIPSCHITZ),
         "--max-episodes", str(EPISODES), "--run-dir", str(run_dir), "--time-budget", str(BUDGET),
-        "--max-iterations", str(ITERATIONS), "--uncertainty", "1",
+        "--max-iterations", str(ITERATIONS), "--uncertainty", "1", "--certify", certify,
     ]  # fmt: skip
     run = subprocess.run(command, capture_output=True, text=True, timeout=600)
     logs = {p.stem: p.read_text() for p in sorted((run_dir / "logs").glob("*.log"))}
@@ -53,7 +57,7 @@ def test_a_run_under_uncertainty_gives_the_in_process_robots_returns_and_checks(
     task = get_task(TASK)
     expert = task.make_expert(SEED, HORIZON, ExpertOptions(time_budget=BUDGET, max_iterations=ITERATIONS))
     lipschitz = resolve_lipschitz(TASK, LIPSCHITZ, expert)
-    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, uncertainty=1.0)
+    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, uncertainty=1.0, certify=certify)
     loop = build_loop(config, expert)
     local = loop.run(max_episodes=EPISODES)
     assert metadata.uncertainty == config.uncertainty != ""
