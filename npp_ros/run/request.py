@@ -121,19 +121,20 @@ class RunRequest:
     condition: Condition = field(default="i", metadata=spelled("Theorem 4.1 condition", CHOICE, choices=CONDITIONS))
     p: float = field(
         default=0.9,
-        metadata=spelled("condition (i): share of initial states within epsilon, in (0, 1)", NUMBER, low=0, high=1),
+        metadata=spelled("condition (i): share of initial states within epsilon, in (0, 1)", NUMBER, low=0.0, high=1.0),
     )
     delta: float = field(
-        default=0.1, metadata=spelled("the claim holds with probability >= 1 - delta, in (0, 1)", NUMBER, low=0, high=1)
+        default=0.1,
+        metadata=spelled("the claim holds with probability >= 1 - delta, in (0, 1)", NUMBER, low=0.0, high=1.0),
     )
     horizon: int | None = field(
         default=None, metadata=spelled("episode length H; default: the task's (1000; a task file's key horizon)", COUNT)
     )
     gamma: float = field(
-        default=1.0, metadata=spelled("discount, in (0, 1]; 1 = undiscounted H-step values", NUMBER, low=0, high=1)
+        default=1.0, metadata=spelled("discount, in (0, 1]; 1 = undiscounted H-step values", NUMBER, low=0.0, high=1.0)
     )
-    explore: float = field(default=0.0, metadata=spelled(EXPLORE_HELP, NUMBER, metavar="RADIUS", low=0))
-    uncertainty: float = field(default=0.0, metadata=spelled(UNCERTAINTY_HELP, NUMBER, metavar="FACTOR", low=0))
+    explore: float = field(default=0.0, metadata=spelled(EXPLORE_HELP, NUMBER, metavar="RADIUS", low=0.0))
+    uncertainty: float = field(default=0.0, metadata=spelled(UNCERTAINTY_HELP, NUMBER, metavar="FACTOR", low=0.0))
     max_episodes: int = field(default=1000, metadata=spelled("stop uncertified after this many episodes", COUNT, low=1))
     time_budget: float | None = field(default=None, metadata=spelled(TIME_BUDGET_HELP, NUMBER))
     expert_stop: str | None = field(

@@ -31,20 +31,19 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 
-from npp_ros.certificate.choices import check_gamma
 from npp_ros.policy.dataset import Trajectory
 from npp_ros.policy.vectors import finite_vector, state_digest
+from npp_ros.run.request import EXPERT_FIELDS, RunRequest
 from npp_ros.tasks.expert_pool import ExpertPool, PooledAnswer, default_workers
 from npp_ros.tasks.registry import MAX_HORIZON, Expert, ExpertOptions, StopsAtTimeBudget, get_task
 from npp_ros.tasks.uncertainty import Robot, as_robot, supports_robots
 from npp_ros.trajopt.batch_steps import default_threads
-from npp_ros.trajopt.expert import STOP_HELP
 from npp_ros_graph.runtime.diagnostics import ERROR, OK, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import robot_from_field, state_layout, trajectory_to_response
 from npp_ros_graph.transport.expert_api import robot_refusal
-from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
+from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help, request_params
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
     BUSY,
@@ -56,12 +55,9 @@ from npp_ros_graph.transport.topics import (
 )
 
 PARAMETERS = (
-    Param("gamma", 1.0, "discount, in (0, 1]; 1 = undiscounted H-step values V* = H - J*", 0.0, 1.0),
+    *request_params(EXPERT_FIELDS),
     Param("max_horizon", 10000, "largest horizon a request may ask for", 1, MAX_HORIZON),
     Param("max_queue", 100, "requests that may wait for the worker; more are refused at once with 'busy:'", 1),
-    Param("time_budget", 0.0, "seconds per request for an optimizer (iLQR) expert; 0 = the task's default", 0.0),
-    Param("max_iterations", 0, "iLQR iterations per request for an optimizer expert; 0 = the task's default", 0),
-    Param("stop", "", f"{STOP_HELP}; '' = the task's default"),
     Param("workers", 0, "processes computing an optimizer expert's requests at once (answers are the one-at-a-time "
           "answers); 0 = one per core; a closed-form expert answers in the node", 0),
     Param("threads", 0, "threads of each worker's iLQR derivatives (mujoco.batch; answers are the same at any "
@@ -71,29 +67,28 @@ PARAMETERS = (
 
 @dataclass(frozen=True)
 class ExpertSettings:
-    """The expert's parameters; the core checks the discount."""
+    """The expert's parameters; the run request's checks check its options (the same the supervisor's are)."""
 
     gamma: float
+    time_budget: float | None  # None: the task's
+    expert_stop: str | None
+    values: str | None
+    max_iterations: int | None
     max_horizon: int
     max_queue: int
-    time_budget: float
-    max_iterations: int
-    stop: str
     workers: int
     threads: int
 
     def __post_init__(self) -> None:
-        check_gamma(self.gamma)
+        self.request()
+
+    def request(self) -> RunRequest:
+        """The run request's expert options, as given here: the supervisor measures L with the same expert."""
+        return RunRequest(**{name: getattr(self, name) for name in EXPERT_FIELDS})
 
     def options(self, workers: int) -> ExpertOptions:
-        """What the task's make_expert gets; 0 is the task's default (a closed-form expert refuses others)."""
-        return ExpertOptions(
-            gamma=self.gamma,
-            time_budget=self.time_budget or None,
-            max_iterations=self.max_iterations or None,
-            stop=self.stop or None,
-            threads=self.threads or default_threads(workers),
-        )
+        """What the task's make_expert gets (a closed-form expert refuses options it has no use for)."""
+        return self.request().expert_options(threads=self.threads or default_threads(workers))
 
 
 USAGE = f"""npp-expert: the task's expert oracle as a ROS 2 service (node "npp_expert").

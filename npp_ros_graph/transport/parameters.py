@@ -7,7 +7,8 @@ settings feed, in the settings' ``__post_init__``. Any refusal becomes a Startup
 
 A parameter whose ROS value is not the core's type names a ``read`` that converts it, the one place that
 conversion happens: a value the task decides is the text ``task`` on the ROS side (a parameter cannot be
-unset), None in the core (:func:`task_or_number`).
+unset), None in the core (:func:`task_or_number`). A run's settings are the run request's fields
+(npp_ros.run.request), made parameters by :func:`request_params` with the request's help texts.
 
 Overrides are read before they are declared, so that an unknown name is refused with the closest known
 one, and a whole number given for a float (``-p epsilon:=30``) or for a text-or-number choice
@@ -26,6 +27,9 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+
+from npp_ros.certificate.choices import parse_lipschitz
+from npp_ros.run.request import COUNT, INDEX, LIPSCHITZ, NUMBER, Setting, request_fields
 
 Value = bool | int | float | str
 Settings = TypeVar("Settings")
@@ -48,6 +52,30 @@ def task_or_choice(text: str) -> str | None:
 def task_or_number_value(value: float | None) -> str | float:
     """The parameter value that :func:`task_or_number` reads back as ``value`` (what a launcher passes)."""
     return TASK_CHOICE if value is None else float(value)
+
+
+def _reader(setting: Setting) -> Callable[[Any], Any]:
+    """How a request field's parameter is read into the field's type: ``task`` is None, else the value parsed."""
+    parse: Callable[[Any], Any] = {COUNT: int, INDEX: int, NUMBER: float, LIPSCHITZ: parse_lipschitz}.get(
+        setting.kind, str
+    )
+    return lambda value: None if str(value).strip() == TASK_CHOICE else parse(value)
+
+
+def request_params(names: Sequence[str] | None = None, *, read_only: bool = True) -> tuple[Param, ...]:
+    """The run request's fields (those named) as parameters, with the request's help texts: a field whose value
+    the task decides (None) is the text ``task`` until given, and the request checks every value."""
+    params = []
+    for field, setting in request_fields(tuple(names) if names is not None else None):
+        if field.default is not None:
+            low, high, choices = setting.low, setting.high, setting.choices
+            params.append(Param(field.name, field.default, setting.text(), low, high, choices, read_only))
+            continue
+        kind = {COUNT: "an integer >= 1", NUMBER: "a number > 0", LIPSCHITZ: "a number > 0"}.get(setting.kind)
+        choices = (TASK_CHOICE, *setting.choices, *([kind] if kind else []))
+        params.append(Param(field.name, TASK_CHOICE, setting.text(), choices=choices, read_only=read_only,
+                            read=_reader(setting)))  # fmt: skip
+    return tuple(params)
 
 
 class StartupError(RuntimeError):
@@ -137,10 +165,12 @@ def _refuse_unknown(node: Node, params: Sequence[Param]) -> None:
 def declare_settings(node: Node, params: Sequence[Param], settings: type[Settings]) -> Settings:
     """Declare every parameter of the table and build the node's settings from their values.
 
-    ``settings`` is a frozen dataclass whose fields are the table's names; its construction (the core
-    checks in its ``__post_init__``) is where values are validated.
+    ``settings`` is a frozen dataclass whose fields are the table's names (or one that names them in
+    ``parameter_names()`` and is built by ``from_parameters(**values)``); its construction (the core checks in its
+    ``__post_init__``) is where values are validated.
     """
-    names = {f.name for f in fields(settings)}  # type: ignore[arg-type]
+    own = getattr(settings, "parameter_names", None)  # settings that group some parameters (a run request) say so
+    names = set(own()) if own is not None else {f.name for f in fields(settings)}  # type: ignore[arg-type]
     assert names == {p.name for p in params}, f"{settings.__name__} and its parameter table disagree"
     _refuse_unknown(node, params)
     overrides = _overrides(node)
@@ -155,6 +185,6 @@ def declare_settings(node: Node, params: Sequence[Param], settings: type[Setting
             given = overrides[param.name].value if param.name in overrides else param.default
             raise StartupError(f"parameter {param.name} must be {param.allowed()}, got {given!r}") from None
     try:
-        return settings(**values)
+        return getattr(settings, "from_parameters", settings)(**values)
     except ValueError as exc:
         raise StartupError(f"bad parameter: {exc}") from None

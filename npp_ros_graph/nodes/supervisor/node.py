@@ -16,8 +16,9 @@ from __future__ import annotations
 import sys
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from typing import Any
 
 from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
@@ -26,26 +27,14 @@ from npp_interfaces.srv import ExpertTrajectory, GetTrajectories, ResetEpisode
 from rclpy.node import Node
 from std_msgs.msg import UInt32
 
-from npp_ros.certificate.certifier import (
-    CERTIFY_MODES,
-    CONDITIONS,
-    STOPPING_RULES,
-    CheckedQuantity,
-    Condition,
-    StoppingRule,
-    check_spec_choices,
-)
-from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, parse_lipschitz
 from npp_ros.policy.dataset import FloatArray, Trajectory
-from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
-from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.run.explore import EXPLORE_HELP
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
-from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz, robot_fn
+from npp_ros.run.request import FIELD_NAMES, PLANT_FIELDS, RunRequest, resolve_run
+from npp_ros.run.setup import build_loop, initial_state_fn, robot_fn
 from npp_ros.run.store import RUN_FILE, RunStore
 from npp_ros.tasks.answer_check import AnswerCheck
-from npp_ros.tasks.registry import by_task, get_task
-from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP, Robot
+from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.nodes.supervisor.expert import RosExpert
 from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
 from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollouts
@@ -56,14 +45,7 @@ from npp_ros_graph.runtime.reports import report_context
 from npp_ros_graph.transport.convert import (
     trajectory_to_msg,
 )
-from npp_ros_graph.transport.parameters import (
-    TASK_CHOICE,
-    Param,
-    declare_settings,
-    parameter_help,
-    task_or_choice,
-    task_or_number,
-)
+from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help, request_params
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
     CERTIFICATE,
@@ -83,35 +65,11 @@ from npp_ros_graph.transport.topics import (
     SERVICE_QOS,
 )
 
-MODE_DEFAULT = "mode"  # the stopping rule the checked quantity defaults to (DEFAULT_RULES)
-
-
-def task_or_lipschitz(text: str) -> str | LipschitzConstant | None:
-    """L's parameter in the core's type: None for ``task`` (the task decides), a named choice, or a user's L."""
-    return None if text == TASK_CHOICE else parse_lipschitz(text)
-
+RUN_PARAMETERS = request_params([name for name in FIELD_NAMES if name not in PLANT_FIELDS])
+"""The run's settings (the sim's plant names its task, seed and horizon), with the request's help texts."""
 
 PARAMETERS = (
-    Param("epsilon", TASK_CHOICE, f"target gap > 0; task = the task's: the paper's ({by_task('paper_epsilon')}) or a "
-          "task file's", choices=(TASK_CHOICE, "a number > 0"), read=task_or_number),
-    Param("lipschitz", TASK_CHOICE, "L: analytic (bounds V*'s slope on the expert's states; lqr), paper ("
-          f"{by_task('paper_lipschitz')}; not a bound), data (fixed from the run's first expert answers; a choice) or "
-          "a number > 0; task = analytic where the task has it, else a task file's lipschitz, else paper",
-          choices=(TASK_CHOICE, *LIPSCHITZ_CHOICES, "a number > 0"), read=task_or_lipschitz),
-    Param("condition", "i", "Theorem 4.1 condition", choices=CONDITIONS),
-    Param("policy", DEFAULT_POLICY, POLICY_HELP, choices=POLICY_KINDS),
-    Param("explore", 0.0, EXPLORE_HELP, 0.0),
-    Param("uncertainty", 0.0, UNCERTAINTY_HELP, 0.0),
-    Param("certify", TASK_CHOICE, "the checked quantity (surrogate is the paper's); task = the task's own (rollout "
-          "on lqr, oracle for the iLQR experts, whose claims are relative to the expert)",
-          choices=(TASK_CHOICE, *CERTIFY_MODES), read=task_or_choice),
-    Param("rule", MODE_DEFAULT, "stopping rule: sequential (a streak per policy) or mixture (a screen, then a "
-          "failure-tolerant test), both valid however often they look, or the paper's; mode = the checked "
-          "quantity's default", choices=(MODE_DEFAULT, *STOPPING_RULES),
-          read=lambda rule: None if rule == MODE_DEFAULT else rule),
-    Param("p", 0.9, "condition (i): share of initial states within epsilon, in (0, 1)", 0.0, 1.0),
-    Param("delta", 0.1, "the claim holds with probability >= 1 - delta, in (0, 1)", 0.0, 1.0),
-    Param("max_episodes", 1000, "stop uncertified after this many episodes", 1),
+    *RUN_PARAMETERS,
     Param("run_dir", "runs/graph", "run folder: run.sqlite, gaps.csv, episodes.csv"),
     Param("expert_timeout", 30.0, "seconds one expert attempt may take (a busy or not-ready expert is asked again)",
           1e-3),
@@ -127,24 +85,14 @@ PARAMETERS = (
 
 @dataclass(frozen=True)
 class SupervisorSettings:
-    """The supervisor's parameters, checked at start by the code the run's spec is built with.
+    """The supervisor's parameters: the run's request and how the node runs it.
 
-    check_spec_choices (what CertificationSpec checks its fields with) checks condition, p, delta, the policy and
-    those of epsilon, certify and rule the parameters give; what the task decides (None here: epsilon, certify,
-    rule, and L's diam(S0)) is checked when the sim names the task and the spec is built.
+    The request checks its values when it is made (RunRequest, with the checks CertificationSpec uses), before the
+    task is known; what the task decides (None: epsilon, certify, rule, L, the expert's options) is resolved when the
+    sim names the task, seed and horizon. The request's fields read through (``settings.epsilon``).
     """
 
-    epsilon: float | None  # None: the task's
-    lipschitz: str | LipschitzConstant | None  # a named choice, a user's L, or None: the task's
-    condition: Condition
-    certify: CheckedQuantity | None  # None: the task's
-    rule: StoppingRule | None  # None: the checked quantity's default
-    policy: str
-    explore: float
-    uncertainty: float
-    p: float
-    delta: float
-    max_episodes: int
+    request: RunRequest  # its task, seed and horizon are replaced by those the sim's plant names
     run_dir: str
     expert_timeout: float
     expert_retries: int
@@ -155,9 +103,20 @@ class SupervisorSettings:
     def __post_init__(self) -> None:
         if not self.run_dir.strip():
             raise ValueError("run_dir must name a folder")
-        check_spec_choices(
-            self.condition, self.p, self.delta, self.policy, epsilon=self.epsilon, certify=self.certify, rule=self.rule
-        )
+
+    def __getattr__(self, name: str) -> Any:
+        if name in FIELD_NAMES:
+            return getattr(self.request, name)
+        raise AttributeError(name)
+
+    @classmethod
+    def parameter_names(cls) -> list[str]:
+        return [f.name for f in fields(cls) if f.name != "request"] + [p.name for p in RUN_PARAMETERS]
+
+    @classmethod
+    def from_parameters(cls, **values: Any) -> SupervisorSettings:
+        run = {p.name: values.pop(p.name) for p in RUN_PARAMETERS}
+        return cls(RunRequest(**run), **values)
 
 
 USAGE = f"""npp-supervisor: Algorithm 1 over the ROS graph (ROS 2 node "npp_supervisor").
@@ -297,26 +256,15 @@ class SupervisorNode(Node):
     def _run_algorithm(self) -> None:
         assert self.plant is not None
         s, plant = self.settings, self.plant
-        task, spec = plant.task, get_task(plant.task)
-        # The task's expert, built here too: L's analytic bound, V(s0) where closed form, the value basis.
-        expert = spec.make_expert(plant.seed, plant.horizon)
+        run_dir = Path(s.run_dir)
+        request = replace(s.request, task=plant.task, seed=int(plant.seed), horizon=int(plant.horizon))
+        # The task's expert, built here too with the expert node's options: L (analytic, or measured on its answers
+        # for 'data'), V(s0) where closed form, the value basis.
+        run = resolve_run(request, run_file=run_dir / RUN_FILE)
+        task, spec, config, expert = plant.task, get_task(plant.task), run.config, run.expert
+        epsilon, lipschitz = run.epsilon, run.lipschitz
         if expert.plant.model_sha256() != plant.model_sha256:
             raise RuntimeError("the sim's plant differs from the task's model: refusing to certify")
-        epsilon = spec.epsilon(s.epsilon)
-        if isinstance(s.lipschitz, LipschitzConstant):
-            lipschitz = s.lipschitz
-        else:
-            run_file = Path(s.run_dir) / RUN_FILE
-            lipschitz = resolve_lipschitz(
-                task, s.lipschitz, expert, seed=plant.seed, horizon=plant.horizon, run_file=run_file
-            )
-        config = build_config(
-            task, plant.seed, lipschitz, epsilon,
-            condition=s.condition, p=s.p, delta=s.delta, horizon=plant.horizon, certify=s.certify, rule=s.rule,  # type: ignore[arg-type]
-            policy=s.policy, explore=s.explore,  # type: ignore[arg-type]  # the parameter's choices are the kinds
-            uncertainty=s.uncertainty,
-        )  # fmt: skip
-        run_dir = Path(s.run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         store = RunStore.open_or_create(run_dir / RUN_FILE, config.metadata())  # RunFileError: refuse
         try:  # closed also on Ctrl-C, so that the file is one self-contained file again
