@@ -12,6 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.request import EXPERT_FIELDS, PLANT_FIELDS, RunRequest
+from npp_ros_graph.transport.parameters import TASK_CHOICE
+
 
 @dataclass(frozen=True)
 class GraphNode:
@@ -56,6 +60,34 @@ def graph_parameters(
         "expert": dict(expert or {}),
         "policy": dict(policy or {}),
         "supervisor": {"run_dir": str(run_dir), **(supervisor or {})},
+    }
+
+
+def request_parameters(request: RunRequest, run_dir: Path | str) -> dict[str, dict[str, Any]]:
+    """Each role's parameters for a run request, every field of it: the plant's (task, seed, horizon) to the sim,
+    the expert's options to the expert and to the supervisor (which builds the same expert for L), every other
+    field to the supervisor. None is ``task`` (the task's value); ``request.horizon`` must be known."""
+    assert request.horizon is not None, "the sim needs the horizon: the task's default_horizon where none is asked"
+    values = {name: parameter_value(value) for name, value in vars(request).items()}
+    return graph_parameters(
+        request.task, request.seed, request.horizon, run_dir,
+        expert={name: values[name] for name in EXPERT_FIELDS},
+        supervisor={name: value for name, value in values.items() if name not in PLANT_FIELDS},
+    )  # fmt: skip
+
+
+def parameter_value(value: Any) -> Any:
+    """A request field's value as its ROS parameter holds it: None is ``task``, a user's L its number."""
+    if value is None:
+        return TASK_CHOICE
+    return value.value if isinstance(value, LipschitzConstant) else value
+
+
+def run_options(request: RunRequest) -> dict[str, Any]:
+    """The npp-run options that ask for this request: its fields that differ from their defaults (L as its number)."""
+    return {
+        name: value.value if isinstance(value, LipschitzConstant) else value
+        for name, value in request.changed().items()
     }
 
 

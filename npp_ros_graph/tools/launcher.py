@@ -25,6 +25,7 @@ import sys
 import threading
 import time
 from contextlib import suppress
+from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
 from typing import IO
@@ -32,24 +33,19 @@ from typing import IO
 from diagnostic_msgs.msg import DiagnosticArray
 from npp_interfaces.msg import Certificate, GapReport
 
-from npp_ros.certificate.certifier import STOPPING_RULES
-from npp_ros.cli.args import TASK_HELP, ListTasks, task_name
-from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
-from npp_ros.run.explore import EXPLORE_HELP
+from npp_ros.cli.args import ListTasks, add_run_arguments, run_request
 from npp_ros.run.records import RunFileError
+from npp_ros.run.request import FIELD_NAMES
 from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import RUN_FILE, WriterLock
-from npp_ros.tasks.registry import by_task, get_task
-from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
-from npp_ros.trajopt.expert import DEFAULT_GUARD_S, DEFAULT_TIME_BUDGET_S, STOP_HELP, STOP_MODES
+from npp_ros.tasks.registry import get_task
 from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default_run_dir
-from npp_ros_graph.graph.description import graph_parameters, node_argv
+from npp_ros_graph.graph.description import node_argv, request_parameters
 from npp_ros_graph.runtime.diagnostics import WARN, health_of
 from npp_ros_graph.runtime.node import TEARDOWN_S, leave_if_teardown_hangs, node_name, publishers_of
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
-from npp_ros_graph.transport.parameters import task_or_number_value
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import GAP, PLANT
 
@@ -69,49 +65,9 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="npp-run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--task", default="lqr_2_1", type=task_name, help=TASK_HELP)
+    add_run_arguments(ap, ("task",))
     ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
-    ap.add_argument("--seed", type=int, default=0, help="task seed")
-    ap.add_argument(
-        "--horizon",
-        type=int,
-        default=None,
-        help="episode length; default: the task's (1000; a task file's key horizon)",
-    )
-    ap.add_argument(
-        "--epsilon", type=float, default=None,
-        help=f"target gap > 0; default: the task's, the paper's ({by_task('paper_epsilon')}) or a task file's key "
-        "epsilon",
-    )  # fmt: skip
-    ap.add_argument(
-        "--lipschitz", default="task",
-        help="'analytic' (lqr), 'paper' (not a bound), 'data' (fixed from the run's first expert answers; a choice, "
-        "not a bound) or a number; task: the task's (analytic, else a task file's key lipschitz, else paper)",
-    )  # fmt: skip
-    ap.add_argument(
-        "--certify",
-        default="task",
-        help=f"rollout, oracle or surrogate; task: the task's ({by_task('default_certify')}; a task file's key "
-        "certify)",
-    )
-    ap.add_argument(
-        "--time-budget",
-        type=float,
-        default=0.0,
-        help=f"seconds per iLQR expert request: a guard under --expert-stop iterations, the budget under time; 0: "
-        f"the task's ({DEFAULT_GUARD_S:g} and {DEFAULT_TIME_BUDGET_S:g}; a task file's [expert] time_budget)",
-    )
-    ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=STOP_HELP)
-    ap.add_argument(
-        "--rule", default="mode", choices=("mode", *STOPPING_RULES),
-        help="when to stop: a streak per policy (sequential), a screen then a failure-tolerant test (mixture), or "
-        "the paper's one-shot rule; mode: the checked quantity's default (sequential in every mode)",
-    )  # fmt: skip
-    ap.add_argument("--policy", choices=POLICY_KINDS, default=DEFAULT_POLICY, help=POLICY_HELP)
-    ap.add_argument("--explore", type=float, default=0.0, metavar="RADIUS", help=EXPLORE_HELP)
-    ap.add_argument("--uncertainty", type=float, default=0.0, metavar="FACTOR", help=UNCERTAINTY_HELP)
-    ap.add_argument("--max-iterations", type=int, default=0, help="iLQR iterations per request; 0: the task's")
-    ap.add_argument("--max-episodes", type=int, default=1000, help="episode budget")
+    add_run_arguments(ap, tuple(name for name in FIELD_NAMES if name != "task"))  # every setting, one help each
     ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")
     ap.add_argument("--no-rollouts", action="store_true", help="skip the policy's episodes (gap checks only)")
     ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the four nodes (default: inherited)")
@@ -335,6 +291,12 @@ def _stopped(pid: int) -> bool:
 # --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    try:  # the request's own checks, before any node: a node would refuse the same value in the same words
+        request = run_request(args)
+    except ValueError as exc:
+        say(f"npp-run: {exc}; not starting")
+        return 2
+    request = replace(request, horizon=request.horizon or get_task(request.task).default_horizon)
     run_dir = (args.run_dir or default_run_dir(args.task, args.seed)).resolve()
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     in_use = folder_in_use(run_dir)
@@ -347,16 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", KEY_ENV) if k in env})
-    params = graph_parameters(
-        args.task, args.seed, get_task(args.task).default_horizon if args.horizon is None else args.horizon, run_dir,
-        expert={"time_budget": float(args.time_budget), "max_iterations": args.max_iterations,
-                "stop": args.expert_stop or ""},
-        supervisor={"epsilon": task_or_number_value(args.epsilon), "lipschitz": str(args.lipschitz),
-                    "certify": args.certify,
-                    "rule": args.rule, "policy": args.policy, "explore": float(args.explore),
-                    "uncertainty": float(args.uncertainty),
-                    "max_episodes": args.max_episodes, "rollouts": not args.no_rollouts},
-    )  # fmt: skip
+    params = request_parameters(request, run_dir)  # every setting of the run, to the nodes that use it
+    params["supervisor"]["rollouts"] = not args.no_rollouts
     for signum in (signal.SIGHUP, signal.SIGTERM):
         signal.signal(signum, _raise_stopped)
     # Started from a script's background job, npp-run inherits an ignored SIGINT, and Python then keeps it
