@@ -40,7 +40,9 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
 from npp_ros.policy.dataset import Trajectory
+from npp_ros.run.request import RunRequest
 from npp_ros.tasks.sources import short_name
+from npp_ros_graph.graph.description import run_options
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
 from npp_ros_graph.runtime.node import release
 from npp_ros_graph.runtime.reports import RunReports
@@ -184,9 +186,9 @@ class GraphClient:
     @classmethod
     def start(
         cls,
-        task: str = "lqr_2_1",
+        task: str | RunRequest = "lqr_2_1",
         *,
-        seed: int = 0,
+        seed: int | None = None,
         run_dir: Path | str | None = None,
         domain_id: int | None = None,
         key: str | None = None,
@@ -201,6 +203,11 @@ class GraphClient:
         Raises GraphError with npp-run's reason when it refuses (a run folder in use, another graph on the
         domain, a bad option). Like npp-run, it sets ROS_AUTOMATIC_DISCOVERY_RANGE to LOCALHOST where unset.
         """
+        if isinstance(task, RunRequest):  # a whole request: its settings are npp-run's options, under those named
+            given = {name: value for name, value in run_options(task).items() if name not in ("task", "seed")}
+            options = {**given, **options}
+            task, seed = task.task, task.seed if seed is None else seed
+        seed = 0 if seed is None else seed
         folder = Path(run_dir) if run_dir is not None else default_run_dir(task, seed)
         folder = folder.resolve()
         key = key or os.environ.get(KEY_ENV) or RunSeal.new_key()
