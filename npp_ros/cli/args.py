@@ -117,6 +117,11 @@ def add_run_arguments(
         ap.add_argument(flags.get(name, flag(name)), **options)
 
 
+def help_of(name: str) -> str:
+    """A request field's one help text, for a command that spells its option its own way (several values)."""
+    return next(setting for _, setting in request_fields((name,))).text()
+
+
 def run_request(args: argparse.Namespace, **given: Any) -> RunRequest:
     """The request a command's parsed options make (the fields it has), with ``given`` over them."""
     values = {field.name: getattr(args, field.name) for field, _ in request_fields() if hasattr(args, field.name)}

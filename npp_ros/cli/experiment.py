@@ -34,13 +34,11 @@ from distributed import Client, Future, LocalCluster, get_worker
 
 import npp_ros
 from npp_ros.certificate.certifier import CERTIFY_MODES
-from npp_ros.certificate.choices import LIPSCHITZ_HELP
-from npp_ros.cli.args import nonnegative_int, positive_int, positive_ints, task_name
+from npp_ros.cli.args import help_of, nonnegative_int, positive_int, positive_ints, task_name
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
     DETUNED_CONTROL_WEIGHT,
     EXPERTS,
-    LIPSCHITZ_SETTINGS,
     Arm,
     ExperimentSettings,
     ResultRow,
@@ -51,12 +49,11 @@ from npp_ros.experiment import (
     write_results,
 )
 from npp_ros.experiment.arms import HELD_OUT
-from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS
-from npp_ros.run.explore import EXPLORE_HELP
+from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_KINDS
 from npp_ros.tasks.lqr import TASKS
-from npp_ros.tasks.registry import by_task, get_task
+from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.sources import short_name
-from npp_ros.trajopt.expert import STOP_HELP, STOP_MODES, TIME_BUDGET_HELP
+from npp_ros.trajopt.expert import STOP_MODES
 
 
 def parser() -> argparse.ArgumentParser:
@@ -73,9 +70,7 @@ def parser() -> argparse.ArgumentParser:
         "--lipschitz",
         nargs="+",
         default=None,
-        help=f"L settings side by side, each one of {', '.join(LIPSCHITZ_SETTINGS)} or a number: {LIPSCHITZ_HELP}; "
-        f"paper is {by_task('paper_lipschitz', tuple(TASKS))}. Default: paper and analytic where a task has them "
-        "(the lqr tasks: both), else the task's own (a task file's key lipschitz, data when it gives none)",
+        help="L settings side by side, each one of: " + help_of("lipschitz"),
     )
     ap.add_argument(
         "--experts",
@@ -86,7 +81,10 @@ def parser() -> argparse.ArgumentParser:
         "L only), ilqr (the swing-up tasks' optimizer); default: every expert of each task",
     )
     ap.add_argument(
-        "--max-episodes", type=positive_int, default=1000, help="episode budget per run (stops earlier if certified)"
+        "--max-episodes",
+        type=positive_int,
+        default=1000,
+        help=help_of("max_episodes") + " (per run)",
     )
     ap.add_argument(
         "--evaluate", type=positive_int, default=100, metavar="N", help="rollouts from s0 ~ rho per checkpoint"
@@ -102,51 +100,46 @@ def parser() -> argparse.ArgumentParser:
         nargs="+",
         choices=("paper", *CERTIFY_MODES),
         default=None,
-        help="what certifies, side by side: 'paper' (the surrogate gap V_ub - V_lb under the paper's one-shot "
-        "rule, to reproduce it) or a mode under a sequentially valid rule (--rules): rollout (V_ub + tail - the "
-        "policy's return), oracle (the expert's return - the policy's), surrogate; default: paper for the lqr "
-        "tasks, the task's own sound mode for tasks with a suboptimal optimizer expert (oracle; a task file's key "
-        "certify)",
+        help="what certifies, side by side: 'paper' (the surrogate gap V_ub - V_lb under the paper's one-shot rule, to "
+        "reproduce it) or a mode under a sequentially valid rule (--rules); default: paper for the lqr tasks, else "
+        "the task's own. A mode: " + help_of("certify"),
     )
     ap.add_argument(
         "--policies",
         nargs="+",
         choices=POLICY_KINDS,
         default=[DEFAULT_POLICY],
-        help="how the policy acts, side by side as arms of one run (same seeds, same s0 streams): " + POLICY_HELP,
+        help="how the policy acts, side by side as arms of one run (same seeds, same s0 streams): " + help_of("policy"),
     )
     ap.add_argument(
         "--explore", nargs="+", type=float, default=[0.0], metavar="RADIUS",
-        help="exploration radii, side by side as arms: " + EXPLORE_HELP,
+        help="exploration radii, side by side as arms: " + help_of("explore"),
     )  # fmt: skip
     ap.add_argument(
         "--rules",
         nargs="+",
         choices=("sequential", "mixture"),
         default=None,
-        help="the stopping rules the sound modes run under, side by side: sequential (a streak of passes per "
-        "policy) or mixture (a 20-pass screen, then a failure-tolerant test of the frozen policy); default: "
-        "each mode's own",
+        help="the stopping rules the sound modes run under, side by side (sequential, mixture); default: each mode's "
+        "own. " + help_of("rule"),
     )
     ap.add_argument(
         "--epsilon",
         type=float,
         default=None,
-        help=f"epsilon for every task; default: each task's, the paper's ({by_task('paper_epsilon', tuple(TASKS))}) "
-        "or a task file's key epsilon",
+        help="for every task: " + help_of("epsilon"),
     )
     ap.add_argument(
         "--horizon", type=positive_int, default=None,
-        help="episode length H for every task; default: the tasks' own (1000 for the built-in tasks, a task file's "
-        "key horizon), which must then agree",
+        help="for every task: " + help_of("horizon") + "; the tasks' own must then agree",
     )  # fmt: skip
-    ap.add_argument("--p", type=float, default=0.9, help="condition (i): probability level p")
-    ap.add_argument("--delta", type=float, default=0.1, help="condition (i): confidence delta")
+    ap.add_argument("--p", type=float, default=0.9, help=help_of("p"))
+    ap.add_argument("--delta", type=float, default=0.1, help=help_of("delta"))
     ap.add_argument(
         "--control-weight", type=float, default=DETUNED_CONTROL_WEIGHT, help="detuned expert: control cost x this"
     )
-    ap.add_argument("--time-budget", type=float, default=None, help=TIME_BUDGET_HELP)
-    ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=STOP_HELP)
+    ap.add_argument("--time-budget", type=float, default=None, help=help_of("time_budget"))
+    ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=help_of("expert_stop"))
     ap.add_argument(
         "--held-out", type=positive_int, default=HELD_OUT, help="fresh s0 on which each certificate is checked"
     )

@@ -11,6 +11,7 @@ import numpy as np
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import PAPER_POLICY, check_policy_kind
+from npp_ros.run.request import RunRequest
 from npp_ros.tasks.registry import Expert, ExpertOptions, OptimizerTask, get_task
 from npp_ros.tasks.sources import short_name
 
@@ -151,14 +152,21 @@ def default_arms(
     return arms
 
 
+def arm_request(arm: Arm, seed: int, settings: ExperimentSettings) -> RunRequest:
+    """The run request of one (arm, seed): what npp-learn would be asked for the same run."""
+    optimizer = isinstance(get_task(arm.task), OptimizerTask)  # closed-form experts take no budget and no stop
+    return RunRequest(
+        task=arm.task, seed=seed, epsilon=(settings.epsilon or {}).get(arm.task), lipschitz=arm.lipschitz,
+        certify=arm.certify, rule=arm.rule, policy=arm.policy, explore=arm.explore,  # type: ignore[arg-type]
+        p=settings.p, delta=settings.delta, horizon=settings.horizon, max_episodes=settings.max_episodes[arm.task],
+        time_budget=settings.time_budget if optimizer else None, expert_stop=settings.stop if optimizer else None,
+    )  # fmt: skip
+
+
 def expert_options(arm: Arm, settings: ExperimentSettings) -> ExpertOptions:
     """The options of an arm's data expert: what, with the task and seed, decides its answers."""
-    task = get_task(arm.task)
-    optimizer = isinstance(task, OptimizerTask)  # closed-form experts take no budget and no stop
-    return ExpertOptions(
-        kind=arm.expert, control_weight=settings.control_weight,
-        time_budget=settings.time_budget if optimizer else None, stop=settings.stop if optimizer else None,
-    )  # fmt: skip
+    request = arm_request(arm, 0, settings)
+    return request.expert_options(kind=arm.expert, control_weight=settings.control_weight)
 
 
 def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> Expert:

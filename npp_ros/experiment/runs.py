@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from npp_ros.certificate.certifier import CertificationStatus
-from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
+from npp_ros.experiment.arms import Arm, ExperimentSettings, arm_request
 from npp_ros.experiment.evaluation import (
     EvaluationRow,
     Evaluator,
@@ -27,7 +27,8 @@ from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.loop import NPPLoop, Observer
 from npp_ros.run.progress import status_text
 from npp_ros.run.records import EpisodeRow
-from npp_ros.run.setup import build_config, build_loop, policy_for, resolve_lipschitz
+from npp_ros.run.request import resolve_run
+from npp_ros.run.setup import build_loop, policy_for
 from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import Expert, get_task
 
@@ -74,15 +75,11 @@ def run_arm_seed(
     key = f"{arm.name} seed {seed}"
     run_dir = out_dir / "runs" / f"{arm.name}-seed{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
-    expert = make_expert(arm, seed, settings)
-    lipschitz = resolve_lipschitz(
-        arm.task, arm.lipschitz, expert, seed=seed, horizon=settings.horizon, run_file=run_dir / RUN_FILE
-    )
-    epsilon = settings.epsilon_for(arm.task)
-    config = build_config(
-        arm.task, seed, lipschitz, epsilon, p=settings.p, delta=settings.delta, horizon=settings.horizon,
-        certify=arm.certify, rule=arm.rule, policy=arm.policy, explore=arm.explore,  # type: ignore[arg-type]
+    run = resolve_run(
+        arm_request(arm, seed, settings), run_file=run_dir / RUN_FILE, kind=arm.expert,
+        control_weight=settings.control_weight,
     )  # fmt: skip
+    config, expert, epsilon, lipschitz = run.config, run.expert, run.epsilon, run.lipschitz
     budget = settings.max_episodes[arm.task]
     progress = _EpisodeProgress(report, key, budget, epsilon, config.spec.condition)
     loop = build_loop(config, expert, store_path=run_dir / RUN_FILE, observers=[progress])
