@@ -44,7 +44,8 @@ from std_msgs.msg import Float64MultiArray
 
 from npp_ros.bench.report import write_report
 from npp_ros.deployment.timing import percentiles
-from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
+from npp_ros.run.request import RunRequest, resolve_run
+from npp_ros.run.setup import build_loop, plant_fingerprint
 from npp_ros.tasks.registry import get_task
 from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_of
@@ -67,11 +68,8 @@ def make_run(task: str, trajectories: int, folder: Path) -> Path:
     """A run of ``trajectories`` expert trajectories, stored by the core loop (uncertified: epsilon is tiny)."""
     if (folder / "run.sqlite").exists():
         return folder  # made by an earlier bench run: the same seed gives the same data
-    expert = get_task(task).make_expert(0, HORIZON)
-    config = build_config(
-        task, 0, resolve_lipschitz(task, "analytic", expert), 1e-9, horizon=HORIZON, certify="surrogate"
-    )
-    loop = build_loop(config, expert, store_path=folder / "run.sqlite")
+    run = resolve_run(RunRequest(task=task, lipschitz="analytic", epsilon=1e-9, horizon=HORIZON, certify="surrogate"))
+    loop = build_loop(run.config, run.expert, store_path=folder / "run.sqlite")
     try:
         loop.run(trajectories)
     finally:
