@@ -371,7 +371,8 @@ class Certificate:
             *([f"  task            {self.task}"] if label and label != self.task else []),
             f"  episodes        {self.episodes}",
             f"  oracle calls    {self.oracle_calls}",
-            f"  policy          greedy over {self.policy_trajectories} trajectories ({self.dataset_size} triplets)",
+            f"  policy          {'path-following' if spec.policy == 'path' else 'greedy'} over "
+            f"{self.policy_trajectories} trajectories ({self.dataset_size} triplets)",
             f"  L used          {lipschitz.value:.6g} ({lipschitz.source}, margin {lipschitz.margin:g})",
             f"  epsilon, p, delta  {spec.epsilon:g}, {spec.p:g}, {spec.delta:g}",
             f"  checked         {QUANTITY[spec.certify]}",
