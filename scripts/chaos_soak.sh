@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A longer chaos soak than `make test` runs: RUNS runs of lqr_2_1 (H = 50) under FAULTS random faults each
+# A longer chaos soak than `make test-long` runs: RUNS runs of lqr_2_1 (H = 50) under FAULTS random faults each
 # (pauses of 5-90 s, kills of a node or of npp-run, restarts), seeded; every run must end as the
 # uninterrupted run. The report goes to results/reliability/chaos-soak-seed<SEED>.txt.
 # Usage: scripts/chaos_soak.sh [RUNS (default 10)] [SEED (default 1)] [FAULTS (default 3)]

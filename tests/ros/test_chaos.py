@@ -10,7 +10,8 @@ included (chaos.py draws them from a seed). For every run:
   120 s rollout_timeout and a failed check), and after a restart within rollout_timeout.
 
 One run with each node paused past the middleware's lease, start-up included, then RUNS random runs of
-FAULTS faults each (`make test`: 2 of 2). A longer soak, outside `make test`:
+FAULTS faults each (2 of 2). Both are long runs: `make test-long` runs them, `make test` does not. A longer
+soak:
 scripts/chaos_soak.sh RUNS SEED (its report goes to results/reliability/). The report (every fault,
 what it cost) is printed at the end of the session.
 """
@@ -36,7 +37,7 @@ from npp_ros_graph.transport.topics import GAP, REPORT_QOS
 if TYPE_CHECKING:
     from tests.ros.conftest import RosClient
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.long]
 
 HORIZON = 50
 RUNS = int(os.environ.get("NPP_CHAOS_RUNS", "2"))

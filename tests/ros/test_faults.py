@@ -1,7 +1,8 @@
 """Fault injection: SIGKILL any node at a random, seeded moment of a run and restart it as the README says.
 
 Six runs (lqr_2_1, task seeds 0-5, horizon 50) of four kills each, one per node in a random order:
-24 trials, 6 per node. Each kill happens once the run has reached a random episode, after a random
+24 trials, 6 per node. `make test` runs the first (a kill of every node); the other five are long runs, in
+`make test-long`. Each kill happens once the run has reached a random episode, after a random
 delay; the killed node is started again with the same command. After every restart, once the graph
 makes progress again: the run file loads without error, and every expert trajectory acknowledged as
 stored (published on /npp/dataset/trajectory, which happens only after its commit) is in it exactly
@@ -185,7 +186,7 @@ def lost_rollouts(run_file: Path, up_to: int) -> int:
         return sum(r.policy_return is None for r in store.episodes() if r.episode <= up_to)
 
 
-@pytest.mark.parametrize("run", range(RUNS))
+@pytest.mark.parametrize("run", [pytest.param(run, marks=[pytest.mark.long] if run else []) for run in range(RUNS)])
 def test_sigkill_any_node_mid_run_loses_nothing(
     run: int, launch: Launcher, ros_client: Callable[..., RosClient], tmp_path: Path, report: list[RunRecord]
 ) -> None:

@@ -1,4 +1,8 @@
-"""The whole graph as a user runs it: npp-run starts four processes and reaches a certificate."""
+"""The whole graph as a user runs it: npp-run starts four processes and reaches a certificate.
+
+The main job's own run, at its full horizon (1000 steps, some 230 episodes): a long run, in `make test-long`.
+`make test` checks the graph against the in-process loop on shorter runs (test_replayed_run.py,
+test_graph_mixture.py, test_cross_talk.py)."""
 
 from __future__ import annotations
 
@@ -7,9 +11,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from reference import decisions, uninterrupted_run
 
 from npp_ros.run.store import RunStore
+
+pytestmark = pytest.mark.long
 
 
 def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: Path, ros_domain: int) -> None:
