@@ -20,7 +20,8 @@ it, and with on_model_mismatch stop, a stop.
 
 /diagnostics says what is true now: OK while states flow and commands go out (or while the robot has
 not published yet), WARN while states are stale or refused, ERROR for a refused configure; the last
-event (a watchdog expiry, a stop, a refusal) is named with its time among the values.
+event (a watchdog expiry, a stop, a refusal) is named with its time among the values. All of that is the
+node's DeploymentState (npp_ros.deployment.state): the node tells it what happened, and publishes its status.
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ import re
 import signal
 import sys
 import time
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -55,8 +55,16 @@ from npp_ros.deployment.monitor import ModelMonitor
 from npp_ros.deployment.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
 from npp_ros.deployment.robot_set import robots_of
 from npp_ros.deployment.signing import load_public_keys
-from npp_ros.deployment.timing import Watchdog, percentiles
-from npp_ros_graph.runtime.diagnostics import ERROR, OK, WARN, DiagnosticsReporter, Health
+from npp_ros.deployment.state import (
+    MODEL_CHANGED,
+    MODEL_MISMATCH,
+    STOPPED_OUTSIDE,
+    DeploymentState,
+    Lifecycle,
+    wall_time,
+)
+from npp_ros.deployment.timing import Watchdog
+from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health, health_of_state
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, request_stop, run_node, stop_requested
 from npp_ros_graph.transport.convert import float64_array
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
@@ -65,13 +73,7 @@ from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_
 STOP_SERVICE = "~/stop"
 ROBOT_DESCRIPTION = "/robot_description"  # robot_state_publisher's topic (std_msgs/String, transient local)
 WAIT_SLICE_S = 0.1  # configure's wait for the description looks again at least this often (and for a stop)
-LATENCY_WINDOW = 1000  # the diagnostics' latency and state-period percentiles are over this many latest ones
-RECENT_S = 1.0  # a refusal this recent makes an active node's status WARN
 NUMBERS = re.compile(r"[-+]?\d+(?:\.\d*)?(?:e[-+]?\d+)?")
-# Why the node stopped by itself: shown (WARN) while it is inactive, until the next configure or activate.
-STOPPED_OUTSIDE = "stopped outside the certificate's coverage (stop_outside_coverage)"
-MODEL_CHANGED = "the robot's model changed"
-MODEL_MISMATCH = "the robot's transitions left the certified set of robots (on_model_mismatch stop)"
 MISMATCH_ACTIONS = ("warn", "stop")
 
 # Read at configure, so an operator may change them while the node is unconfigured.
@@ -169,12 +171,6 @@ serves      /<node>/stop (std_srvs/Trigger): deactivate at once
 """
 
 
-def wall_time(at: float | None = None) -> str:
-    """A wall-clock time as /diagnostics shows it: 2026-11-25 14:03:22.512 UTC."""
-    at = time.time() if at is None else at
-    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(at)) + f".{int(at % 1 * 1000):03d} UTC"
-
-
 @dataclass(frozen=True)
 class Description:
     """The robot's latest MJCF on robot_description_topic: its text, who published it and when."""
@@ -188,39 +184,18 @@ class DeployNode(LifecycleNode):
     def __init__(self) -> None:
         super().__init__("npp_deploy")
         self.settings = declare_settings(self, PARAMETERS, DeploySettings)
-        self.lifecycle = "unconfigured"
+        self.state = DeploymentState()  # what it does and did: /diagnostics publishes its status
         self.deployment: Deployment | None = None
         self.layout: JointLayout | None = None
         self.limits: CommandLimits | None = None
         self.coverage: Coverage | None = None
         self.monitor: ModelMonitor | None = None  # a run certified on a set of robots: its transitions are watched
         self._monitor_arrival = -1  # the arrival count of the last state the monitor took
-        self.refusal = ""  # the gate's last reason, shown until a configure passes
-        self.active = False
         self.description: Description | None = None
-        self.fingerprint = ""  # the robot model fingerprint configure checked, and where it came from
-        self.fingerprint_source = ""
         self._raw: np.ndarray | None = None  # the last joint state taken, [positions, velocities]
         self._last_answered: tuple[int, int] | None = None  # the stamp of the last state answered
         self._command = Float64MultiArray()
-        self._latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
-        self._periods: deque[float] = deque(maxlen=LATENCY_WINDOW)  # between joint states, as taken here
-        self._last_arrival: float | None = None
-        self._answered_at: float | None = None  # when the last fresh command went out, since activation
-        self._arrived_since_activation = 0
-        self._since_fresh = {"refused": 0, "repeated": 0}  # states since the last fresh command, not answered
-        self._refused_at = -math.inf
-        self._refused_reason = ""
-        self._stale = ""  # while the watchdog has expired: what it found
-        self._event: tuple[str, str] | None = None  # the last event: (what, when)
-        self._stopped_because = ""  # why the node last stopped commanding, and when: shown while inactive
-        self._stopped_for = ""  # the same, the reason alone
-        self._stopping_for = ""  # the reason a deactivate now in progress was asked for
         self.stopped_by = ""  # the signal that stops the process (SIGINT, SIGTERM)
-        self.counts = dict.fromkeys(
-            ("answered", "refused states", "overtaken states", "repeated stamps", "clamped entries",
-             "outside coverage", "watchdog expiries"), 0,
-        )  # fmt: skip
         self._warn = ThrottledWarnings(self)
         self._state_sub = None
         self.command_pub: Publisher | None = None  # created at configure, on the configured topic
@@ -235,9 +210,19 @@ class DeployNode(LifecycleNode):
         self.diagnostics = DiagnosticsReporter(self, self.health)
         self.get_logger().info(f"unconfigured; run_dir {self.settings.run_dir or '(none given)'}")
 
-    def event(self, what: str) -> None:
-        """Remember ``what`` happened now: /diagnostics names the last event with its time."""
-        self._event = (what, wall_time())
+    @property
+    def lifecycle(self) -> str:
+        return self.state.lifecycle
+
+    @property
+    def refusal(self) -> str:
+        """The last refused transition or changed model, "" once a configure passed."""
+        return self.state.refusal
+
+    @property
+    def active(self) -> bool:
+        """Commanding: activated and not stopped since."""
+        return self.state.commanding
 
     # ---------------------------------------------------------------- the robot's model
     def on_description(self, msg: String) -> None:
@@ -248,23 +233,22 @@ class DeployNode(LifecycleNode):
             f"robot description received on {topic} ({len(msg.data)} characters, from {self.description.publishers})"
         )
         deployment = self.deployment
-        if deployment is None or self.fingerprint_source != self._described_source():
+        if deployment is None or self.state.fingerprint_source != self._described_source():
             return
         try:
             fingerprint = mjcf_fingerprint(deployment.plant, msg.data)
         except DescriptionError as exc:
             fingerprint = f"none ({exc})"
-        if fingerprint == self.fingerprint:
+        if fingerprint == self.state.fingerprint:
             return
         problem = (
             f"the robot published a different model on {topic} (fingerprint {fingerprint[:12]}...) than the one "
-            f"configure checked ({self.fingerprint[:12]}...)"
+            f"configure checked ({self.state.fingerprint[:12]}...)"
         )
-        self.refusal = f"robot model changed: {problem}"  # until configure checks the model again
-        self.event(self.refusal)
+        self.state.model_changed(problem)  # ERROR until configure checks the model again
         if self.active:
             self.get_logger().error(f"{problem}: deactivating")
-            self._stopping_for = MODEL_CHANGED
+            self.state.stop_requested(MODEL_CHANGED)
             self.trigger_deactivate()
         else:
             self.get_logger().error(f"{problem}: configure again (cleanup, configure) before activating")
@@ -394,9 +378,8 @@ class DeployNode(LifecycleNode):
         else:  # unsigned, or a signature nobody asked to check: the operator should know
             self.get_logger().warning(provenance)
         self.deployment, self.layout, self.coverage, self.monitor = deployment, layout, coverage, monitor
-        self.fingerprint, self.fingerprint_source = fingerprint, source
+        self.state.configured(fingerprint, source)
         self.limits = CommandLimits.of_plant(plant, settings.effort_limit)
-        self.refusal = self._stopped_because = self._stopped_for = ""
         self.watchdog.timeout = settings.state_timeout
         self.command_pub = self.create_publisher(Float64MultiArray, settings.command_topic, CONTROL_QOS)
         self._state_sub = self.create_subscription(
@@ -422,19 +405,12 @@ class DeployNode(LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         if self.deployment is None:
             return self._refuse("activate", "not configured")
-        if self.refusal:  # the robot's model changed since configure
-            return self._refuse("activate", self.refusal)
-        self._latencies.clear()
-        self._periods.clear()
-        self._last_arrival = self._answered_at = None
-        self._arrived_since_activation = 0
+        if self.state.refusal:  # the robot's model changed since configure
+            return self._refuse("activate", self.state.refusal)
         self._monitor_arrival = -1
         if self.monitor is not None:
             self.monitor.reset()
-        self._since_fresh = dict.fromkeys(self._since_fresh, 0)
-        self._refused_at = -math.inf
-        self._stale = self._stopped_because = self._stopped_for = ""
-        self.active = True
+        self.state.activated()
         self.watchdog.arm()
         self.get_logger().info("active: commanding the robot from its next usable joint state")
         if self.command_pub is not None and self.command_pub.get_subscription_count() == 0:
@@ -444,13 +420,12 @@ class DeployNode(LifecycleNode):
         return self._became("active")
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        why, self._stopping_for = self._stopping_for or "deactivated", ""
-        self.stop_commanding(why)
+        self.stop_commanding(self.state.deactivating())
         return self._became("inactive")
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._release()
-        self.refusal = self._stopped_because = self._stopped_for = ""
+        self.state.cleaned_up()
         return self._became("unconfigured")
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -463,15 +438,13 @@ class DeployNode(LifecycleNode):
         self._release()
         return self._became("unconfigured")
 
-    def _became(self, label: str) -> TransitionCallbackReturn:
-        self.lifecycle = label
+    def _became(self, label: Lifecycle) -> TransitionCallbackReturn:
+        self.state.became(label)
         self.diagnostics.publish()
         return TransitionCallbackReturn.SUCCESS
 
     def _refuse(self, transition: str, reason: str) -> TransitionCallbackReturn:
-        self.refusal = f"{transition} refused: {reason}"
-        self.event(self.refusal)
-        self.get_logger().error(self.refusal)
+        self.get_logger().error(self.state.refuse(transition, reason))
         self.diagnostics.publish()
         return TransitionCallbackReturn.FAILURE
 
@@ -483,15 +456,15 @@ class DeployNode(LifecycleNode):
             self.destroy_publisher(self.command_pub)
             self.command_pub = None
         self.deployment = self.layout = self.limits = self.coverage = self.monitor = None
-        self.fingerprint = self.fingerprint_source = ""
+        self.state.released()
         self._raw, self._last_answered = None, None
 
     def stop_commanding(self, why: str) -> None:
         """Stop commanding; the safe command goes out in the watchdog's step, so no fresh command follows it."""
-        was_active, self.active = self.active, False
+        was_active = self.state.stop_commanding()
         sent = self.watchdog.disarm(self.send_safe_command if was_active else None)
         if was_active:
-            self._stopped_because, self._stopped_for = f"{why} at {wall_time()}: {sent}", why
+            self.state.stopped(why, sent)
             self.get_logger().info(f"{why}: {sent}; commanding stopped")
 
     def send_safe_command(self) -> str:
@@ -512,8 +485,8 @@ class DeployNode(LifecycleNode):
             response.success, response.message = True, f"not commanding ({self.lifecycle})"
             return response
         self.get_logger().warning("stop requested: deactivating")
-        self.event("stop requested")
-        self._stopping_for = "stop requested"
+        self.state.note("stop requested")
+        self.state.stop_requested("stop requested")
         self.trigger_deactivate()
         response.success = self.lifecycle == "inactive"
         response.message = "stopped: safe command sent, inactive" if response.success else "could not deactivate"
@@ -529,13 +502,13 @@ class DeployNode(LifecycleNode):
             return
         newest: tuple[np.ndarray, JointState] | None = None
         while msg is not None:
-            self._arrived(time.monotonic())
+            self.state.arrived(time.monotonic())
             try:
                 raw = layout.state(msg.name, msg.position, msg.velocity)
             except RobotStateError as exc:
                 self._refused_state(exc)
             else:
-                self.counts["overtaken states"] += int(newest is not None)
+                self.state.overtaken(int(newest is not None))
                 newest = (raw, msg)
             with subscription.handle:
                 taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
@@ -548,8 +521,7 @@ class DeployNode(LifecycleNode):
             return
         stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
         if stamp == self._last_answered:
-            self.counts["repeated stamps"] += 1  # the same state again: not new, not answered twice
-            self._since_fresh["repeated"] += 1
+            self.state.repeated_stamp()
             return
         self._last_answered = stamp
         try:
@@ -559,15 +531,6 @@ class DeployNode(LifecycleNode):
                 return  # the context is gone (the process is ending): nothing more can be sent
             self._refused_state(RobotStateError(f"could not answer it: {type(exc).__name__}: {exc}"))
 
-    def _arrived(self, now: float) -> None:
-        """A joint state taken here: the state period's jitter is measured between these, while active."""
-        if not self.active:
-            return
-        self._arrived_since_activation += 1
-        if self._last_arrival is not None:
-            self._periods.append(now - self._last_arrival)
-        self._last_arrival = now
-
     def _answer(self, raw: np.ndarray, deployment: Deployment, layout: JointLayout, started: float) -> None:
         state = stored_state(deployment.plant, raw)
         assert self.coverage is not None and self.limits is not None
@@ -575,7 +538,6 @@ class DeployNode(LifecycleNode):
         wanted, chosen = policy.act_at(state)  # the certified policy's own action; s_{i*} spares coverage a search
         inside, distance = self.coverage.covers(state, policy.dataset.states[chosen])
         if not inside:
-            self.counts["outside coverage"] += 1
             problem = (
                 f"state {np.round(state, 4).tolist()} is {distance:.4g} from the certified policy's data, beyond "
                 f"the coverage radius {self.coverage.radius:.4g}: the certificate says nothing about it"
@@ -584,7 +546,7 @@ class DeployNode(LifecycleNode):
                 return
         action, clamped = self.limits.clamp(wanted)
         if clamped:
-            self.counts["clamped entries"] += clamped
+            self.state.clamped(clamped)
             self._warn("clamped", f"command clamped to the actuator limits {self.limits.describe()}")
         self._command.data = float64_array(layout.command(action))
         publisher = self.command_pub
@@ -593,12 +555,8 @@ class DeployNode(LifecycleNode):
         outcome = self.watchdog.send_fresh(functools.partial(publisher.publish, self._command))
         if outcome == "disarmed":
             return  # stopped meanwhile (the safe command went out): nothing more
-        self.counts["answered"] += 1
-        self._latencies.append(time.perf_counter() - started)
-        self._answered_at = time.monotonic()
-        self._since_fresh = dict.fromkeys(self._since_fresh, 0)
+        self.state.answered(time.perf_counter() - started, time.monotonic(), resumed=outcome == "resumed")
         if outcome == "resumed":
-            self._stale = ""
             self.get_logger().info("joint states flow again: commanding resumes")
             self.diagnostics.publish()
         self._watch_model(raw, action, outcome == "resumed")
@@ -608,42 +566,39 @@ class DeployNode(LifecycleNode):
         monitor = self.monitor
         if monitor is None:
             return
-        if resumed or self._arrived_since_activation != self._monitor_arrival + 1:
+        arrived = self.state.arrived_since_activation
+        if resumed or arrived != self._monitor_arrival + 1:
             monitor.restart()  # a state skipped (overtaken, refused) or a stale spell: no one-step transition
-        self._monitor_arrival = self._arrived_since_activation
+        self._monitor_arrival = arrived
         was_outside = monitor.outside
         monitor.observe(raw, action)
         if not monitor.outside:
             return
         problem = f"the robot's transitions leave the certified set of robots: {monitor.summary()}"
         if not was_outside:
-            self.event(problem)
+            self.state.note(problem)
         if self.settings.on_model_mismatch == "stop" and self.active:
             self.get_logger().error(f"{problem}; on_model_mismatch is stop: deactivating")
-            self._stopping_for = MODEL_MISMATCH
+            self.state.stop_requested(MODEL_MISMATCH)
             self.trigger_deactivate()
             return
         self._warn("model mismatch", problem)
 
     def _refused_state(self, exc: RobotStateError) -> None:
         """A state the policy cannot act on: counted, named in the log and on /diagnostics, never fresh."""
-        self.counts["refused states"] += 1
-        self._since_fresh["refused"] += 1
-        self._refused_at, self._refused_reason = time.monotonic(), f"joint state refused: {exc}"
-        self.event(self._refused_reason)
+        reason = self.state.state_refused(str(exc), time.monotonic())
         # Throttled per kind of reason (its numbers aside): a flood of one fault stays one line a second,
         # and each other fault is still printed.
-        self._warn(NUMBERS.sub("#", self._refused_reason), self._refused_reason)
+        self._warn(NUMBERS.sub("#", reason), reason)
         if isinstance(exc, NonFiniteState) and self.active:
-            self.counts["outside coverage"] += 1
             self._outside(str(exc))
 
     def _outside(self, problem: str) -> bool:
-        """Report a state the certificate does not cover; True when the node stops for it."""
-        self.event(f"outside the certificate's coverage: {problem}")
+        """Report a state the certificate does not cover (counted); True when the node stops for it."""
+        self.state.outside_coverage(problem)
         if self.settings.stop_outside_coverage and self.active:
             self.get_logger().error(f"{problem}; stop_outside_coverage is true: deactivating")
-            self._stopping_for = STOPPED_OUTSIDE
+            self.state.stop_requested(STOPPED_OUTSIDE)
             self.trigger_deactivate()
             return True
         self._warn("outside coverage", problem)
@@ -651,25 +606,13 @@ class DeployNode(LifecycleNode):
 
     def on_states_stopped(self, age: float) -> None:
         """Watchdog thread, in its step: no fresh command for state_timeout seconds; send the safe command."""
-        sent = self.send_safe_command()
-        self.counts["watchdog expiries"] += 1
-        timeout = f"state_timeout {self.settings.state_timeout * 1e3:.0f} ms"
-        if self._answered_at is None:
-            what = f"no joint state answered in the {age * 1e3:.0f} ms since activation"
-        else:
-            what = f"no new joint state for {age * 1e3:.0f} ms"
-        refused, repeated = self._since_fresh["refused"], self._since_fresh["repeated"]
-        if refused or repeated:
-            arrived = [f"{refused} refused (the last: {self._refused_reason})"] if refused else []
-            arrived += [f"{repeated} repeated the last answered stamp"] if repeated else []
-            what += f"; states arrived but none was usable: {', '.join(arrived)}"
-        self._stale = f"{what} ({timeout}): {sent}; no commanding until usable states flow again"
+        self.state.watchdog_expired(age, self.settings.state_timeout, self.send_safe_command())
 
     def after_states_stopped(self, age: float) -> None:
         """Watchdog thread, after its step: say so."""
-        stale = self._stale
-        self.event(f"watchdog expiry: {stale}")
-        if self._answered_at is None and self._arrived_since_activation == 0:
+        stale = self.state.stale
+        self.state.note(f"watchdog expiry: {stale}")
+        if self.state.waiting_for_first_state:
             self.get_logger().info(f"waiting for the robot's first joint state: {stale}")
         else:
             self.get_logger().error(stale)
@@ -677,15 +620,16 @@ class DeployNode(LifecycleNode):
 
     # ---------------------------------------------------------------- health
     def health(self) -> Health:
-        """What the node does now; the last event and its time are among the values, never the level."""
-        values: dict[str, object] = {"lifecycle state": self.lifecycle, "run_dir": self.settings.run_dir}
-        deployment = self.deployment
+        """What the node does now (its DeploymentState's status): what it runs and on which robot, then the
+        state's counters, timing and last event."""
+        values: dict[str, object] = {"lifecycle state": self.state.lifecycle, "run_dir": self.settings.run_dir}
+        deployment, monitor = self.deployment, self.monitor
         if deployment is not None:
             values["policy"] = deployment.describe()
             values["run provenance"] = f"{deployment.seal.describe()}; {deployment.signed}"
-            values["robot model fingerprint"] = f"{self.fingerprint[:12]}... from {self.fingerprint_source}"
-            if self.monitor is not None:
-                values["model monitor"] = self.monitor.summary()
+            values["robot model fingerprint"] = f"{self.state.fingerprint[:12]}... from {self.state.fingerprint_source}"
+            if monitor is not None:
+                values["model monitor"] = monitor.summary()
             if deployment.overridden:
                 values["gate overridden"] = "; ".join(deployment.overridden)
         description = self.description
@@ -694,48 +638,14 @@ class DeployNode(LifecycleNode):
             if description is not None
             else f"none received on {self.settings.robot_description_topic}"
         )
-        values.update(self.counts)
-        if self._latencies:
-            p50, p99 = percentiles(self._latencies)
-            values["answer time p50 / p99 (us)"] = f"{p50 * 1e6:.0f} / {p99 * 1e6:.0f}"
-        if self._periods:
-            p50, p99, most = percentiles(self._periods, (50, 99, 100))
-            values["state period p50 / p99 / max (ms)"] = f"{p50 * 1e3:.2f} / {p99 * 1e3:.2f} / {most * 1e3:.2f}"
-            values["state periods measured"] = len(self._periods)  # since activation, up to LATENCY_WINDOW
-        if self._event is not None:
-            values["last event"], values["last event at"] = self._event
-        if self.refusal:
-            return Health(self.refusal, values, ERROR)
-        if self.active:
-            return self._active_health(values)
-        doing = f"{self.lifecycle}: not commanding"
-        if self._stopped_because and self.lifecycle == "inactive":
-            doing += f" ({self._stopped_because})"
-        stopped = (STOPPED_OUTSIDE, MODEL_CHANGED, MODEL_MISMATCH)
-        return Health(doing, values, WARN if self._stopped_for in stopped else OK)
-
-    def _active_health(self, values: dict[str, object]) -> Health:
-        deployment = self.deployment
-        level = WARN if deployment is not None and deployment.overridden else OK
-        if self.watchdog.expired:
-            if self._answered_at is None and self._arrived_since_activation == 0:
-                return Health("active: waiting for the robot's first joint state", values, level)
-            usable = "joint states stopped" if not any(self._since_fresh.values()) else "joint states unusable"
-            doing = f"active, {usable}: safe command sent; commanding resumes when usable states flow"
-            return Health(doing, values, WARN, self._stale)
-        monitor = self.monitor
-        if monitor is not None and monitor.outside and self._answered_at is not None:
-            doing = "active: commanding the robot, whose transitions leave the certified set of robots"
-            return Health(doing, values, WARN, monitor.summary())
-        recent = time.monotonic() - self._refused_at < RECENT_S
-        if self._answered_at is None:
-            if recent:
-                return Health("active: waiting for a usable joint state", values, WARN, self._refused_reason)
-            return Health("active: waiting for the robot's first joint state", values, level)
-        if recent:
-            return Health("active: commanding the robot; some joint states refused", values, WARN,
-                          self._refused_reason)  # fmt: skip
-        return Health("active: commanding the robot", values, level)
+        values.update(self.state.values())
+        status = self.state.status(
+            values,
+            overridden=deployment is not None and bool(deployment.overridden),
+            watchdog_expired=self.watchdog.expired,
+            model_mismatch=monitor.summary() if monitor is not None and monitor.outside else "",
+        )
+        return health_of_state(status)
 
     def destroy_node(self) -> None:
         if self.active:

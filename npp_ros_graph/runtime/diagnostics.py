@@ -16,6 +16,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from npp_ros.deployment.state import Status
+
 DIAGNOSTICS = "/diagnostics"
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 OK, WARN, ERROR = (int.from_bytes(level, "little") for level in (DiagnosticStatus.OK, DiagnosticStatus.WARN,
@@ -32,6 +34,11 @@ class Health:
     values: Mapping[str, object] = field(default_factory=dict)
     level: int = OK
     error: str = ""
+
+
+def health_of_state(status: Status) -> Health:
+    """The Health of a core status (npp_ros.deployment.state: npp-deploy's), whose levels are these numbers."""
+    return Health(status.doing, status.values, int(status.level), status.error)
 
 
 def status_of(name: str, health: Health, hardware_id: str = "") -> DiagnosticStatus:

@@ -1,0 +1,299 @@
+"""What npp-deploy is doing and has done, as one typed record: its lifecycle state, the last event, its counters,
+why it stopped, and the timing of its answers and of the robot's states.
+
+npp-deploy (npp_ros_graph/nodes/deploy.py) holds one :class:`DeploymentState` and changes it only through its
+methods, each one thing that happened (a state refused, a command sent, the watchdog's expiry, a stop), so
+that what /diagnostics shows follows from what happened and is tested here without ROS.
+:meth:`DeploymentState.status` is the node's status in words and its level, which /diagnostics publishes
+(npp_ros_graph/runtime/diagnostics.py); the values keep the names operators and npp-deploy-ctl read.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from enum import IntEnum
+from typing import Literal
+
+from npp_ros.deployment.timing import percentiles
+
+Lifecycle = Literal["unconfigured", "inactive", "active", "finalized"]
+
+LATENCY_WINDOW = 1000  # the latency and state-period percentiles are over this many latest ones
+RECENT_S = 1.0  # a refusal this recent makes an active node's status WARN
+# Why the node stopped by itself: shown (WARN) while it is inactive, until the next configure or activate.
+STOPPED_OUTSIDE = "stopped outside the certificate's coverage (stop_outside_coverage)"
+MODEL_CHANGED = "the robot's model changed"
+MODEL_MISMATCH = "the robot's transitions left the certified set of robots (on_model_mismatch stop)"
+STOPPED_BY_ITSELF = (STOPPED_OUTSIDE, MODEL_CHANGED, MODEL_MISMATCH)
+
+
+class Level(IntEnum):
+    """A status's level, with diagnostic_msgs/DiagnosticStatus's numbers (OK 0, WARN 1, ERROR 2)."""
+
+    OK = 0
+    WARN = 1
+    ERROR = 2
+
+
+def wall_time(at: float | None = None) -> str:
+    """A wall-clock time as /diagnostics shows it: 2026-11-25 14:03:22.512 UTC."""
+    at = time.time() if at is None else at
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(at)) + f".{int(at % 1 * 1000):03d} UTC"
+
+
+@dataclass(frozen=True)
+class Event:
+    """The last thing that happened to the deployment, and when (wall-clock, as /diagnostics shows it)."""
+
+    what: str
+    at: str
+
+
+@dataclass
+class Counters:
+    """What npp-deploy counts, since it started; each field is one /diagnostics value (its name with spaces)."""
+
+    answered: int = 0  # fresh commands sent in answer to a joint state
+    refused_states: int = 0
+    overtaken_states: int = 0  # states a newer one overtook before they were answered
+    repeated_stamps: int = 0  # states repeating the last answered stamp, not answered twice
+    clamped_entries: int = 0  # command entries clamped to the actuator limits
+    outside_coverage: int = 0  # states farther from the policy's data than the coverage radius, or non-finite
+    watchdog_expiries: int = 0  # safe commands the watchdog sent
+
+    def values(self) -> dict[str, int]:
+        return {item.name.replace("_", " "): getattr(self, item.name) for item in fields(self)}
+
+
+@dataclass
+class SinceFresh:
+    """States that arrived since the last fresh command and were not answered: what the watchdog's expiry names."""
+
+    refused: int = 0
+    repeated: int = 0
+
+    def any(self) -> bool:
+        return bool(self.refused or self.repeated)
+
+
+@dataclass(frozen=True)
+class Status:
+    """The node's status in words (what /diagnostics publishes): what it does now, its values, the level, and the
+    problem behind a WARN ("" for none)."""
+
+    doing: str
+    values: Mapping[str, object]
+    level: Level = Level.OK
+    error: str = ""
+
+
+@dataclass
+class DeploymentState:
+    """npp-deploy's state; changed through the methods below, read by :meth:`status` and :meth:`values`."""
+
+    lifecycle: Lifecycle = "unconfigured"
+    commanding: bool = False  # active and not stopped: joint states are answered
+    refusal: str = ""  # the gate's or a transition's last reason, or a changed model: ERROR until configure passes
+    event: Event | None = None
+    counters: Counters = field(default_factory=Counters)
+    fingerprint: str = ""  # the robot model fingerprint configure checked, and where it came from
+    fingerprint_source: str = ""
+    stale: str = ""  # while the watchdog has expired: what it found
+    stopped_because: str = ""  # why the node last stopped commanding, and when: shown while inactive
+    stopped_for: str = ""  # the same, the reason alone
+    stopping_for: str = ""  # the reason a deactivate now in progress was asked for
+    refused_at: float = -math.inf  # monotonic time of the last refused state
+    refused_reason: str = ""
+    answered_at: float | None = None  # monotonic time the last fresh command went out, since activation
+    arrived_since_activation: int = 0
+    last_arrival: float | None = None
+    since_fresh: SinceFresh = field(default_factory=SinceFresh)
+    latencies: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    periods: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # between joint states
+
+    # ------------------------------------------------------------------ what happened
+    def note(self, what: str, at: float | None = None) -> None:
+        """Remember ``what`` happened now (or at the wall-clock time ``at``): the last event, with its time."""
+        self.event = Event(what, wall_time(at))
+
+    def became(self, lifecycle: Lifecycle) -> None:
+        self.lifecycle = lifecycle
+
+    def refuse(self, transition: str, reason: str) -> str:
+        """A transition refused: ERROR until a configure passes; the refusal in words."""
+        self.refusal = f"{transition} refused: {reason}"
+        self.note(self.refusal)
+        return self.refusal
+
+    def model_changed(self, problem: str) -> None:
+        """The robot published another model than configure checked: ERROR until it is configured again."""
+        self.refusal = f"robot model changed: {problem}"
+        self.note(self.refusal)
+
+    def configured(self, fingerprint: str, source: str) -> None:
+        self.fingerprint, self.fingerprint_source = fingerprint, source
+        self.refusal = self.stopped_because = self.stopped_for = ""
+
+    def released(self) -> None:
+        """The run let go (cleanup, shutdown, error)."""
+        self.fingerprint = self.fingerprint_source = ""
+
+    def cleaned_up(self) -> None:
+        self.refusal = self.stopped_because = self.stopped_for = ""
+
+    def activated(self) -> None:
+        """A new activation: its timing, arrivals and refusals start afresh (the counters go on)."""
+        self.latencies.clear()
+        self.periods.clear()
+        self.last_arrival = self.answered_at = None
+        self.arrived_since_activation = 0
+        self.since_fresh = SinceFresh()
+        self.refused_at = -math.inf
+        self.stale = self.stopped_because = self.stopped_for = ""
+        self.commanding = True
+
+    def stop_requested(self, why: str) -> None:
+        """A deactivate is about to be asked for, for ``why`` (shown once it is done)."""
+        self.stopping_for = why
+
+    def deactivating(self) -> str:
+        """The reason of the deactivate now in progress ("deactivated" when nobody gave one), taken."""
+        why, self.stopping_for = self.stopping_for or "deactivated", ""
+        return why
+
+    def stop_commanding(self) -> bool:
+        """Commanding stops; whether it was commanding."""
+        was, self.commanding = self.commanding, False
+        return was
+
+    def stopped(self, why: str, sent: str) -> None:
+        """Commanding stopped for ``why``, after ``sent`` (the safe command, in words)."""
+        self.stopped_because, self.stopped_for = f"{why} at {wall_time()}: {sent}", why
+
+    def arrived(self, now: float) -> None:
+        """A joint state taken at monotonic ``now``: the state period is measured between these, while commanding."""
+        if not self.commanding:
+            return
+        self.arrived_since_activation += 1
+        if self.last_arrival is not None:
+            self.periods.append(now - self.last_arrival)
+        self.last_arrival = now
+
+    def state_refused(self, reason: str, now: float) -> str:
+        """A joint state the policy cannot act on, at monotonic ``now``: counted, never fresh; the reason in words."""
+        self.counters.refused_states += 1
+        self.since_fresh.refused += 1
+        self.refused_at, self.refused_reason = now, f"joint state refused: {reason}"
+        self.note(self.refused_reason)
+        return self.refused_reason
+
+    def overtaken(self, count: int = 1) -> None:
+        self.counters.overtaken_states += count
+
+    def repeated_stamp(self) -> None:
+        """The same state again: not new, not answered twice."""
+        self.counters.repeated_stamps += 1
+        self.since_fresh.repeated += 1
+
+    def outside_coverage(self, problem: str) -> None:
+        """A state the certificate does not cover: counted and named."""
+        self.counters.outside_coverage += 1
+        self.note(f"outside the certificate's coverage: {problem}")
+
+    def clamped(self, entries: int) -> None:
+        self.counters.clamped_entries += entries
+
+    def answered(self, latency: float, now: float, resumed: bool) -> None:
+        """A fresh command went out at monotonic ``now``, ``latency`` seconds after its state was taken."""
+        self.counters.answered += 1
+        self.latencies.append(latency)
+        self.answered_at = now
+        self.since_fresh = SinceFresh()
+        if resumed:
+            self.stale = ""
+
+    def watchdog_expired(self, age: float, timeout: float, sent: str) -> str:
+        """No fresh command for ``age`` seconds (``timeout`` the limit) and ``sent`` the safe command: counted; what
+        the watchdog found, in words."""
+        self.counters.watchdog_expiries += 1
+        if self.answered_at is None:
+            what = f"no joint state answered in the {age * 1e3:.0f} ms since activation"
+        else:
+            what = f"no new joint state for {age * 1e3:.0f} ms"
+        refused, repeated = self.since_fresh.refused, self.since_fresh.repeated
+        if refused or repeated:
+            arrived = [f"{refused} refused (the last: {self.refused_reason})"] if refused else []
+            arrived += [f"{repeated} repeated the last answered stamp"] if repeated else []
+            what += f"; states arrived but none was usable: {', '.join(arrived)}"
+        self.stale = (
+            f"{what} (state_timeout {timeout * 1e3:.0f} ms): {sent}; no commanding until usable states flow again"
+        )
+        return self.stale
+
+    # ------------------------------------------------------------------ what it says
+    @property
+    def waiting_for_first_state(self) -> bool:
+        """Activated, and the robot has sent no joint state yet."""
+        return self.answered_at is None and self.arrived_since_activation == 0
+
+    def values(self) -> dict[str, object]:
+        """The counters, the answer time and the state period, and the last event, as /diagnostics names them."""
+        values: dict[str, object] = dict(self.counters.values())
+        if self.latencies:
+            p50, p99 = percentiles(self.latencies)
+            values["answer time p50 / p99 (us)"] = f"{p50 * 1e6:.0f} / {p99 * 1e6:.0f}"
+        if self.periods:
+            p50, p99, most = percentiles(self.periods, (50, 99, 100))
+            values["state period p50 / p99 / max (ms)"] = f"{p50 * 1e3:.2f} / {p99 * 1e3:.2f} / {most * 1e3:.2f}"
+            values["state periods measured"] = len(self.periods)  # since activation, up to LATENCY_WINDOW
+        if self.event is not None:
+            values["last event"], values["last event at"] = self.event.what, self.event.at
+        return values
+
+    def status(
+        self,
+        values: Mapping[str, object],
+        *,
+        overridden: bool = False,
+        watchdog_expired: bool = False,
+        model_mismatch: str = "",
+        now: float | None = None,
+    ) -> Status:
+        """What the node does now: ``values`` are shown with it; ``overridden`` (the gate was), ``watchdog_expired``
+        and ``model_mismatch`` (the model monitor's summary while the robot's transitions leave the certified set)
+        are what the node's parts say; ``now`` is monotonic. The last event is among the values, never the level."""
+        if self.refusal:
+            return Status(self.refusal, values, Level.ERROR)
+        if self.commanding:
+            return self._commanding_status(values, overridden, watchdog_expired, model_mismatch, now)
+        doing = f"{self.lifecycle}: not commanding"
+        if self.stopped_because and self.lifecycle == "inactive":
+            doing += f" ({self.stopped_because})"
+        return Status(doing, values, Level.WARN if self.stopped_for in STOPPED_BY_ITSELF else Level.OK)
+
+    def _commanding_status(
+        self, values: Mapping[str, object], overridden: bool, expired: bool, mismatch: str, now: float | None
+    ) -> Status:
+        level = Level.WARN if overridden else Level.OK
+        if expired:
+            if self.waiting_for_first_state:
+                return Status("active: waiting for the robot's first joint state", values, level)
+            usable = "joint states stopped" if not self.since_fresh.any() else "joint states unusable"
+            doing = f"active, {usable}: safe command sent; commanding resumes when usable states flow"
+            return Status(doing, values, Level.WARN, self.stale)
+        if mismatch and self.answered_at is not None:
+            doing = "active: commanding the robot, whose transitions leave the certified set of robots"
+            return Status(doing, values, Level.WARN, mismatch)
+        recent = (time.monotonic() if now is None else now) - self.refused_at < RECENT_S
+        if self.answered_at is None:
+            if recent:
+                return Status("active: waiting for a usable joint state", values, Level.WARN, self.refused_reason)
+            return Status("active: waiting for the robot's first joint state", values, level)
+        if recent:
+            return Status("active: commanding the robot; some joint states refused", values, Level.WARN,
+                          self.refused_reason)  # fmt: skip
+        return Status("active: commanding the robot", values, level)

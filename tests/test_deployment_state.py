@@ -1,0 +1,107 @@
+"""npp-deploy's state without ROS: what each event does to the counters, the last event and the status
+/diagnostics publishes (npp_ros.deployment.state)."""
+
+from __future__ import annotations
+
+from npp_ros.deployment.state import MODEL_MISMATCH, STOPPED_OUTSIDE, DeploymentState, Level
+
+
+def active() -> DeploymentState:
+    state = DeploymentState()
+    state.configured("ab" * 32, "the robot_model_fingerprint parameter")
+    state.became("inactive")
+    state.activated()
+    state.became("active")
+    return state
+
+
+def test_a_fresh_node_is_unconfigured_and_counts_nothing() -> None:
+    state = DeploymentState()
+    status = state.status({})
+    assert (status.doing, status.level) == ("unconfigured: not commanding", Level.OK)
+    assert state.values() == {
+        "answered": 0, "refused states": 0, "overtaken states": 0, "repeated stamps": 0, "clamped entries": 0,
+        "outside coverage": 0, "watchdog expiries": 0,
+    }  # fmt: skip
+
+
+def test_a_refused_configure_is_an_error_until_a_configure_passes() -> None:
+    state = DeploymentState()
+    assert state.refuse("configure", "no run") == "configure refused: no run"
+    status = state.status({"x": 1})
+    assert (status.doing, status.level, dict(status.values)) == ("configure refused: no run", Level.ERROR, {"x": 1})
+    assert state.values()["last event"] == "configure refused: no run"
+    assert state.values()["last event at"].endswith(" UTC")  # type: ignore[union-attr]
+    state.configured("f" * 64, "here")
+    assert state.status({}).level == Level.OK and state.fingerprint == "f" * 64
+
+
+def test_answers_refusals_and_the_watchdog_are_counted_and_named() -> None:
+    state = active()
+    assert state.status({}, now=0.0).doing == "active: waiting for the robot's first joint state"
+    state.arrived(10.0)
+    state.answered(0.0002, 10.0, resumed=False)
+    state.arrived(10.03)
+    state.repeated_stamp()
+    state.arrived(10.06)
+    reason = state.state_refused("a non-finite value", 10.06)
+    assert reason == "joint state refused: a non-finite value"
+    refused = state.status({}, now=10.5)
+    assert (refused.level, refused.error) == (Level.WARN, reason)
+    assert refused.doing == "active: commanding the robot; some joint states refused"
+    assert state.status({}, now=11.2).doing == "active: commanding the robot"  # a second later: OK again
+    stale = state.watchdog_expired(0.15, 0.1, "safe command [0.0] sent")
+    assert stale.startswith("no new joint state for 150 ms; states arrived but none was usable: 1 refused (the last: ")
+    assert stale.endswith(
+        "(state_timeout 100 ms): safe command [0.0] sent; no commanding until usable states flow again"
+    )
+    expired = state.status({}, watchdog_expired=True)
+    assert (expired.level, expired.error) == (Level.WARN, stale)
+    assert expired.doing.startswith("active, joint states unusable: safe command sent")
+    state.answered(0.0001, 11.0, resumed=True)
+    assert state.stale == "" and not state.since_fresh.any()
+    values = state.values()
+    assert (values["answered"], values["refused states"], values["repeated stamps"], values["watchdog expiries"]) == (
+        2,
+        1,
+        1,
+        1,
+    )
+    assert values["state periods measured"] == 2 and values["state period p50 / p99 / max (ms)"].startswith("30.00")  # type: ignore[union-attr]
+
+
+def test_a_stop_by_the_node_itself_is_a_warning_while_inactive() -> None:
+    state = active()
+    state.outside_coverage("state [9.0] is far")
+    state.stop_requested(STOPPED_OUTSIDE)
+    why = state.deactivating()
+    assert why == STOPPED_OUTSIDE and state.deactivating() == "deactivated"  # taken once
+    assert state.stop_commanding() and not state.stop_commanding()
+    state.stopped(why, "safe command [0.0] sent")
+    state.became("inactive")
+    status = state.status({})
+    assert status.level == Level.WARN and status.doing.startswith(f"inactive: not commanding ({STOPPED_OUTSIDE} at ")
+    assert state.counters.outside_coverage == 1
+    assert state.values()["last event"] == "outside the certificate's coverage: state [9.0] is far"
+    state.activated()  # a new activation forgets why it stopped, not what it counted
+    assert state.stopped_for == "" and state.counters.outside_coverage == 1
+
+
+def test_a_model_mismatch_warns_while_commanding_and_an_operator_stop_does_not() -> None:
+    state = active()
+    state.answered(0.0001, 1.0, resumed=False)
+    mismatch = state.status({}, model_mismatch="3 of the last 5 transitions exceed", now=5.0)
+    assert (mismatch.level, mismatch.error) == (Level.WARN, "3 of the last 5 transitions exceed")
+    assert state.status({}, overridden=True, now=5.0).level == Level.WARN  # the gate overridden: WARN while active
+    state.stop_requested("stop requested")
+    state.stop_commanding()
+    state.stopped(state.deactivating(), "safe command [0.0] sent")
+    state.became("inactive")
+    assert state.status({}).level == Level.OK
+    state.stopped(MODEL_MISMATCH, "safe command [0.0] sent")
+    assert state.status({}).level == Level.WARN
+
+
+def test_the_levels_are_diagnostic_msgs_own() -> None:
+    """/diagnostics publishes the level as it is (npp_ros_graph/runtime/diagnostics.py, DiagnosticStatus)."""
+    assert [int(level) for level in Level] == [0, 1, 2]
