@@ -2,8 +2,12 @@
 
 A script starts a graph (``GraphClient.start``: npp-run with the same options, so the same node
 processes, logs, refusals and clean stops) or joins one already running (``GraphClient(domain_id=...)``),
-asks its expert for a trajectory, follows the run's gaps, episodes, health and certificate as iterators
-or callbacks, and stops it.
+asks its expert for a trajectory, follows the run's gaps, episodes, health and certificate as iterators,
+callbacks or non-blocking looks (``latest``, ``done``), and stops it. What it returns is npp_ros's own:
+the certificate is npp_ros.certificate.certifier.Certificate, a gap report a GapRecord and an episode an
+EpisodeOutcome (npp_ros.run.records), each converted from its message in npp_ros_graph/transport/convert.py.
+The callbacks get the messages themselves, as they were sent: the tools print and record those, as they
+do a bag's. ``start`` returns once the graph's sim describes its plant (latched, sealed under the run's key).
 
 Why it is shaped so: the client's node spins in a thread of its own (the synchros2 model the nodes
 follow, npp_ros_graph/runtime/node.py), so every call here is synchronous with a timeout and safe from
@@ -33,26 +37,38 @@ from typing import IO, Any, TypeVar
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from npp_interfaces.msg import Certificate, EpisodeResult, GapReport, PlantDescription
+from npp_interfaces.msg import Certificate as CertificateMsg
+from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
+from npp_ros.certificate.certifier import Certificate
 from npp_ros.policy.dataset import Trajectory
+from npp_ros.run.records import EpisodeOutcome, GapRecord
 from npp_ros.run.request import RunRequest
+from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros_graph.graph.description import run_options
+from npp_ros_graph.graph.npp_run import option_names
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
-from npp_ros_graph.runtime.node import release
+from npp_ros_graph.runtime.node import publishers_of, release
 from npp_ros_graph.runtime.reports import RunReports
-from npp_ros_graph.transport.convert import float64_array, trajectory_from_response
+from npp_ros_graph.transport.convert import (
+    certificate_from_msg,
+    episode_from_msg,
+    float64_array,
+    gap_from_msg,
+    trajectory_from_response,
+)
 from npp_ros_graph.transport.expert_api import BUSY, EXPERT_SERVICE, NOT_READY, PLANT_QOS, PLANT_TOPIC, SERVICE_QOS
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal, SealError
 from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_READER_QOS, REPORT_HISTORY_QOS, REPORT_QOS
 
-Report = GapReport | EpisodeResult | Certificate
-R = TypeVar("R", GapReport, EpisodeResult)
+Message = GapReport | EpisodeResult | CertificateMsg  # a report as the supervisor sends it
+Report = GapRecord | EpisodeOutcome | Certificate  # the same, as npp_ros reads it
+R = TypeVar("R", GapRecord, EpisodeOutcome)
 
 SPIN_S = 0.2  # the client's thread checks this often whether it is asked to close
 KEPT_REPORTS = 10_000  # reports an iterator may still read after they arrived (a run's last 5,000 episodes)
@@ -60,7 +76,7 @@ START_TIMEOUT_S = 60.0  # npp-run listens 2 s for another graph, then starts the
 STOP_GRACE_S = 60.0  # npp-run gives each node this long for its ordered teardown (one took over 15 s at load 15-20)
 STOP_TIMEOUT_S = STOP_GRACE_S + 15.0  # npp-run's own stop: its nodes' grace, then its own teardown
 ATTEMPT_S = 5.0  # an unanswered expert request is sent again (Fast DDS drops a new client's first responses)
-STARTED = "npp-run: started"  # the line npp-run prints once its nodes run
+START_OPTIONS = ("task", "seed", "run_dir", "domain_id")  # npp-run's options that start() takes by name
 LAUNCHER = "npp_ros_graph.tools.launcher"
 _CLIENTS = itertools.count(1)  # numbers the default node names of a process's clients
 
@@ -156,23 +172,22 @@ class GraphClient:
         )  # fmt: skip
         self.node = rclpy.create_node(name, namespace=namespace or None, context=self.context)
         self._cond = threading.Condition()
-        self._kept: deque[Report] = deque(maxlen=KEPT_REPORTS)
+        self._kept: deque[Message] = deque(maxlen=KEPT_REPORTS)
         self._received = 0  # reports received so far; the kept ones are the last len(_kept) of them
-        self._certificate: Certificate | None = None
+        self._certificate: CertificateMsg | None = None
         self._plant: PlantDescription | None = None
         self._health: dict[str, Health] = {}
         self._callbacks: dict[type, list[Callable[[Any], None]]] = {}
         self._notices: list[Callable[[str], None]] = []
         self._process: subprocess.Popen[bytes] | None = None
         self._output: threading.Thread | None = None
-        self._last_lines: deque[str] = deque(maxlen=20)
-        self._started = threading.Event()
+        self._last_lines: deque[str] = deque(maxlen=20)  # npp-run's last output, for the reason it gives up
         self.log: Path | None = None  # npp-run's own output, for a graph started here
         self.reports_of_run = RunReports(self.node, self._on_report, self._on_notice, seal=self.seal)
         report_qos = REPORT_HISTORY_QOS if past_reports else REPORT_QOS
         self.node.create_subscription(GapReport, GAP, self.reports_of_run.take, report_qos)
         self.node.create_subscription(EpisodeResult, EPISODE, self.reports_of_run.take, report_qos)
-        self.node.create_subscription(Certificate, CERTIFICATE, self.reports_of_run.take, LATCHED_READER_QOS)
+        self.node.create_subscription(CertificateMsg, CERTIFICATE, self.reports_of_run.take, LATCHED_READER_QOS)
         self.node.create_subscription(PlantDescription, PLANT_TOPIC, self._on_plant, PLANT_QOS)
         self.node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS_QOS)
         self._expert = self.node.create_client(ExpertTrajectory, EXPERT_SERVICE, qos_profile=SERVICE_QOS)
@@ -195,14 +210,22 @@ class GraphClient:
         timeout: float = START_TIMEOUT_S,
         **options: Any,
     ) -> GraphClient:
-        """Start a run's graph with npp-run and follow it; returns once its four nodes are started.
+        """Start a run's graph with npp-run and follow it; returns once its sim describes its plant.
 
-        ``options`` are npp-run's (horizon=50, epsilon=10, max_episodes=200, policy="open-loop", record=True...).
+        ``options`` are npp-run's (horizon=50, epsilon=10, max_episodes=200, policy="open-loop", record=True...);
+        a name npp-run does not know is a TypeError, before any process starts.
         ``key``: the run's key, which a client that joins the run needs (None: NPP_RUN_KEY's, else a fresh one
         that only this client and the nodes know). npp-run's own output goes to RUN_DIR/logs/npp-run.log.
         Raises GraphError with npp-run's reason when it refuses (a run folder in use, another graph on the
         domain, a bad option). Like npp-run, it sets ROS_AUTOMATIC_DISCOVERY_RANGE to LOCALHOST where unset.
         """
+        takes = option_names() - set(START_OPTIONS)
+        unknown = sorted(set(options) - takes)
+        if unknown:
+            raise TypeError(
+                f"GraphClient.start() got options npp-run does not know: {', '.join(unknown)} "
+                f"(its options: {', '.join(sorted(takes))})"
+            )
         if isinstance(task, RunRequest):  # a whole request: its settings are npp-run's options, under those named
             given = {name: value for name, value in run_options(task).items() if name not in ("task", "seed")}
             options = {**given, **options}
@@ -230,13 +253,16 @@ class GraphClient:
         )
         self._output = threading.Thread(target=self._copy_output, args=(self._process.stdout, self.log), daemon=True)
         self._output.start()
-        if not self._started.wait(timeout):
-            raise TimeoutError(f"npp-run did not start the nodes within {timeout:g} s (log: {self.log})")
+        # Ready when the graph says so: its sim's latched plant description, under the run's key.
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._plant is not None or not self.running, timeout):
+                raise TimeoutError(f"the graph's sim described no plant within {timeout:g} s (log: {self.log})")
         if not self.running:
             raise GraphError(f"npp-run did not start the graph: {self._reason()} (log: {self.log})")
 
     def _copy_output(self, stream: IO[bytes], log: Path) -> None:
-        """npp-run's output into its log, line by line; notes when the nodes started and when npp-run ended."""
+        """npp-run's output into its log, line by line (its last lines kept for a refusal's reason); notes when
+        npp-run ended."""
         with log.open("ab") as out:
             for raw in stream:
                 out.write(raw)
@@ -244,11 +270,8 @@ class GraphClient:
                 line = raw.decode(errors="replace").strip()
                 if line:
                     self._last_lines.append(line)
-                if line.startswith(STARTED):
-                    self._started.set()
         if self._process is not None:
             self._process.wait()
-        self._started.set()
         with self._cond:
             self._cond.notify_all()  # iterators waiting for reports learn that the graph is gone
 
@@ -313,16 +336,18 @@ class GraphClient:
     # A callback is added on the client's thread, which delivers every message: the messages received before
     # it was added (the kept reports, the plant) are handed to it first, so that it misses and repeats none.
     def on_gap(self, callback: Callable[[GapReport], None]) -> None:
-        """Call ``callback`` with each of this run's gap reports (one per episode), on the client's thread."""
+        """Call ``callback`` with each of this run's gap report messages (one per episode), on the client's thread;
+        ``gaps()`` and ``latest()`` give them as GapRecords."""
         self._add(GapReport, callback)
 
     def on_episode(self, callback: Callable[[EpisodeResult], None]) -> None:
         """Call ``callback`` with each of this run's episode results, on the client's thread."""
         self._add(EpisodeResult, callback)
 
-    def on_certificate(self, callback: Callable[[Certificate], None]) -> None:
-        """Call ``callback`` with the run's certificate once it is issued, on the client's thread."""
-        self._add(Certificate, callback)
+    def on_certificate(self, callback: Callable[[CertificateMsg], None]) -> None:
+        """Call ``callback`` with the run's certificate message once it is issued, on the client's thread
+        (``certificate()`` gives it as npp_ros's Certificate)."""
+        self._add(CertificateMsg, callback)
 
     def on_health(self, callback: Callable[[DiagnosticArray], None]) -> None:
         """Call ``callback`` with each /diagnostics message from now on (``health`` holds each node's latest)."""
@@ -356,11 +381,11 @@ class GraphClient:
         except Exception as exc:  # a caller's bug must not stop the client's thread
             self.node.get_logger().error(f"a {type(msg).__name__} callback failed: {type(exc).__name__}: {exc}")
 
-    def _on_report(self, msg: Report) -> None:
+    def _on_report(self, msg: Message) -> None:
         with self._cond:
             self._kept.append(msg)
             self._received += 1
-            if isinstance(msg, Certificate):
+            if isinstance(msg, CertificateMsg):
                 self._certificate = msg
             self._cond.notify_all()
         self._call(msg)
@@ -386,13 +411,39 @@ class GraphClient:
                 self._health[status.name] = health_of(status)
         self._call(msg)
 
+    # ------------------------------------------------------------------------- the graph around the run
+    def every(self, period: float, callback: Callable[[], None]) -> None:
+        """Call ``callback`` every ``period`` seconds on the client's thread (it must not block)."""
+        self.node.create_timer(period, callback)
+
+    def count_publishers(self, topic: str) -> int:
+        """How many publishers of ``topic`` this client sees on its domain."""
+        return self.node.count_publishers(topic)
+
+    def publishers_of(self, topic: str) -> str:
+        """Who publishes ``topic``, in words (their nodes' names)."""
+        return publishers_of(self.node, topic)
+
+    def graph_nodes(self) -> list[tuple[str, str]]:
+        """Every node this client sees on its domain: (name, namespace), itself included."""
+        return self.node.get_node_names_and_namespaces()
+
+    @property
+    def name(self) -> str:
+        """The client's own node name."""
+        return self.node.get_name()
+
+    @property
+    def namespace(self) -> str:
+        return self.node.get_namespace()
+
     # ------------------------------------------------------------------------- what the run says
     @property
     def verified(self) -> bool:
         """Whether reports are checked as this run's (the client has the run's key)."""
         return self.reports_of_run.verified
 
-    def mark(self, msg: Report) -> str:
+    def mark(self, msg: Message) -> str:
         """What a viewer adds to a report: "" when verified, else that it is not and the run it names."""
         return self.reports_of_run.mark(msg)
 
@@ -406,12 +457,37 @@ class GraphClient:
         return self._wait(lambda: self._plant, timeout, "the sim's plant description")
 
     def certificate(self, timeout: float = 600.0) -> Certificate:
-        """The run's certificate, once issued; GraphError if the graph started here stops without one."""
-        return self._wait(lambda: self._certificate, timeout, "the certificate")
+        """The run's certificate, once issued, as npp_ros's Certificate; GraphError if the graph started here stops
+        without one."""
+        return self._core(self._wait(lambda: self._certificate, timeout, "the certificate"))
+
+    def done(self) -> bool:
+        """Without waiting: whether the run is over here (certified, or the graph started here has stopped)."""
+        with self._cond:
+            return self._certificate is not None or not self.running
+
+    def latest(self) -> Report | None:
+        """Without waiting: the newest report of the run (a GapRecord, an EpisodeOutcome or the Certificate), or
+        None before the first."""
+        with self._cond:
+            newest = self._kept[-1] if self._kept else None
+        return None if newest is None else self._core(newest)
+
+    def _core(self, msg: Message) -> Report:
+        """A report as npp_ros reads it (transport/convert.py); the certificate for the plant the sim describes."""
+        if isinstance(msg, GapReport):
+            return gap_from_msg(msg)
+        if isinstance(msg, EpisodeResult):
+            return episode_from_msg(msg)
+        plant = self._plant
+        task = plant.task if plant is not None else ""
+        diameter = get_task(task).initial_state_diameter if task and msg.condition == "ii" else None
+        return certificate_from_msg(msg, task, diameter)
 
     def reports(self, timeout: float = 120.0) -> Iterator[Report]:
-        """This run's reports in arrival order (gaps, episodes, the certificate last), from the first this
-        client kept; ends after the certificate, or when the graph started here has stopped.
+        """This run's reports in arrival order as npp_ros reads them (GapRecords, EpisodeOutcomes, the Certificate
+        last), from the first this client kept; ends after the certificate, or when the graph started here has
+        stopped.
 
         TimeoutError when nothing new comes for ``timeout`` seconds while the graph runs.
         """
@@ -425,19 +501,19 @@ class GraphClient:
                 seen = self._received
                 over = not new and not self.running
             for msg in new:
-                yield msg
-                if isinstance(msg, Certificate):
+                yield self._core(msg)
+                if isinstance(msg, CertificateMsg):
                     return
             if over:
                 return
 
-    def gaps(self, timeout: float = 120.0) -> Iterator[GapReport]:
+    def gaps(self, timeout: float = 120.0) -> Iterator[GapRecord]:
         """This run's gap reports, one per episode (see ``reports``)."""
-        return self._only(GapReport, timeout)
+        return self._only(GapRecord, timeout)
 
-    def episodes(self, timeout: float = 120.0) -> Iterator[EpisodeResult]:
-        """This run's episode results (see ``reports``)."""
-        return self._only(EpisodeResult, timeout)
+    def episodes(self, timeout: float = 120.0) -> Iterator[EpisodeOutcome]:
+        """This run's episode outcomes (see ``reports``)."""
+        return self._only(EpisodeOutcome, timeout)
 
     def _only(self, kind: type[R], timeout: float) -> Iterator[R]:
         return (msg for msg in self.reports(timeout) if isinstance(msg, kind))

@@ -50,7 +50,7 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     "npp_ros.bench": BELOW_RUN | {"npp_ros.run"},
     "npp_ros.cli": CORE - {"npp_ros.cli"},
     # the ROS side: any of the core, and its own parts bottom up
-    "npp_ros_graph": frozenset(),
+    "npp_ros_graph": frozenset({"npp_ros_graph.client"}),  # exports GraphClient, loaded on first use
     TRANSPORT: CORE,
     RUNTIME: CORE | {TRANSPORT},
     GRAPH: CORE | {TRANSPORT},

@@ -98,6 +98,43 @@ class EpisodeRow:
         return int(self.oracle_called) + self.explored
 
 
+@dataclass(frozen=True)
+class GapRecord:
+    """One episode's decision as a running graph reports it (/npp/gap): the part of its EpisodeRow a viewer gets,
+    with the spec it was checked against (epsilon, condition, checked quantity)."""
+
+    episode: int
+    initial_state: tuple[float, ...]
+    v_lb: float
+    v_ub: float
+    gap: float
+    checked_gap: float
+    epsilon: float
+    oracle_called: bool
+    dataset_size: int
+    oracle_calls: int
+    quiet_episodes: int
+    required: int
+    test: int
+    test_delta: float
+    condition: str
+    certify: str
+
+
+@dataclass(frozen=True)
+class EpisodeOutcome:
+    """One episode's outcome as a running graph reports it (/npp/episode): None where it is not known (the policy
+    did not drive, V*(s0) was not computed); ``robot`` is the drawn robot's record, "" for the exact model."""
+
+    episode: int
+    policy_return: float | None
+    steps: int
+    initial_state: tuple[float, ...]
+    expert_value: float | None
+    v_lb: float
+    robot: str = ""
+
+
 EPISODE_COLUMNS = tuple(EpisodeRow.__dataclass_fields__)
 SUCCESS_COLUMNS = ("expert_success", "policy_success")  # absent from files made before success was recorded
 LATER_COLUMNS = {"robot": "TEXT"}  # absent from files made before robots were drawn: added at the next write

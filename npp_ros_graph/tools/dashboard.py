@@ -206,7 +206,7 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
             self.client.on_certificate(self.on_certificate)
             self.client.on_plant(self.on_plant)
             self.client.on_health(self.on_diagnostics)
-            self.client.node.create_timer(1.0, self.look_at_nodes)
+            self.client.every(1.0, self.look_at_nodes)
             self.look_at_nodes()
 
         def on_certificate(self, msg: Certificate) -> None:
@@ -228,12 +228,9 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
             hub.set("health", dict(self.health))
 
         def look_at_nodes(self) -> None:
-            node = self.client.node
-            ns = node.get_namespace()
-            present = {name for name, namespace in node.get_node_names_and_namespaces() if namespace == ns}
-            others = sorted(
-                n for n in present if n.startswith("npp_") and n not in GRAPH_NODES and n != node.get_name()
-            )
+            client = self.client
+            present = {name for name, namespace in client.graph_nodes() if namespace == client.namespace}
+            others = sorted(n for n in present if n.startswith("npp_") and n not in GRAPH_NODES and n != client.name)
             nodes = [{"name": n, "alive": n in present, "role": "graph"} for n in GRAPH_NODES]
             nodes += [{"name": n, "alive": True, "role": "tool"} for n in others]
             hub.set("nodes", nodes)

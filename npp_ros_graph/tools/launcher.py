@@ -15,7 +15,6 @@ within the first seconds after the start stops this run with the same reason.
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import shlex
@@ -33,16 +32,16 @@ from typing import IO
 from diagnostic_msgs.msg import DiagnosticArray
 from npp_interfaces.msg import Certificate, GapReport
 
-from npp_ros.cli.args import ListTasks, add_run_arguments, run_request
+from npp_ros.cli.args import run_request
 from npp_ros.run.records import RunFileError
-from npp_ros.run.request import FIELD_NAMES
 from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import RUN_FILE, WriterLock
 from npp_ros.tasks.registry import get_task
 from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default_run_dir
 from npp_ros_graph.graph.description import node_argv, request_parameters
+from npp_ros_graph.graph.npp_run import parser
 from npp_ros_graph.runtime.diagnostics import WARN, health_of
-from npp_ros_graph.runtime.node import TEARDOWN_S, leave_if_teardown_hangs, node_name, publishers_of
+from npp_ros_graph.runtime.node import TEARDOWN_S, leave_if_teardown_hangs, node_name
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
@@ -59,24 +58,6 @@ TWO_GRAPHS = (
     "Two graphs on one domain answer each other's service calls (their seals keep their data apart, at the cost "
     "of retries): stop the other one, or give this run its own domain (--domain-id N)"
 )
-
-
-def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="npp-run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    add_run_arguments(ap, ("task",))
-    ap.add_argument("--list-tasks", action=ListTasks, help="list every task and where it comes from, then exit")
-    add_run_arguments(ap, tuple(name for name in FIELD_NAMES if name != "task"))  # every setting, one help each
-    ap.add_argument("--run-dir", type=Path, default=None, help="run folder; default runs/graph-TASK-seedSEED")
-    ap.add_argument("--no-rollouts", action="store_true", help="skip the policy's episodes (gap checks only)")
-    ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the four nodes (default: inherited)")
-    ap.add_argument("--record", action="store_true", help="also record every /npp topic into RUN_DIR/bag (npp-record)")
-    ap.add_argument(
-        "--dashboard", type=int, nargs="?", const=8765, default=None, metavar="PORT",
-        help="also serve the live dashboard on 127.0.0.1:PORT (npp-dashboard; default port 8765)",
-    )  # fmt: skip
-    return ap
 
 
 class Follower:
@@ -135,14 +116,14 @@ class Follower:
         ``ours`` is how many of those publishers this run owns on each topic: 0 before its nodes start,
         1 after. Two graphs on one domain answer each other's service calls, so either is refused.
         """
-        node = self.client.node
+        client = self.client
         found = []
         for topic in GRAPH_TOPICS:
-            if node.count_publishers(topic) > ours:
-                found.append(f"/{topic} is published by {publishers_of(node, topic)}")
+            if client.count_publishers(topic) > ours:
+                found.append(f"/{topic} is published by {client.publishers_of(topic)}")
         if not found:
             return None
-        names = [node_name(ns, n) for n, ns in node.get_node_names_and_namespaces() if n.startswith("npp_")]
+        names = [node_name(ns, n) for n, ns in client.graph_nodes() if n.startswith("npp_")]
         seen = ", ".join(f"{n} x{names.count(n)}" if names.count(n) > 1 else n for n in sorted(set(names)))
         return f"{'; '.join(found)} (npp nodes on the domain: {seen})"
 
@@ -290,7 +271,7 @@ def _stopped(pid: int) -> bool:
 
 # --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
+    args = parser(__doc__ or "").parse_args(argv)
     try:  # the request's own checks, before any node: a node would refuse the same value in the same words
         request = run_request(args)
     except ValueError as exc:

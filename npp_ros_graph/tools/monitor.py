@@ -92,7 +92,7 @@ class Monitor:
         self.client.on_certificate(self.show)
         if "health" in topics:
             self.client.on_health(self.on_diagnostics)
-        self.client.node.create_timer(1.0, self.notice_if_silent)
+        self.client.every(1.0, self.notice_if_silent)
 
     def show(self, msg: GapReport | EpisodeResult | Certificate) -> None:
         """A report to print (RunReports: this run's, or any while unverified, then marked so).
@@ -138,11 +138,9 @@ class Monitor:
         print(f"npp-monitor: {self.waiting_line(now - self.last_message)}", file=sys.stderr, flush=True)
 
     def waiting_line(self, silent_s: float) -> str:
-        node = self.client.node
-        publishers = ", ".join(f"/{t} {node.count_publishers(t)}" for t in self.topics)
-        nodes = sorted(
-            f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces() if n.startswith("npp_")
-        )
+        client = self.client
+        publishers = ", ".join(f"/{t} {client.count_publishers(t)}" for t in self.topics)
+        nodes = sorted(f"{ns.rstrip('/')}/{n}" for n, ns in client.graph_nodes() if n.startswith("npp_"))
         others = [n for n in nodes if n != "/npp_monitor"]
         seen = ", ".join(others) if others else "none (no graph on this domain, or not discoverable from here)"
         unverified = "" if self.client.verified else f"Reports will be shown {UNVERIFIED}"

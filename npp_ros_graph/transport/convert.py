@@ -22,12 +22,13 @@ from npp_interfaces.srv import ExpertTrajectory
 from numpy.typing import ArrayLike
 from sensor_msgs.msg import JointState
 
-from npp_ros.certificate.certifier import Certificate
+from npp_ros.certificate.certifier import Certificate, CertificationSpec
 from npp_ros.policy.dataset import DatasetError, FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.vectors import finite_vector
 from npp_ros.run.loop import RunConfig
-from npp_ros.run.records import EpisodeRow
+from npp_ros.run.records import EpisodeOutcome, EpisodeRow, GapRecord
 from npp_ros.tasks.registry import Plant, control_space
 from npp_ros.tasks.uncertainty import Robot
 
@@ -250,6 +251,27 @@ def episode_result(row: EpisodeRow, steps: int, time: Time) -> EpisodeResult:
     return msg
 
 
+def gap_from_msg(msg: GapReport) -> GapRecord:
+    """A gap report as the core record a viewer of the run reads (GraphClient)."""
+    return GapRecord(
+        episode=int(msg.episode), initial_state=tuple(float(x) for x in msg.initial_state), v_lb=msg.v_lb,
+        v_ub=msg.v_ub, gap=msg.gap, checked_gap=msg.checked_gap, epsilon=msg.epsilon,
+        oracle_called=bool(msg.oracle_called), dataset_size=int(msg.dataset_size), oracle_calls=int(msg.oracle_calls),
+        quiet_episodes=int(msg.quiet_episodes), required=int(msg.quiet_required), test=int(msg.test),
+        test_delta=msg.test_delta, condition=msg.condition, certify=msg.certify,
+    )  # fmt: skip
+
+
+def episode_from_msg(msg: EpisodeResult) -> EpisodeOutcome:
+    """An episode result as the core record a viewer of the run reads: None for what the report does not know."""
+    driven = msg.steps > 0 and not math.isnan(msg.policy_return)
+    return EpisodeOutcome(
+        episode=int(msg.episode), policy_return=msg.policy_return if driven else None, steps=int(msg.steps),
+        initial_state=tuple(float(x) for x in msg.initial_state),
+        expert_value=msg.expert_value if msg.expert_value_known else None, v_lb=msg.v_lb, robot=msg.robot,
+    )  # fmt: skip
+
+
 def rollout_result(
     episode: int, policy_return: float, steps: int, initial_state: ArrayLike, time: Time, robot: Robot | None = None
 ) -> EpisodeResult:
@@ -283,3 +305,27 @@ def certificate_to_msg(certificate: Certificate, time: Time) -> CertificateMsg:
     msg = CertificateMsg(**{name: value for name, value in named.items() if name in carried})
     msg.header.stamp = time
     return msg
+
+
+def certificate_from_msg(msg: CertificateMsg, task: str, diameter: float | None = None) -> Certificate:
+    """The certificate a message carries, for the run of ``task`` (the plant description names it) whose
+    initial states span ``diameter`` (condition (ii) states it); the inverse of :func:`certificate_to_msg`.
+
+    The stopping rule is not carried: a mixture statistic means the mixture rule, and the statement names the
+    paper's one-shot rule where it was that one; else the rule was the sequential one.
+    """
+    mixture = None if math.isnan(msg.mixture) else float(msg.mixture)
+    if mixture is not None:
+        rule = "mixture"
+    else:
+        rule = "paper" if "the paper's one-shot rule" in msg.statement else "sequential"
+    spec = CertificationSpec(
+        msg.condition, msg.epsilon, msg.p, msg.delta,  # type: ignore[arg-type]
+        LipschitzConstant(msg.lipschitz, msg.lipschitz_source, margin=msg.lipschitz_margin), diameter,
+        certify=msg.certify, rule=rule, policy=msg.policy,  # type: ignore[arg-type]
+    )  # fmt: skip
+    fields = CertificateMsg.get_fields_and_field_types()
+    renamed = {carried: name for name, carried in CERTIFICATE_RENAMED.items()}
+    record = {renamed.get(name, name): getattr(msg, name) for name in fields if name != "header"}
+    record.update(task=task, mixture=mixture, assumptions=list(msg.assumptions))
+    return Certificate.from_record(record, spec)

@@ -14,7 +14,7 @@ from sensor_msgs.msg import JointState
 from npp_ros.certificate.certifier import Certificate, CertificationSpec
 from npp_ros.policy.dataset import DatasetError, Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.run.records import EpisodeRow
+from npp_ros.run.records import EpisodeOutcome, EpisodeRow, GapRecord
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.tasks.lqr import LQRExpert
 from npp_ros.tasks.uncertainty import Robot
@@ -24,8 +24,11 @@ from npp_ros_graph.transport.convert import (
     MessageError,
     action_from_joint_state,
     action_to_joint_state,
+    certificate_from_msg,
     certificate_to_msg,
+    episode_from_msg,
     episode_result,
+    gap_from_msg,
     gap_report,
     plant_description,
     robot_from_field,
@@ -241,3 +244,37 @@ def test_the_dashboard_reads_a_run_file_as_the_gap_reports_it_published(tmp_path
     load_run(tmp_path, hub)
     assert len(rows) == 6
     assert hub.state["episodes"] == [episode_entry(gap_report(row, config, stamp(0))) for row in rows]
+
+
+@pytest.mark.parametrize("rule", ["sequential", "paper", "mixture"])
+def test_a_certificate_message_reads_back_as_the_certificate_it_carries(rule: str) -> None:
+    """GraphClient's certificate is the core type: the message's fields, the run's task, and the rule its statement
+    or mixture statistic names."""
+    lipschitz = LipschitzConstant(263.3, "lqr-analytic", margin=0.01)
+    spec = CertificationSpec("i", 50.0, 0.9, 0.1, lipschitz, certify="rollout", rule=rule)  # type: ignore[arg-type]
+    cert = Certificate(
+        task="lqr_2_1", spec=spec, episodes=178, oracle_calls=52, dataset_size=52000, policy_trajectories=40,
+        window=22, required=22, test=3, delta_spent=0.1 / 12, value="the return",
+        statement=spec.statement(22, "the return", 40, 3, log_mixture=3.0), proven=True, assumptions=("one", "two"),
+        mixture=20.1 if rule == "mixture" else None,
+    )  # fmt: skip
+    assert certificate_from_msg(certificate_to_msg(cert, stamp(0)), "lqr_2_1") == cert
+
+
+def test_gap_and_episode_reports_read_back_as_core_records() -> None:
+    expert = LQRExpert("lqr_2_1", 0, horizon=20)
+    config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "analytic", expert), 50.0, horizon=20)
+    row = build_loop(config, expert).run(max_episodes=1).rows[0]
+    gap = gap_from_msg(gap_report(row, config, stamp(0)))
+    assert isinstance(gap, GapRecord)
+    assert (gap.episode, gap.initial_state, gap.gap, gap.oracle_called, gap.epsilon) == (
+        row.episode,
+        tuple(row.initial_state),
+        row.gap,
+        row.oracle_called,
+        50.0,
+    )
+    outcome = episode_from_msg(episode_result(row, 20, stamp(0)))
+    assert isinstance(outcome, EpisodeOutcome) and outcome.policy_return == row.policy_return
+    undriven = episode_from_msg(rollout_result(3, float("nan"), 0, [0.0] * 4, stamp(0)))
+    assert (undriven.policy_return, undriven.expert_value, undriven.robot) == (None, None, "")
