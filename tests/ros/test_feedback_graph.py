@@ -4,6 +4,9 @@ The cartpole's expert gives its iLQR gains with every answer; the policy node ac
 plus the gain times the wrapped state difference, clamped), in the same floating-point operations as the
 in-process loop. The expert stops by convergence or its iteration cap (a generous time budget), so its answers
 do not depend on the machine's speed.
+
+A whole swing-up certification through the graph and a rehearsal on the real-time robot: a long run, in
+`make test-long` (`make test` runs the feedback policy through the graph on lqr_2_1, test_replayed_run.py).
 """
 
 from __future__ import annotations
@@ -14,11 +17,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from reference import decisions
 
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import ExpertOptions, get_task
+
+pytestmark = pytest.mark.long
 
 TASK = "cartpole_swingup"
 HORIZON = 300
