@@ -139,33 +139,38 @@ def tool_children(parent: int) -> dict[str, int]:
 
 # ----------------------------------------------------------------------------- 2. a node that refuses
 def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp_path: Path, ros_domain: int) -> None:
+    """npp-run checks the run's settings before any node starts; what only a node can judge (here, whether the
+    task's expert computes an analytic L) is refused by that node, which npp-run names with its reason and log."""
     run_dir = tmp_path / "run"
     with domain_id() as domain:
         first = subprocess.run(
             [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
-             str(domain), "--horizon", "0"],
+             str(domain), "--task", "pendulum_swingup", "--lipschitz", "analytic"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
         second = subprocess.run(
+            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
+             str(domain), "--task", "cartpole_swingup", "--lipschitz", "analytic", "--epsilon", "130"],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        before = subprocess.run(
             [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
              str(domain), "--epsilon", "-1"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
     print("\n" + first.stderr.strip().splitlines()[-1] + "\n" + second.stderr.strip().splitlines()[-1])
-    assert first.returncode == 1
-    assert (
-        "npp-run: npp-sim exited with code 2: parameter horizon must be an integer in [1, 100000], got 0"
-        f" (log: {run_dir / 'logs' / 'sim.log'})" in first.stderr
-    )
-    assert second.returncode == 1
-    assert "npp-supervisor exited with code 2: bad parameter: epsilon must be finite and > 0, got -1.0" in (
-        second.stderr
-    )
-    # Each start has its own log: the second start's is sim.log, the first's is kept as sim.1.log.
+    assert first.returncode == 1 and second.returncode == 1
+    for run, task in ((first, "pendulum_swingup"), (second, "cartpole_swingup")):
+        assert "npp-run: npp-supervisor exited with code 1" in run.stderr
+        assert f"L = 'analytic' is not available for {task}" in run.stderr
+        assert f"(log: {run_dir / 'logs' / 'supervisor.log'})" in run.stderr
+    # A setting npp-run can judge is refused before any node starts, and no node log is written for it.
+    assert before.returncode == 2 and "epsilon must be finite and > 0, got -1.0; not starting" in before.stderr
+    # Each start has its own log: the second start's is supervisor.log, the first's is kept as supervisor.1.log.
     logs = run_dir / "logs"
-    assert "parameter horizon must be" in (logs / "sim.1.log").read_text()
-    assert "parameter horizon" not in (logs / "sim.log").read_text()
-    assert "epsilon must be" in (logs / "supervisor.log").read_text()
+    assert "not available for pendulum_swingup" in (logs / "supervisor.1.log").read_text()
+    assert "pendulum_swingup" not in (logs / "supervisor.log").read_text()
+    assert "not available for cartpole_swingup" in (logs / "supervisor.log").read_text()
     for name in NODES:
         header = (logs / f"{name}.log").read_text().splitlines()[0]
         assert header.startswith("==== npp-run: this start of the node at ") and ": pid " in header
