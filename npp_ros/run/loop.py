@@ -56,6 +56,7 @@ from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.spec import PolicySpec
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts, state_tuple
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.success import SuccessCriterion
@@ -161,11 +162,19 @@ class RunResult:
         return self.certificate is not None
 
 
+def policy_spec(spec: CertificationSpec, control: ControlSpace) -> PolicySpec:
+    """The policy a run's spec names, as one value: its kind and L from the spec, the task's control space. The one
+    place a run's policy is decided; the supervisor sends it whole to the policy node."""
+    return PolicySpec(spec.policy, spec.lipschitz, control)
+
+
 def make_policy(data: Dataset, spec: CertificationSpec, control: ControlSpace | None) -> NonparametricPolicy:
     """The policy a run's spec names over ``data``: the choice on V_lb with the spec's L (its distance blind to the
     task's invariant entries), acting open loop, with the expert's feedback, or along the path it chose, in the
-    task's control space. Every place that acts for a run builds it here."""
-    return NonparametricPolicy(data, spec.lipschitz.value, control=control, kind=spec.policy)
+    task's control space. Every place that acts for a run builds it here (:func:`policy_spec`)."""
+    if control is None:  # a plant that states no control space: no angles, no limits, nothing invariant
+        return NonparametricPolicy(data, spec.lipschitz.value, kind=spec.policy)
+    return policy_spec(spec, control).build(data)
 
 
 class NPPLoop:
@@ -288,6 +297,11 @@ class NPPLoop:
 
     def _new_policy(self) -> NonparametricPolicy:
         return make_policy(self.policy_data, self.spec, self.control)
+
+    @property
+    def policy_spec(self) -> PolicySpec | None:
+        """How this run's policy acts, as one value (None where the task states no control space)."""
+        return None if self.control is None else policy_spec(self.spec, self.control)
 
     def _set_policy_prefix(self, count: int) -> None:
         self.policy_data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)

@@ -21,7 +21,6 @@ action again without advancing the path, so a rollout through the graph is the i
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import threading
 import time
@@ -38,13 +37,11 @@ from std_msgs.msg import UInt32, UInt64
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, DatasetError
-from npp_ros.policy.feedback import check_policy_kind
-from npp_ros.tasks.registry import get_task
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
 from npp_ros_graph.transport.convert import (
-    control_space_from,
+    policy_spec_from_msg,
     refill_action,
     state_from_joint_state,
     trajectory_from_msg,
@@ -237,20 +234,15 @@ class PolicyNode(Node):
         if self.policy is None:
             assert self.dataset is not None and self.plant is not None
             try:
-                kind = check_policy_kind(response.policy)
-                # The sim describes angles and ranges; the task says which entries the distance ignores.
-                invariant = get_task(self.plant.task).invariant_entries()
-                control = dataclasses.replace(control_space_from(self.plant), invariant=invariant)
-                policy = NonparametricPolicy(self.dataset, response.lipschitz, control=control, kind=kind)
+                spec = policy_spec_from_msg(response.policy)  # the run's policy, whole, as the supervisor sends it
+                policy = spec.build(self.dataset)
             except ValueError as exc:
                 self._catch_up_needed = True
                 self._warn("policy", f"cannot act as the supervisor asks: {exc}")
                 return
             with self._data_lock:
                 self.policy = policy
-            self.get_logger().info(
-                f"acting greedily with L = {response.lipschitz:g} ({response.lipschitz_source}), {kind} policy"
-            )
+            self.get_logger().info(f"acting greedily as the run certifies: {spec.describe()}")
         for msg in response.trajectories:
             if msg.index == self.dataset.num_trajectories and not self._append(msg):
                 break

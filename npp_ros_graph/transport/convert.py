@@ -17,6 +17,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
+from npp_interfaces.msg import PolicySpec as PolicySpecMsg
 from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from npp_interfaces.srv import ExpertTrajectory
 from numpy.typing import ArrayLike
@@ -24,8 +25,9 @@ from sensor_msgs.msg import JointState
 
 from npp_ros.certificate.certifier import Certificate, CertificationSpec
 from npp_ros.policy.dataset import DatasetError, FloatArray, Trajectory
-from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.feedback import ControlSpace, check_policy_kind
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.policy.spec import PolicySpec
 from npp_ros.policy.vectors import finite_vector
 from npp_ros.run.loop import RunConfig
 from npp_ros.run.records import EpisodeOutcome, EpisodeRow, GapRecord
@@ -180,6 +182,28 @@ def plant_description(plant: Plant, seed: int, horizon: int) -> PlantDescription
         action_low=float64_array(space.action_low),
         action_high=float64_array(space.action_high),
     )
+
+
+def policy_spec_to_msg(spec: PolicySpec) -> PolicySpecMsg:
+    """A run's policy as the dataset service sends it with its data (:func:`policy_spec_from_msg` reads it back)."""
+    control = spec.control
+    return PolicySpecMsg(
+        kind=spec.kind, lipschitz=spec.lipschitz.value, lipschitz_source=spec.lipschitz.source,
+        lipschitz_margin=spec.lipschitz.margin, state_dim=control.state_dim, angle_entries=list(control.angles),
+        action_low=float64_array(control.action_low), action_high=float64_array(control.action_high),
+        invariant_entries=list(control.invariant),
+    )  # fmt: skip
+
+
+def policy_spec_from_msg(msg: PolicySpecMsg) -> PolicySpec:
+    """The policy a dataset answer names; ValueError naming what is wrong with one that names none."""
+    if not msg.kind:
+        raise ValueError("the dataset answer names no policy (an npp_ros from before the policy was sent whole?)")
+    kind = check_policy_kind(msg.kind)
+    control = ControlSpace.of(msg.state_dim, list(msg.angle_entries), list(msg.action_low), list(msg.action_high))
+    control = replace(control, invariant=tuple(int(i) for i in msg.invariant_entries))
+    lipschitz = LipschitzConstant(float(msg.lipschitz), msg.lipschitz_source, margin=float(msg.lipschitz_margin))
+    return PolicySpec(kind, lipschitz, control)
 
 
 def control_space_from(msg: PlantDescription) -> ControlSpace:

@@ -278,3 +278,21 @@ def test_gap_and_episode_reports_read_back_as_core_records() -> None:
     assert isinstance(outcome, EpisodeOutcome) and outcome.policy_return == row.policy_return
     undriven = episode_from_msg(rollout_result(3, float("nan"), 0, [0.0] * 4, stamp(0)))
     assert (undriven.policy_return, undriven.expert_value, undriven.robot) == (None, None, "")
+
+
+def test_a_runs_policy_round_trips_whole_through_the_dataset_answer() -> None:
+    from npp_interfaces.msg import PolicySpec as PolicySpecMsg
+
+    from npp_ros.policy.feedback import ControlSpace
+    from npp_ros.policy.lipschitz import LipschitzConstant
+    from npp_ros.policy.spec import PolicySpec
+    from npp_ros_graph.transport.convert import policy_spec_from_msg, policy_spec_to_msg
+
+    control = ControlSpace.of(4, (1,), [-1.0], [math.inf])
+    control = ControlSpace(control.state_dim, control.angles, control.action_low, control.action_high, invariant=(0,))
+    spec = PolicySpec("path", LipschitzConstant(263.3, "lqr-analytic", margin=1e-6), control)
+    assert policy_spec_from_msg(policy_spec_to_msg(spec)) == spec
+    with pytest.raises(ValueError, match="names no policy"):
+        policy_spec_from_msg(PolicySpecMsg())
+    with pytest.raises(ValueError, match="the policy must be one of"):
+        policy_spec_from_msg(PolicySpecMsg(kind="greedy", lipschitz=1.0, state_dim=4))

@@ -19,7 +19,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32
 
 from npp_ros.policy.dataset import Trajectory
-from npp_ros_graph.transport.convert import trajectory_to_msg
+from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.policy.spec import PolicySpec
+from npp_ros_graph.transport.convert import policy_spec_to_msg, trajectory_to_msg
 from npp_ros_graph.transport.seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
@@ -51,8 +54,12 @@ SEAL = RUN_SEAL.for_plant("test").for_run(RUN)  # the test plays this run's sim 
 
 
 def serve_dataset(request: Any, response: Any) -> Any:
-    response.success, response.total, response.lipschitz, response.lipschitz_source = True, 1, 1.0, "user"
-    response.run, response.policy = RUN, "open-loop"
+    response.success, response.total, response.run = True, 1, RUN
+    response.policy = policy_spec_to_msg(
+        PolicySpec(
+            "open-loop", LipschitzConstant(1.0, "user"), ControlSpace.of(DATA.states.shape[1], (), [-np.inf], [np.inf])
+        )
+    )
     response.trajectories = [SEAL.seal(trajectory_to_msg(0, DATA, RUN))] if request.start == 0 else []
     return SEAL.seal(response, answering=request)
 

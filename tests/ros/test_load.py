@@ -26,8 +26,11 @@ from std_msgs.msg import UInt32, UInt64
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset
+from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.policy.spec import PolicySpec
 from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
-from npp_ros_graph.transport.convert import trajectory_to_msg
+from npp_ros_graph.transport.convert import policy_spec_to_msg, trajectory_to_msg
 from npp_ros_graph.transport.seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
@@ -137,9 +140,11 @@ def test_policy_under_a_state_flood_drops_stale_states_and_reports_them(
         ))
     )  # fmt: skip
 
+    control = ControlSpace.of(4, (), [-np.inf], [np.inf])  # the lqr plant: no angles, no actuator limit
+
     def serve(req: GetTrajectories.Request, res: GetTrajectories.Response) -> GetTrajectories.Response:
         res.success, res.total, res.run = True, data.num_trajectories, run
-        res.lipschitz, res.lipschitz_source, res.policy = lipschitz, "lqr-analytic", "open-loop"
+        res.policy = policy_spec_to_msg(PolicySpec("open-loop", LipschitzConstant(lipschitz, "lqr-analytic"), control))
         stop = min(req.start + (req.max_count or 50), data.num_trajectories)
         res.trajectories = [seal.seal(trajectory_to_msg(k, data.trajectory(k), run)) for k in range(req.start, stop)]
         return seal.seal(res, answering=req)

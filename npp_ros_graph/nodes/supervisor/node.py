@@ -42,9 +42,7 @@ from npp_ros_graph.runtime.diagnostics import WARN, DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, request_stop, run_node
 from npp_ros_graph.runtime.reports import report_context
-from npp_ros_graph.transport.convert import (
-    trajectory_to_msg,
-)
+from npp_ros_graph.transport.convert import policy_spec_to_msg, trajectory_to_msg
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help, request_params
 from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
@@ -227,9 +225,12 @@ class SupervisorNode(Node):
         response.success = True
         response.run = self.run_id
         response.total = total
-        response.lipschitz = loop.spec.lipschitz.value
-        response.lipschitz_source = loop.spec.lipschitz.source
-        response.policy = loop.spec.policy
+        spec = loop.policy_spec
+        if spec is None:  # every task's plant states its control space; a plug-in's that does not cannot act here
+            response.success = False
+            response.message = f"{loop.config.task} states no control space: the policy node cannot act for it"
+            return response
+        response.policy = policy_spec_to_msg(spec)
         response.trajectories = [
             self.trajectory_msg(k, data.trajectory(k)) for k in range(request.start, request.start + count)
         ]
