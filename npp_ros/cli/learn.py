@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     elapsed = time.perf_counter() - started
     write_episode_log(run_dir / "episodes.csv", result.rows)
     counts = loop.success_counts()
-    for line in expert_notice(args.task, counts):  # before anything else: the reason, where the user looks
+    for line in expert_notice(args.task, counts, result.rows):  # before anything else: the reason, where the user looks
         print(f"npp-learn: {line}", file=sys.stderr)
     sys.stderr.flush()
 

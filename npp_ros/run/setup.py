@@ -40,11 +40,11 @@ from npp_ros.policy.lipschitz import (
 )
 from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
-from npp_ros.run.records import RunFileError, RunMetadata, SuccessCounts
+from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import Expert, MeasuresValueSlope, control_space, get_task, task_label
 from npp_ros.tasks.sources import short_name
-from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot, supports_robots
+from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot, supports_robots, where_expert_failed
 
 
 def resolve_lipschitz(
@@ -307,16 +307,22 @@ def build_loop(
     )
 
 
-def expert_notice(task: str, counts: SuccessCounts) -> list[str]:
+def expert_notice(task: str, counts: SuccessCounts, rows: Sequence[EpisodeRow] = ()) -> list[str]:
     """What a command prints before a run's certificate about its expert: a warning when the expert failed the
-    task's success criterion on most of its answers, a note when the task states no criterion, else nothing."""
+    task's success criterion on most of its answers, a note when the task states no criterion, and, for a run on a
+    set of robots (``rows`` with robots), where in the set the expert failed (a set must stay within what the
+    expert can do); else nothing."""
     criterion = get_task(task).success
     if criterion is None:
         return [
             f"note: {task_label(task)} states no success criterion: nothing measured whether its expert does the "
             "task, and a certificate is relative to that expert"
         ]
-    return counts.warning(criterion.describe())
+    judged = [row for row in rows if row.robot and row.expert_success is not None]
+    where = where_expert_failed(
+        [Robot.from_record(str(row.robot)) for row in judged], [not row.expert_success for row in judged]
+    )
+    return counts.warning(criterion.describe()) + ([f"note: {where}"] if where else [])
 
 
 def run_file_notice(run_file: Path) -> list[str]:
@@ -325,7 +331,7 @@ def run_file_notice(run_file: Path) -> list[str]:
     try:
         with RunStore.open(run_file) as store:
             rows, task, certify = store.episodes(), str(store.metadata.task), store.metadata.certify
-        return expert_notice(task, SuccessCounts.of(rows, policy=certify != "surrogate"))
+        return expert_notice(task, SuccessCounts.of(rows, policy=certify != "surrogate"), rows)
     except (RunFileError, ValueError):
         return []
 
