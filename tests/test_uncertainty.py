@@ -329,3 +329,12 @@ def test_a_run_says_where_in_the_set_its_expert_failed() -> None:
     text = where_expert_failed([weak, strong], [True, False])
     assert text.startswith("the expert failed on 1 of 2 answers, on robots with gear of torque x[0.82, 0.82]")
     assert "(all answers x[0.82, 1.15])" in text and "damping of hinge x[1.40, 1.40]" in text and "delay 1" in text
+
+
+def test_the_success_claims_statement_does_not_call_itself_relative_to_a_failing_expert() -> None:
+    from npp_ros.certificate.authoring import MeasuredSuccess
+
+    relative = MeasuredSuccess("upright", expert=(1, 10), policy=(9, 10))
+    alone = MeasuredSuccess("upright", expert=(1, 10), policy=(9, 10), relative=False)
+    assert "relative to its expert" in relative.sentence()
+    assert "relative to its expert" not in alone.sentence() and "needs no expert" in alone.sentence()

@@ -38,6 +38,7 @@ class MeasuredSuccess:
     criterion: str | None
     expert: tuple[int, int] = (0, 0)
     policy: tuple[int, int] | None = (0, 0)
+    relative: bool = True  # the claim is relative to the expert (False: the success claim, which needs none)
 
     def sentence(self) -> str:
         """One sentence, starting with SUCCESS_MARK, that the statement ends with."""
@@ -53,7 +54,12 @@ class MeasuredSuccess:
         else:
             said += f"; the policy on {self.policy[0]} of {self.policy[1]} checked episodes"
         sentence = f"{SUCCESS_MARK}, {self.criterion}: {said}."
-        if answers and done / answers < LOW_EXPERT_SUCCESS:
+        if not self.relative:
+            sentence += (
+                " The claim needs no expert: it was asked only after a failed check, so its answers are from the"
+                " hardest starts."
+            )
+        elif answers and done / answers < LOW_EXPERT_SUCCESS:
             sentence += (
                 " A certificate is relative to its expert, and this expert mostly fails the task: a claim about the"
                 " policy against it does not say the policy does the task."

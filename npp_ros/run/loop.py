@@ -502,6 +502,7 @@ class NPPLoop:
             criterion=None if self.success is None else self.success.describe(),
             expert=(counts.expert_successes, counts.expert_answers),
             policy=None if self.spec.certify == "surrogate" else (counts.policy_successes, counts.policy_checked),
+            relative=self.spec.certify != "success",
         )
 
     # ------------------------------------------------------------------ whole run

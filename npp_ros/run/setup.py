@@ -307,11 +307,14 @@ def build_loop(
     )
 
 
-def expert_notice(task: str, counts: SuccessCounts, rows: Sequence[EpisodeRow] = ()) -> list[str]:
+def expert_notice(
+    task: str, counts: SuccessCounts, rows: Sequence[EpisodeRow] = (), *, relative: bool = True
+) -> list[str]:
     """What a command prints before a run's certificate about its expert: a warning when the expert failed the
     task's success criterion on most of its answers, a note when the task states no criterion, and, for a run on a
     set of robots (``rows`` with robots), where in the set the expert failed (a set must stay within what the
-    expert can do); else nothing."""
+    expert can do); else nothing. ``relative`` False (the success claim, which needs no expert): no warning that
+    the certificate is relative to a failing expert."""
     criterion = get_task(task).success
     if criterion is None:
         return [
@@ -322,7 +325,8 @@ def expert_notice(task: str, counts: SuccessCounts, rows: Sequence[EpisodeRow] =
     where = where_expert_failed(
         [Robot.from_record(str(row.robot)) for row in judged], [not row.expert_success for row in judged]
     )
-    return counts.warning(criterion.describe()) + ([f"note: {where}"] if where else [])
+    warning = counts.warning(criterion.describe()) if relative else []
+    return warning + ([f"note: {where}"] if where else [])
 
 
 def run_file_notice(run_file: Path) -> list[str]:
@@ -331,7 +335,8 @@ def run_file_notice(run_file: Path) -> list[str]:
     try:
         with RunStore.open(run_file) as store:
             rows, task, certify = store.episodes(), str(store.metadata.task), store.metadata.certify
-        return expert_notice(task, SuccessCounts.of(rows, policy=certify != "surrogate"), rows)
+        counts = SuccessCounts.of(rows, policy=certify != "surrogate")
+        return expert_notice(task, counts, rows, relative=certify != "success")
     except (RunFileError, ValueError):
         return []
 
