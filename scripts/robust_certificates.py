@@ -30,6 +30,7 @@ class Arm:
     policy: str = "feedback"
     explore: float = 0.0
     rule: str = "sequential"
+    options: tuple[str, ...] = ()  # more npp-learn options (a task without the paper's epsilon and L needs them)
 
     @property
     def name(self) -> str:
@@ -44,19 +45,21 @@ class Arm:
             "--uncertainty", f"{self.uncertainty:g}", "--policy", self.policy, "--explore", f"{self.explore:g}",
             "--rule", self.rule,
             "--max-episodes", str(max_episodes), "--evaluate", str(evaluate), "--run-dir", str(run_dir),
+            *self.options,
         ]  # fmt: skip
 
 
+CARTPOLE = ("--epsilon", "130", "--lipschitz", "4300")  # as the cartpole's certified runs (README, Results)
 ARMS = {
     "pendulum-success": Arm("pendulum_swingup", "success", 1.0),
     "pendulum-success-exact": Arm("pendulum_swingup", "success", 0.0),
     "pendulum-success-explore": Arm("pendulum_swingup", "success", 1.0, explore=0.15),
     "pendulum-success-half": Arm("pendulum_swingup", "success", 0.5),
     "pendulum-success-mixture": Arm("pendulum_swingup", "success", 1.0, rule="mixture"),
-    "cartpole-success-mixture": Arm("cartpole_swingup", "success", 1.0, rule="mixture"),
+    "cartpole-success-mixture": Arm("cartpole_swingup", "success", 1.0, rule="mixture", options=CARTPOLE),
     "pendulum-oracle": Arm("pendulum_swingup", "oracle", 1.0),
-    "cartpole-success": Arm("cartpole_swingup", "success", 1.0),
-    "cartpole-oracle": Arm("cartpole_swingup", "oracle", 1.0),
+    "cartpole-success": Arm("cartpole_swingup", "success", 1.0, options=CARTPOLE),
+    "cartpole-oracle": Arm("cartpole_swingup", "oracle", 1.0, options=CARTPOLE),
 }
 
 

@@ -67,6 +67,7 @@ QUANTITY = {
     "success": "the task's success criterion on the policy's own rollout from s0",
 }
 SUCCESS_CHECK = {True: 0.0, False: 1.0}  # certify=success: the checked quantity is 1 - [the rollout succeeded]
+SUCCESS_EPSILON = 1.0  # the spec's epsilon of a success claim on a task that has none: no gap is bounded, never read
 
 
 def check_spec_choices(
@@ -374,7 +375,9 @@ class Certificate:
             f"  policy          {'path-following' if spec.policy == 'path' else 'greedy'} over "
             f"{self.policy_trajectories} trajectories ({self.dataset_size} triplets)",
             f"  L used          {lipschitz.value:.6g} ({lipschitz.source}, margin {lipschitz.margin:g})",
-            f"  epsilon, p, delta  {spec.epsilon:g}, {spec.p:g}, {spec.delta:g}",
+            f"  epsilon, p, delta  {spec.epsilon:g}, {spec.p:g}, {spec.delta:g}"
+            if spec.certify != "success"
+            else f"  p, delta        {spec.p:g}, {spec.delta:g} (no epsilon: the claim bounds no gap)",
             f"  checked         {QUANTITY[spec.certify]}",
             f"  value           {self.value}",
             f"  test            {self.test}, spent delta {self.delta_spent:.4g}",
