@@ -56,6 +56,7 @@ ARMS = {
     "pendulum-success-explore": Arm("pendulum_swingup", "success", 1.0, explore=0.15),
     "pendulum-success-half": Arm("pendulum_swingup", "success", 0.5),
     "pendulum-success-mixture": Arm("pendulum_swingup", "success", 1.0, rule="mixture"),
+    "pendulum-success-explore-mixture": Arm("pendulum_swingup", "success", 1.0, explore=0.15, rule="mixture"),
     "cartpole-success-mixture": Arm("cartpole_swingup", "success", 1.0, rule="mixture", options=CARTPOLE),
     "pendulum-oracle": Arm("pendulum_swingup", "oracle", 1.0),
     "cartpole-success": Arm("cartpole_swingup", "success", 1.0, options=CARTPOLE),
