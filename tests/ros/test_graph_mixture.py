@@ -1,4 +1,7 @@
-"""The mixture rule through the graph: npp-run reaches the in-process run's certificate, held data included."""
+"""The mixture rule through the graph: npp-run reaches the in-process run's certificate, held data included.
+
+A run to its certificate through two verifications: a long run, in `make test-long` (`make test` checks the
+mixture rule's loop in process, test_loop_mixture.py)."""
 
 from __future__ import annotations
 
@@ -7,9 +10,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from reference import decisions, uninterrupted_run
 
 from npp_ros.run.store import RunStore
+
+pytestmark = pytest.mark.long
 
 HORIZON = 200  # with it, seed 0 needs two verifications: the first gives up, the second certifies despite a failure
 
