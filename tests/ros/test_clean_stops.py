@@ -1,8 +1,8 @@
 """Every way a run stops leaves its nodes' logs clean: no FATAL line, no traceback, no "context is invalid",
 no ERROR from npp_ros's own shutdown.
 
-One run folder (npp-run, lqr_2_1, horizon 50), three stops, each start's logs checked before the next one
-rotates them:
+One run folder (npp-run, lqr_2_1, horizon 50, epsilon 300: about 80 episodes to its certificate), three
+stops, each start's logs checked before the next one rotates them:
 
 1. Ctrl-C in a terminal, mid-run: SIGINT to the whole process group (npp-run and its four nodes at once,
    while the sim and the policy exchange states and actions), and then npp-run's own SIGINT to each node.
@@ -31,7 +31,8 @@ from npp_ros_graph.graph.description import ROLES
 pytestmark = pytest.mark.slow
 
 HORIZON = 50
-MID_RUN_EPISODES = 40  # episodes done before the Ctrl-C: the control loop is busy when it comes
+EPSILON = 300.0  # a short run to its certificate (83 episodes): the stops, not the run's length, are the point
+MID_RUN_EPISODES = 30  # episodes done before the Ctrl-C: the control loop is busy when it comes
 START_TIMEOUT_S = 180.0  # four Python processes importing rclpy and MuJoCo on a shared 2-core machine
 RUN_TIMEOUT_S = 600.0
 # What a stop must not leave: rclpy's report of a callback that raised, a traceback, a publication into a
@@ -42,7 +43,7 @@ NOISE = re.compile(r"\[FATAL\]|Traceback|context is invalid|Exception in '|\[ERR
 def npp_run(run_dir: Path, domain: int, *extra: str, out: Path) -> subprocess.Popen[bytes]:
     """npp-run in a process group of its own, as a terminal runs a command: a Ctrl-C reaches the whole group."""
     command = [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
-               str(domain), "--horizon", str(HORIZON), *extra]  # fmt: skip
+               str(domain), "--horizon", str(HORIZON), "--epsilon", str(EPSILON), *extra]  # fmt: skip
     with out.open("wb") as fh:
         return subprocess.Popen(command, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
 

@@ -2,9 +2,10 @@
 run's bag under the same NPP_RUN_KEY is not shown as this run's, and a viewer without the key says of every
 report that it is not verified.
 
-A first run (npp-run --record, epsilon 100) certifies; a second run under the same exported key (epsilon
-0.001: it does not certify) runs while npp-replay plays the first run's certificate onto its domain. Watched
-by npp-run's own progress, npp-monitor and npp-dashboard with the key, and by npp-monitor without it.
+A first run (npp-run --record, epsilon 300: some 80 episodes) certifies; a second run under the same exported
+key (epsilon 0.001: it does not certify) runs while npp-replay plays the first run's certificate onto its
+domain. Watched by npp-run's own progress, npp-monitor and npp-dashboard with the key, and by npp-monitor
+without it.
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ def test_a_replayed_certificate_is_not_shown_as_the_live_runs(tmp_path: Path, ro
         keyless["ROS_DOMAIN_ID"] = str(domain)
         keyed = {**keyless, KEY_ENV: RunSeal.new_key()}
         run = [PYTHON, "-m", "npp_ros_graph.tools.launcher", "--domain-id", str(domain), "--horizon", str(HORIZON)]
-        first = subprocess.run([*run, "--run-dir", str(tmp_path / "first"), "--epsilon", "100", "--record"],
+        first = subprocess.run([*run, "--run-dir", str(tmp_path / "first"), "--epsilon", "300", "--record"],
                                capture_output=True, text=True, timeout=TIMEOUT_S, env=keyed)  # fmt: skip
         assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
         bag = next((tmp_path / "first").glob("bag*"))
@@ -112,7 +113,7 @@ def test_a_replayed_certificate_is_not_shown_as_the_live_runs(tmp_path: Path, ro
 
         # With the key: this run's reports, not the replayed certificate, whose run is named as left out.
         shown = text["monitor"]()
-        assert "[certificate]" not in shown and "eps 0.001" in shown and "eps 100 " not in shown, shown[-2000:]
+        assert "[certificate]" not in shown and "eps 0.001" in shown and "eps 300 " not in shown, shown[-2000:]
         for name in ("monitor", "second", "dashboard"):
             assert f"left out: reports of run {replayed_run}, sealed with this run's key" in text[name]()
         assert "[certificate]" not in text["second"]()
