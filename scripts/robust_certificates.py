@@ -71,6 +71,14 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
     ap.add_argument("--max-episodes", type=int, default=1000, help="npp-learn's --max-episodes")
     ap.add_argument("--evaluate", type=int, default=1000, help="held-out draws after each run (npp-learn --evaluate)")
+    ap.add_argument(
+        "--collect",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="run nothing: gather the rows of earlier --out folders (their results.csv) into OUT, arm by arm",
+    )
     return ap
 
 
@@ -91,6 +99,16 @@ def row_of(arm: Arm, seed: int, summary: dict, command: list[str], wall: float) 
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    if args.collect:
+        gathered = [row for folder in args.collect for row in csv.DictReader((folder / "results.csv").open())]
+        order = {arm.name: k for k, arm in enumerate(ARMS.values())}
+        gathered.sort(key=lambda r: (order.get(str(r["arm"]), len(order)), int(r["seed"])))
+        for row in gathered:  # as read back: the table's types
+            row["certified"] = row["certified"] == "True"
+            row["held_out"] = int(row["held_out"])
+            row["held_out_fraction"] = float(row["held_out_fraction"]) if row["held_out_fraction"] else 0.0
+        write(args.out, gathered)
+        return 0
     rows = []
     for key in args.arms:
         arm = ARMS[key]

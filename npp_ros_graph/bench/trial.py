@@ -177,7 +177,7 @@ def run_episode(executor: SingleThreadedExecutor, node: TrialNode, deployment: D
     params = {"task": task.name, "seed": str(seed), "initial_state": ",".join(repr(float(x)) for x in s0),
               "start_on_command": "true"}  # fmt: skip
     if drawn is not None:
-        params["robot"] = drawn.record()
+        params["robot"] = f"'{drawn.record()}'"  # a YAML string: the record's JSON braces would read as a mapping
     ros_args = [arg for name, value in params.items() for arg in ("-p", f"{name}:={value}")]
     robot = spawn(["npp_ros_graph.nodes.robot", "--ros-args", *ros_args], env, logs / f"robot-{episode}.log")
     limit = START_TIMEOUT_S + 4 * horizon * deployment.plant.dt  # real time: the episode's duration on top
