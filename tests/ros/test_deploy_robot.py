@@ -38,6 +38,7 @@ from npp_ros.run.setup import policy_for, spec_of
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.rollout import rollout
+from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, ERROR, OK, WARN, Health, health_of
 from npp_ros_graph.transport.convert import float64_array, stamp
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, LATCHED_QOS
@@ -552,6 +553,22 @@ def test_npp_trial_rehearses_the_certified_run_on_the_real_time_robot(runs, tmp_
         if episode["fresh_command_share"] == 1.0:  # no command missed its period: the in-process episode exactly
             assert episode["robot_return"] == episode["in_process_return"], episode
     assert "npp-trial" in (tmp_path / "trial.md").read_text()
+
+
+def test_npp_trial_tries_a_run_on_a_set_of_robots_on_robots_drawn_from_it(runs, tmp_path: Path) -> None:
+    """Each trial episode's npp-robot is a robot drawn from the run's set; the robot moves exactly as that robot's
+    model does (its efforts replayed on it), and the episode names it."""
+    good, _ = runs
+    on_set = with_robots(good, tmp_path / "on-set")
+    cmd = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(on_set), "--episodes", "2", "--horizon", "50",
+           "--out", str(tmp_path / "trial")]  # fmt: skip
+    subprocess.run(cmd, check=True, timeout=600)
+    out = json.loads((tmp_path / "trial" / "trial.json").read_text())
+    assert out["robots"].startswith("mass of")
+    robots = [Robot.from_record(episode["robot"]) for episode in out["episodes"]]
+    assert len(robots) == 2 and robots[0] != robots[1] and all(robot.changes_model for robot in robots)
+    for episode in out["episodes"]:
+        assert episode["replay_mismatches"] == 0, episode  # the robot is the drawn robot's model, exactly
 
 
 def test_a_robot_outside_the_certified_set_is_found_by_the_monitor_and_stops_it_when_asked(
