@@ -226,7 +226,9 @@ def test_sound_modes_are_arms_and_every_certificate_is_checked_on_held_out_state
 def test_sound_modes_run_under_their_default_rule_or_the_rules_asked_for() -> None:
     arms = default_arms(["lqr_2_1"], ["analytic"], ["optimal"], ["rollout", "oracle"])
     assert [(a.certify, a.rule) for a in arms] == [(mode, DEFAULT_RULES[mode]) for mode in ("rollout", "oracle")]
-    assert DEFAULT_RULES == {"rollout": "sequential", "oracle": "sequential", "surrogate": "sequential"}
+    assert DEFAULT_RULES == {
+        "rollout": "sequential", "oracle": "sequential", "surrogate": "sequential", "success": "sequential"
+    }  # fmt: skip
     both = default_arms(["lqr_2_1"], ["analytic"], ["optimal"], ["oracle", "paper"], ["sequential", "mixture"])
     assert [a.name for a in both] == [
         "lqr_2_1-optimal-Lanalytic-oracle-sequential", "lqr_2_1-optimal-Lanalytic-oracle-mixture",

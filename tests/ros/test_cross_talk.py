@@ -40,11 +40,14 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32
 
 from npp_ros.certificate.certifier import CertificationSpec
+from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.policy.spec import PolicySpec
 from npp_ros.run.setup import policy_for
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.lqr import LQRPlant
 from npp_ros.tasks.rollout import rollout
-from npp_ros_graph.transport.convert import float64_array
+from npp_ros_graph.transport.convert import float64_array, policy_spec_to_msg
 from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
@@ -127,7 +130,10 @@ class Intruder:
         self.sent["trajectories"] += 2
 
     def serve_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response) -> Any:
-        response.success, response.total, response.lipschitz, response.lipschitz_source = True, self.held + 1, 1.0, "x"
+        response.success, response.total = True, self.held + 1
+        response.policy = policy_spec_to_msg(
+            PolicySpec("open-loop", LipschitzConstant(1.0, "user"), ControlSpace.of(4, (), [-np.inf], [np.inf]))
+        )
         response.trajectories = [self.other.seal(self.fake_trajectory(k)) for k in range(request.start, self.held + 1)]
         self.sent["dataset answers"] += 1
         return self.other.seal(response, answering=request)
