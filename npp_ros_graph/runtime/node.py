@@ -269,9 +269,12 @@ def leave_if_teardown_hangs(program: str, seconds: float, code: int = 0, why: st
     return timer
 
 
+UNNAMED = "a node not yet named"  # a discovered endpoint whose node's name discovery has not brought yet
+
+
 def node_name(namespace: str, name: str) -> str:
     if name == "_NODE_NAME_UNKNOWN_":  # its endpoint is discovered, its node not yet
-        return "a node not yet named"
+        return UNNAMED
     return f"{namespace.rstrip('/')}/{name}"
 
 

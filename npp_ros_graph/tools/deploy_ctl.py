@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 import rclpy
@@ -30,6 +31,7 @@ from npp_ros_graph.transport.topics import SERVICE_QOS
 TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 COMMANDS = (*TRANSITIONS, "stop", "state")
 REASON_WAIT_S = 3.0  # the node publishes its diagnostics at once on a refusal, and every second
+RESEND_S = 5.0  # a question (get_state) is asked again after this long without an answer
 # The lifecycle states each transition starts from (the standard managed-node state machine).
 STARTS_FROM = {
     "configure": ("unconfigured",),
@@ -67,15 +69,22 @@ class DeployControl:
             if status.name == self.target:
                 self.statuses["latest"] = status
 
-    def _wait(self, future: Future, what: str) -> Any:
+    def _wait(self, future: Future, what: str, again: Callable[[], Future] | None = None) -> Any:
+        """The answer within the timeout; ``again`` re-sends a request that may be asked twice (a question, not a
+        transition) every RESEND_S: a response DDS loses (seen under load: the node answered, the client never
+        heard) is then answered again."""
         deadline = time.monotonic() + self.timeout
+        resend = time.monotonic() + RESEND_S
         while not future.done():
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 raise Unreachable(f"no answer from {what} within {self.timeout:g} s")
+            if again is not None and now > resend:
+                future, resend = again(), now + RESEND_S
             self.executor.spin_once(timeout_sec=0.05)
         return future.result()
 
-    def call(self, srv_type: Any, name: str, request: Any) -> Any:
+    def call(self, srv_type: Any, name: str, request: Any, idempotent: bool = False) -> Any:
         service = f"{self.target}/{name}"
         client = self.node.create_client(srv_type, service, qos_profile=SERVICE_QOS)
         deadline = time.monotonic() + self.timeout
@@ -85,10 +94,11 @@ class DeployControl:
                     f"{service} not found within {self.timeout:g} s (is npp-deploy running, same domain?)"
                 )
             self.executor.spin_once(timeout_sec=0.05)
-        return self._wait(client.call_async(request), service)
+        again = (lambda: client.call_async(request)) if idempotent else None
+        return self._wait(client.call_async(request), service, again)
 
     def state(self) -> str:
-        return str(self.call(GetState, "get_state", GetState.Request()).current_state.label)
+        return str(self.call(GetState, "get_state", GetState.Request(), idempotent=True).current_state.label)
 
     def transition(self, label: str) -> bool:
         request = ChangeState.Request()

@@ -41,7 +41,7 @@ from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default
 from npp_ros_graph.graph.description import node_argv, request_parameters
 from npp_ros_graph.graph.npp_run import parser
 from npp_ros_graph.runtime.diagnostics import WARN, health_of
-from npp_ros_graph.runtime.node import TEARDOWN_S, leave_if_teardown_hangs, node_name
+from npp_ros_graph.runtime.node import TEARDOWN_S, UNNAMED, leave_if_teardown_hangs, node_name
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
@@ -49,6 +49,7 @@ from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import GAP, PLANT
 
 DISCOVERY_S = 2.0  # listened for before starting: discovery on one machine takes well under a second
+NAMING_S = 5.0  # how long another graph's unnamed publisher is waited for, to be named in the refusal
 SECOND_GRAPH_WINDOW_S = 30.0  # a second graph seen this soon after the start stops this run
 GRAPH_TOPICS = (PLANT, GAP)  # one publisher each per graph: its sim and its supervisor
 LOG_HEADER = "==== npp-run: this start of the node at"
@@ -117,10 +118,17 @@ class Follower:
         1 after. Two graphs on one domain answer each other's service calls, so either is refused.
         """
         client = self.client
-        found = []
-        for topic in GRAPH_TOPICS:
-            if client.count_publishers(topic) > ours:
-                found.append(f"/{topic} is published by {client.publishers_of(topic)}")
+        named_by = time.monotonic() + NAMING_S
+        while True:
+            found = [
+                f"/{topic} is published by {client.publishers_of(topic)}"
+                for topic in GRAPH_TOPICS
+                if client.count_publishers(topic) > ours
+            ]
+            # Discovery may show an endpoint before its node's name: wait a little to name who runs the other graph.
+            if not any(UNNAMED in text for text in found) or time.monotonic() > named_by:
+                break
+            time.sleep(0.2)
         if not found:
             return None
         names = [node_name(ns, n) for n, ns in client.graph_nodes() if n.startswith("npp_")]
