@@ -23,7 +23,7 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.registry import Expert, Plant, StopsAtTimeBudget, Task
 from npp_ros.tasks.rollout import rollout, rollout_batch
 from npp_ros.tasks.success import SuccessCriterion
-from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot
+from npp_ros.tasks.uncertainty import Robot, UncertaintySet
 
 CHUNK = 100  # rollouts stepped in lockstep
 VIOLATION_TOLERANCE = 1e-9  # relative: a return below V_lb(s0) by more than rounding
@@ -64,24 +64,6 @@ def policy_rollouts(
         if progress is not None:
             progress(hi, len(states))
     return returns, slopes
-
-
-def privileged_returns(
-    expert: Expert,
-    states: FloatArray,
-    horizon: int,
-    robots: Sequence[Robot],
-    progress: Callable[[int, int], None] | None = None,
-) -> FloatArray:
-    """The expert's own H-step return from each s0, planning on that s0's robot (its model nominal again after)."""
-    out = np.empty(len(states))
-    for k, (s0, robot) in enumerate(zip(states, robots, strict=True)):
-        with as_robot(expert.plant, robot):
-            ret = expert.trajectory(s0, horizon).expert_return
-        out[k] = math.nan if ret is None else ret
-        if progress is not None:
-            progress(k + 1, len(states))
-    return out
 
 
 def below_lower_bound(returns: FloatArray, lower: FloatArray) -> FloatArray:
@@ -154,10 +136,7 @@ def check_policy(
             before = budget_stops(expert)
             if expert_progress is not None:
                 expert_progress(0, len(states))
-            if robots is None:
-                reference = task.expert_returns(expert, plant, states, horizon, expert_progress)
-            else:
-                reference = privileged_returns(expert, states, horizon, robots, expert_progress)
+            reference = task.expert_returns(expert, plant, states, horizon, expert_progress, robots)
             expert_budget_stops = budget_stops(expert) - before
         else:
             reference = np.asarray(expert_returns, dtype=np.float64)

@@ -16,7 +16,7 @@ import copy
 import hashlib
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +33,7 @@ from npp_ros.tasks.registry import MAX_HORIZON as MAX_HORIZON  # re-exported: ca
 from npp_ros.tasks.registry import episode_rng as episode_rng
 from npp_ros.tasks.rollout import rollout, rollout_batch
 from npp_ros.tasks.success import SuccessCriterion, WithinBand
+from npp_ros.tasks.uncertainty import Robot
 
 TASKS: dict[str, tuple[int, int]] = {"lqr_2_1": (2, 1), "lqr_6_2": (6, 2)}
 """Task name -> (bodies, actuators)."""
@@ -398,9 +399,13 @@ class LQRTask(Task):
         states: FloatArray,
         horizon: int,
         progress: Callable[[int, int], None] | None = None,
+        robots: Sequence[Robot] | None = None,
     ) -> FloatArray:
-        """The expert's controller rolled out in MuJoCo from each s0, in lockstep (one batch: no progress)."""
+        """The expert's controller rolled out in MuJoCo from each s0, in lockstep (one batch: no progress). Its
+        gains are the nominal model's: it cannot plan on a drawn robot (a run refuses uncertainty for it)."""
         assert isinstance(expert, LQRExpert)
+        if robots is not None:
+            raise ValueError(f"the {self.name} expert cannot plan on a drawn robot")
         runs = rollout_batch(plant, lambda xs: np.array([expert.action(x) for x in xs]), states, horizon)
         return np.array([run.total_return for run in runs])
 

@@ -11,7 +11,7 @@ none of them).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from typing import Any, Protocol, runtime_checkable
 
@@ -25,7 +25,7 @@ from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.tasks.success import SuccessCriterion
-from npp_ros.tasks.uncertainty import EXACT, UncertaintySet
+from npp_ros.tasks.uncertainty import EXACT, Robot, UncertaintySet, as_robot
 from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
 
 MAX_HORIZON = 100_000
@@ -226,14 +226,17 @@ class Task:
         states: FloatArray,
         horizon: int,
         progress: Callable[[int, int], None] | None = None,
+        robots: Sequence[Robot] | None = None,
     ) -> FloatArray:
-        """The expert's own H-step return from each s0: one request each (its reported return).
+        """The expert's own H-step return from each s0: one request each (its reported return); with ``robots``,
+        planning on s0 k's robot k (its model nominal again after), as a privileged expert does.
 
         ``progress(done, total)`` after each request: an optimizer's requests take seconds each.
         """
         out = np.empty(len(states))
         for k, s0 in enumerate(states):
-            ret = expert.trajectory(s0, horizon).expert_return
+            with as_robot(expert.plant, None if robots is None else robots[k]):
+                ret = expert.trajectory(s0, horizon).expert_return
             out[k] = math.nan if ret is None else ret
             if progress is not None:
                 progress(k + 1, len(states))
