@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +14,10 @@ import pytest
 from npp_ros.cli import learn
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.records import RunFileError
-from npp_ros.run.setup import PrivilegedExpert, build_config, build_loop
+from npp_ros.run.setup import NominalPlanExpert, PrivilegedExpert, build_config, build_loop
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.registry import ExpertOptions, get_task
+from npp_ros.tasks.nominal_plan import REFERENCE, nominal_plan_returns, tracked_on_robot
+from npp_ros.tasks.registry import ExpertOptions, control_space, get_task
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.uncertainty import (
     NOMINAL,
@@ -29,6 +31,7 @@ from npp_ros.tasks.uncertainty import (
 
 PENDULUM = "pendulum_swingup"
 CARTPOLE = "cartpole_swingup"  # its reward is smooth: short episodes earn something
+LIPSCHITZ = LipschitzConstant(50.0, "user")
 
 
 @pytest.fixture(scope="module")
@@ -137,6 +140,73 @@ def test_the_privileged_expert_plans_on_the_episodes_robot(pendulum_set: Uncerta
     on_nominal = rollout(plant, lambda _x: next(actions), s0, len(answer.actions)).states
     assert not np.allclose(on_nominal, answer.states, atol=1e-3)
     assert expert.plant.model_sha256() == plant.model_sha256()  # the expert's model is nominal again
+
+
+def test_the_nominal_expert_plans_on_the_nominal_model_and_its_answer_is_that_plan_run_on_the_robot() -> None:
+    """On the nominal robot the tracked plan is the plan itself; on another, the answer is a true rollout there
+    (its actions replayed on that robot give its states and its return) and differs from the plan."""
+    task = get_task(PENDULUM)
+    expert = task.make_expert(0, 80, ExpertOptions(max_iterations=5))
+    config = build_config(PENDULUM, 0, LIPSCHITZ, 130.0, horizon=80, uncertainty=1.0, expert_model="nominal")
+    oracle = build_loop(config, expert).oracle
+    assert isinstance(oracle, NominalPlanExpert)
+    s0 = task.initial_state(0, 0)
+    plan = expert.trajectory(s0)
+    same = oracle.trajectory(s0, robot=NOMINAL)
+    assert np.array_equal(same.states, plan.states) and np.array_equal(same.actions, plan.actions)
+    assert same.expert_return == plan.expert_return
+    robot = Robot((("mass", "pole", 1.2), ("gear", "torque", 0.8), ("damping", "hinge", 1.5)), action_delay=1)
+    answer = oracle.trajectory(s0, robot=robot)
+    assert not np.allclose(answer.states, plan.states, atol=1e-3)
+    assert answer.gains is not None and plan.gains is not None and np.array_equal(answer.gains, plan.gains)
+    plant = task.make_plant(0)
+    actions = iter(answer.actions)
+    replayed = rollout(plant, lambda _x: next(actions), s0, len(answer.actions), Robot(robot.scales))
+    assert np.array_equal(replayed.states, answer.states)  # no delay: an answer runs on the robot's physics only
+    assert replayed.total_return == pytest.approx(answer.expert_return, abs=1e-9)
+    assert expert.plant.model_sha256() == plant.model_sha256()  # the expert never saw the robot
+
+
+def test_a_nominal_expert_run_records_it_names_it_in_its_certificate_and_cannot_resume_as_another(
+    tmp_path: Path,
+) -> None:
+    from npp_ros.certificate.authoring import over_robots
+
+    task = get_task(PENDULUM)
+    expert = task.make_expert(0, 60, ExpertOptions(max_iterations=3))
+    nominal = build_config(PENDULUM, 0, LIPSCHITZ, 130.0, horizon=60, uncertainty=1.0, expert_model="nominal")
+    privileged = replace(nominal, expert_model="robot")
+    loop = build_loop(nominal, expert, store_path=tmp_path / "run.sqlite")
+    loop.run(2)
+    assert loop.store is not None
+    loop.store.close()
+    with RunStore.open(tmp_path / "run.sqlite") as store:
+        assert store.metadata.expert_model == "nominal"
+    with pytest.raises(RunFileError, match="expert_model: file has 'nominal'"):
+        build_loop(privileged, expert, store_path=tmp_path / "run.sqlite")
+    statement = over_robots("P_(s0~rho)[V - R <= 130] >= 0.9.", "mass x", REFERENCE["nominal"])
+    assert "planning on the task's nominal model, its plan run on each episode's robot" in statement
+    with pytest.raises(ValueError, match="expert model must be one of robot, nominal"):
+        build_config(PENDULUM, 0, LIPSCHITZ, 130.0, uncertainty=1.0, expert_model="teacher")
+
+
+def test_a_held_out_check_against_the_nominal_expert_runs_its_plans_on_the_drawn_robots() -> None:
+    task = get_task(PENDULUM)
+    horizon = 150  # long enough to reach the top from s0 0 on the model
+    expert = task.make_expert(0, horizon, ExpertOptions(max_iterations=3))
+    plant = task.make_plant(0)
+    states = np.array([task.initial_state(0, k) for k in range(2)])
+    robots = [Robot((("gear", "torque", 0.8),)), Robot((("damping", "hinge", 1.5),))]
+    nominal = nominal_plan_returns(expert, plant, states, horizon, robots)
+    privileged = task.expert_returns(expert, plant, states, horizon, robots=robots)
+    on_model = task.expert_returns(expert, plant, states, horizon)
+    space = control_space(plant)
+    for k, s0 in enumerate(states):
+        tracked = tracked_on_robot(plant, expert.trajectory(s0, horizon), s0, robots[k], space, window=True)
+        assert nominal[k] == tracked.expert_return
+    # the weaker motor: a plan for the model earns less on it than a plan made for it, which earns less than on
+    # the model itself
+    assert nominal[0] < privileged[0] < on_model[0]
 
 
 def test_a_run_under_uncertainty_records_its_set_and_each_episodes_robot_and_resumes_them(tmp_path: Path) -> None:

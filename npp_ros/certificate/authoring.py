@@ -80,10 +80,12 @@ def author_certificate(
     policy_trajectories: int,
     success: MeasuredSuccess | None = None,
     robots: str = "",
+    reference: str = "",
 ) -> Certificate:
     """The certificate a run issues when ``status`` certifies, about the policy on its first trajectories;
     ``success``: what the run measured of the task's success criterion (None: the task states none); ``robots``:
-    the set of robots each episode drew from, in words ("": the exact model)."""
+    the set of robots each episode drew from, in words ("": the exact model); ``reference``: what V^E is then (the
+    expert planning on each robot, unless it says otherwise)."""
     measured = success if success is not None else MeasuredSuccess(None)
     certify = spec.certify
     if certify == "success":
@@ -109,6 +111,7 @@ def author_certificate(
         statement=over_robots(
             spec.statement(status.window, value, policy_trajectories, status.test, status.failures, status.log_mixture),
             robots,
+            reference,
         )
         + " "
         + measured.sentence(),
@@ -123,14 +126,18 @@ L_FREE = ("oracle", "success")  # the checked quantities whose claim rests on no
 ROBOT_DRAW = "(s0, theta)~rho x Theta"  # what a claim under model uncertainty is a probability over
 
 
-def over_robots(statement: str, robots: str) -> str:
-    """A claim over the exact model made a claim over the set of robots: the probability is over (s0, theta)."""
+PRIVILEGED_REFERENCE = "V^E is the expert planning on each episode's robot (which the policy does not know)"
+
+
+def over_robots(statement: str, robots: str, reference: str = "") -> str:
+    """A claim over the exact model made a claim over the set of robots: the probability is over (s0, theta), and
+    V^E is what ``reference`` says (default: the expert planning on each robot)."""
     if not robots:
         return statement
     claim = statement.replace("_(s0~rho)[", f"_({ROBOT_DRAW})[")
     return (
-        f"{claim} Theta, the robots this covers: {robots}; V^E is the expert planning on each episode's robot "
-        "(which the policy does not know). Nothing is claimed for a robot outside Theta."
+        f"{claim} Theta, the robots this covers: {robots}; {reference or PRIVILEGED_REFERENCE}. Nothing is claimed "
+        "for a robot outside Theta."
     )
 
 

@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
             epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.spec.certify == "oracle",
             progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
             expert_progress=Counter("held-out: the expert's returns"),
-            robots=held_out_robots(config.uncertainty, args.seed, args.evaluate),
+            robots=held_out_robots(config.uncertainty, args.seed, args.evaluate), expert_model=config.expert_model,
         )  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LipschitzWarning)  # reported below, in the summary

@@ -20,6 +20,7 @@ from scipy.stats import binom
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, nominal_plan_returns
 from npp_ros.tasks.registry import Expert, Plant, StopsAtTimeBudget, Task
 from npp_ros.tasks.rollout import rollout, rollout_batch
 from npp_ros.tasks.success import SuccessCriterion
@@ -112,6 +113,7 @@ def check_policy(
     expert_budget_stops: int = 0,
     chunk: int = CHUNK,
     robots: Sequence[Robot] | None = None,
+    expert_model: str = DEFAULT_EXPERT_MODEL,
 ) -> HeldOutCheck:
     """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
 
@@ -125,6 +127,8 @@ def check_policy(
 
     ``robots`` (a run under model uncertainty): s0 k is checked on robot k, the policy's rollout and the expert's
     answer both, so the check is of the claim over (s0, theta); a held-out check of such a claim must draw both.
+    ``expert_model`` (npp_ros.tasks.nominal_plan): the expert plans on robot k, or on the nominal model with its plan
+    then run on robot k, as the run's own answers were.
     """
     started = time.perf_counter()
     returns, slopes = policy_rollouts(
@@ -136,7 +140,10 @@ def check_policy(
             before = budget_stops(expert)
             if expert_progress is not None:
                 expert_progress(0, len(states))
-            reference = task.expert_returns(expert, plant, states, horizon, expert_progress, robots)
+            if robots is not None and check_expert_model(expert_model) == "nominal":
+                reference = nominal_plan_returns(expert, plant, states, horizon, robots, expert_progress)
+            else:
+                reference = task.expert_returns(expert, plant, states, horizon, expert_progress, robots)
             expert_budget_stops = budget_stops(expert) - before
         else:
             reference = np.asarray(expert_returns, dtype=np.float64)

@@ -59,6 +59,7 @@ from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.spec import PolicySpec
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts, state_tuple
 from npp_ros.run.store import RunStore
+from npp_ros.tasks.nominal_plan import REFERENCE
 from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.tasks.uncertainty import Robot, describe_robots
 
@@ -142,6 +143,8 @@ class RunConfig:
     explore: float = 0.0  # > 0: after a failed check, also ask where the policy's rollout leaves the data this far
     # The set of robots the run draws from (UncertaintySet.record(), its elements named): '' = the exact model.
     uncertainty: str = ""
+    # Under uncertainty, the model the expert plans on: each episode's robot, or the nominal one (nominal_plan).
+    expert_model: str = "robot"
 
     def metadata(self) -> RunMetadata:
         """What the run file records of this config: its own fields, the spec's record, where L came from."""
@@ -493,6 +496,7 @@ class NPPLoop:
             policy_trajectories=self.policy_data.num_trajectories,
             success=self.measured_success(),
             robots=describe_robots(self.config.uncertainty),
+            reference=REFERENCE[self.config.expert_model],
         )
 
     def measured_success(self) -> MeasuredSuccess:

@@ -37,7 +37,12 @@ class RunMetadata(SimpleNamespace):
     PROVENANCE = ("lipschitz_detail",)
     RECORDED_SINCE = ("plant_fingerprint",)  # absent from older files: the first resume records them
     # Absent from files made before the choice existed, which all made this one: read as it.
-    BEFORE_RECORDED: ClassVar[dict[str, object]] = {"policy": "open-loop", "explore": 0.0, "uncertainty": ""}
+    BEFORE_RECORDED: ClassVar[dict[str, object]] = {
+        "policy": "open-loop",
+        "explore": 0.0,
+        "uncertainty": "",
+        "expert_model": "robot",
+    }
 
     def __getattr__(self, name: str) -> object:
         """Only called for a key the meta table lacks (a hand-edited or damaged file): say which."""

@@ -32,6 +32,7 @@ from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.explore import EXPLORE_HELP, check_radius
 from npp_ros.run.loop import RunConfig
 from npp_ros.run.setup import build_config, check_uncertainty, resolve_lipschitz
+from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODEL_HELP, EXPERT_MODELS, check_expert_model
 from npp_ros.tasks.registry import Expert, ExpertOptions, by_task, check_horizon, get_task
 from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
 from npp_ros.trajopt.expert import STOP_HELP, STOP_MODES, TIME_BUDGET_HELP, VALUE_MODES, check_stop
@@ -136,6 +137,9 @@ class RunRequest:
     )
     explore: float = field(default=0.0, metadata=spelled(EXPLORE_HELP, NUMBER, metavar="RADIUS", low=0.0))
     uncertainty: float = field(default=0.0, metadata=spelled(UNCERTAINTY_HELP, NUMBER, metavar="FACTOR", low=0.0))
+    expert_model: str = field(
+        default=DEFAULT_EXPERT_MODEL, metadata=spelled(EXPERT_MODEL_HELP, CHOICE, choices=EXPERT_MODELS)
+    )
     max_episodes: int = field(default=1000, metadata=spelled("stop uncertified after this many episodes", COUNT, low=1))
     time_budget: float | None = field(default=None, metadata=spelled(TIME_BUDGET_HELP, NUMBER))
     expert_stop: str | None = field(
@@ -159,6 +163,7 @@ class RunRequest:
         check_gamma(self.gamma)
         check_radius(self.explore)
         check_uncertainty(self.uncertainty)
+        check_expert_model(self.expert_model)
         if self.max_episodes < 1:
             raise ValueError(f"max_episodes must be >= 1, got {self.max_episodes!r}")
         if self.time_budget is not None:
@@ -249,6 +254,6 @@ def resolve_run(
         request.task, request.seed, lipschitz, epsilon,
         condition=request.condition, p=request.p, delta=request.delta, horizon=request.horizon, gamma=request.gamma,
         certify=request.certify, rule=request.rule, policy=request.policy, explore=request.explore,
-        uncertainty=request.uncertainty,
+        uncertainty=request.uncertainty, expert_model=request.expert_model,
     )  # fmt: skip
     return ResolvedRun(request, options, expert, epsilon, lipschitz, config)

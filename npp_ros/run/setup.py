@@ -42,9 +42,11 @@ from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.registry import Expert, MeasuresValueSlope, control_space, get_task, task_label
+from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, tracked_on_robot
+from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, control_space, get_task, task_label
 from npp_ros.tasks.sources import short_name
 from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot, supports_robots, where_expert_failed
+from npp_ros.trajopt.expert import DEFAULT_VALUES
 
 
 def resolve_lipschitz(
@@ -136,12 +138,14 @@ def build_config(
     policy: PolicyKind = DEFAULT_POLICY,
     explore: float = 0.0,
     uncertainty: float = 0.0,
+    expert_model: str = DEFAULT_EXPERT_MODEL,
 ) -> RunConfig:
     """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
     ``rule`` None the default rule of that checked quantity (DEFAULT_RULES), ``policy`` how the policy acts,
     ``explore`` > 0 the radius beyond which a failed check also asks where the policy went (npp_ros.run.explore),
     ``uncertainty`` > 0 the task's uncertainty set, its ranges' distance from the nominal model multiplied by this
-    (1: the set the task declares; 0: the exact model), a robot drawn from it per episode (:func:`robot_fn`).
+    (1: the set the task declares; 0: the exact model), a robot drawn from it per episode (:func:`robot_fn`),
+    ``expert_model`` the model the expert plans on then (npp_ros.tasks.nominal_plan).
 
     Refuses a bad combination (ValueError) when the run is defined, not episodes later.
     """
@@ -154,16 +158,17 @@ def build_config(
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,
         horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed), explore=check_radius(explore),
-        uncertainty=uncertainty_record(task, seed, uncertainty),
+        uncertainty=uncertainty_record(task, seed, uncertainty, expert_model),
+        expert_model=check_expert_model(expert_model),
     )  # fmt: skip
 
 
-def uncertainty_record(task: str, seed: int, factor: float) -> str:
+def uncertainty_record(task: str, seed: int, factor: float, expert_model: str = DEFAULT_EXPERT_MODEL) -> str:
     """The run's set of robots for an uncertainty factor, as the run file records it ('' for the exact model).
 
     Refused (ValueError, saying why) where the task declares nothing uncertain, its plant is not a MuJoCo model a
-    robot can be drawn into, or its expert cannot plan on a drawn robot (the certificate's reference would be
-    the nominal expert's, which this run does not claim).
+    robot can be drawn into, or, for an expert asked to plan on each robot (``expert_model`` robot), its expert
+    cannot (``nominal`` needs nothing of the expert).
     """
     if check_uncertainty(factor) == 0:
         return ""
@@ -172,10 +177,12 @@ def uncertainty_record(task: str, seed: int, factor: float) -> str:
     if definition.uncertainty.empty:
         raise ValueError(f"{name} declares nothing uncertain (a task file's [uncertainty] table): uncertainty 0")
     plant = definition.make_plant(seed)
-    if not supports_robots(plant) or not getattr(definition, "plans_on_robot", False):
+    if not supports_robots(plant):
+        raise ValueError(f"{name}: its plant is no MuJoCo model a drawn robot can be made of: uncertainty 0")
+    if check_expert_model(expert_model) == "robot" and not getattr(definition, "plans_on_robot", False):
         raise ValueError(
             f"{name}: its expert cannot plan on a drawn robot (only the iLQR experts plan on the plant's own model "
-            "each request), so no certificate under uncertainty can name its reference: uncertainty 0"
+            "each request): ask for --expert-model nominal (its nominal plan run on each robot) or uncertainty 0"
         )
     return definition.uncertainty.widened(factor).resolved(plant.physics.model).record()
 
@@ -194,6 +201,24 @@ def robot_fn(config: RunConfig) -> Callable[[int], Robot] | None:
         return None
     robots = UncertaintySet.from_record(config.uncertainty)
     return lambda episode: robots.draw(config.seed, episode)
+
+
+class NominalPlanExpert:
+    """The oracle of a run whose expert plans on the nominal model (npp_ros.tasks.nominal_plan): the expert (in
+    process, or the graph's expert service) is asked for a nominal plan, which then runs on the episode's robot on
+    a local copy of the plant; that rollout is the answer. The same here and in the supervisor."""
+
+    def __init__(self, oracle: Oracle, plant: Plant, control: ControlSpace, *, window: bool) -> None:
+        self.oracle = oracle
+        self.plant = plant
+        self.control = control
+        self.window = window
+
+    def trajectory(self, initial_state: FloatArray, robot: Robot | None = None) -> Trajectory:
+        plan = self.oracle.trajectory(initial_state)
+        if robot is None:
+            return plan
+        return tracked_on_robot(self.plant, plan, initial_state, robot, self.control, window=self.window)
 
 
 class PrivilegedExpert:
@@ -288,7 +313,11 @@ def build_loop(
         drive = rollouts or config.spec.certify != "surrogate"
         assert replay is not None
         driver = PolicyRollouts(replay) if drive else None
-    if oracle is None and config.uncertainty:  # in process: the expert plans on each episode's robot
+    if config.uncertainty and config.expert_model == "nominal":  # a nominal plan, run on the robot here
+        window = getattr(expert, "values", DEFAULT_VALUES) == "window"
+        control = task_control_space(config.task, config.seed)
+        oracle = NominalPlanExpert(oracle or expert, task.make_plant(config.seed), control, window=window)
+    elif oracle is None and config.uncertainty:  # in process: the expert plans on each episode's robot
         oracle = PrivilegedExpert(expert)
     return NPPLoop(
         config,

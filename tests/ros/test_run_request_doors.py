@@ -28,12 +28,12 @@ from npp_ros_graph.tools import launcher
 GIVEN: dict[str, Any] = {
     "task": "pendulum_swingup", "seed": 3, "epsilon": 12.5, "lipschitz": "data", "certify": "oracle",
     "rule": "mixture", "policy": "open-loop", "condition": "i", "p": 0.8, "delta": 0.05, "horizon": 200,
-    "gamma": 1.0, "explore": 0.5, "uncertainty": 1.0, "max_episodes": 7, "time_budget": 30.0,
+    "gamma": 1.0, "explore": 0.5, "uncertainty": 1.0, "expert_model": "nominal", "max_episodes": 7, "time_budget": 30.0,
     "expert_stop": "time", "values": "return-to-go", "max_iterations": 4,
 }  # fmt: skip
 # npp-experiment runs these side by side, under its own option names; the rest it does not take (yet).
 EXPERIMENT_NAMES = {"task": "--tasks", "seed": "--seeds", "rule": "--rules", "policy": "--policies"}
-NOT_IN_EXPERIMENT = {"condition", "gamma", "uncertainty", "values", "max_iterations"}
+NOT_IN_EXPERIMENT = {"condition", "gamma", "uncertainty", "expert_model", "values", "max_iterations"}
 
 
 def argv_of(request: RunRequest, names: tuple[str, ...] = FIELD_NAMES) -> list[str]:

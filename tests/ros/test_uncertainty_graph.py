@@ -32,16 +32,21 @@ BUDGET = 120.0  # seconds per request: never reached, so iterations decide (dete
 ITERATIONS = 5
 
 
-@pytest.mark.parametrize("certify", ["oracle", "success"])
-def test_a_run_under_uncertainty_gives_the_in_process_robots_returns_and_checks(tmp_path: Path, certify: str) -> None:
+@pytest.mark.parametrize(
+    ("certify", "expert_model"), [("oracle", "robot"), ("success", "robot"), ("oracle", "nominal")]
+)
+def test_a_run_under_uncertainty_gives_the_in_process_robots_returns_and_checks(
+    tmp_path: Path, certify: str, expert_model: str
+) -> None:
     """The gap claim (oracle: the expert answers every episode) and the success claim (the expert only after a
-    failed check) alike."""
+    failed check) alike; and an expert that plans on the nominal model, its plans run on each robot by the
+    supervisor as in process."""
     run_dir = tmp_path / "graph"
     command = [
         sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--seed", str(SEED),
         "--horizon", str(HORIZON), "--epsilon", str(EPSILON), "--lipschitz", str(LIPSCHITZ),
         "--max-episodes", str(EPISODES), "--run-dir", str(run_dir), "--time-budget", str(BUDGET),
-        "--max-iterations", str(ITERATIONS), "--uncertainty", "1", "--certify", certify,
+        "--max-iterations", str(ITERATIONS), "--uncertainty", "1", "--certify", certify, "--expert-model", expert_model,
     ]  # fmt: skip
     run = subprocess.run(command, capture_output=True, text=True, timeout=600)
     logs = {p.stem: p.read_text() for p in sorted((run_dir / "logs").glob("*.log"))}
@@ -57,10 +62,12 @@ def test_a_run_under_uncertainty_gives_the_in_process_robots_returns_and_checks(
     task = get_task(TASK)
     expert = task.make_expert(SEED, HORIZON, ExpertOptions(time_budget=BUDGET, max_iterations=ITERATIONS))
     lipschitz = resolve_lipschitz(TASK, LIPSCHITZ, expert)
-    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, uncertainty=1.0, certify=certify)
+    config = build_config(
+        TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, uncertainty=1.0, certify=certify, expert_model=expert_model
+    )
     loop = build_loop(config, expert)
     local = loop.run(max_episodes=EPISODES)
-    assert metadata.uncertainty == config.uncertainty != ""
+    assert metadata.uncertainty == config.uncertainty != "" and metadata.expert_model == expert_model
 
     robots = [r.robot for r in graph_rows]
     assert robots == [r.robot for r in local.rows] and all(robots)

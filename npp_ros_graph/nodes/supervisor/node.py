@@ -316,10 +316,11 @@ class SupervisorNode(Node):
 
     def upcoming_states(self, config: RunConfig, count: int) -> Callable[[], list[tuple[FloatArray, Robot | None]]]:
         """The s0 (and, under model uncertainty, the robot) of the `count` episodes after the running one, where
-        every episode asks the expert (oracle)."""
+        every episode asks the expert (oracle). An expert that plans on the nominal model is asked for no robot."""
         if config.spec.certify != "oracle" or count == 0:
             return list
-        s0, robots = initial_state_fn(config.task, config.seed), robot_fn(config)
+        s0 = initial_state_fn(config.task, config.seed)
+        robots = None if config.expert_model == "nominal" else robot_fn(config)
 
         def upcoming() -> list[tuple[FloatArray, Robot | None]]:
             loop = self.loop
