@@ -57,6 +57,10 @@ ARMS = {
     "pendulum-success-half": Arm("pendulum_swingup", "success", 0.5),
     "pendulum-success-mixture": Arm("pendulum_swingup", "success", 1.0, rule="mixture"),
     "pendulum-success-explore-mixture": Arm("pendulum_swingup", "success", 1.0, explore=0.15, rule="mixture"),
+    "pendulum-success-path-mixture": Arm("pendulum_swingup", "success", 1.0, policy="path", rule="mixture"),
+    "acrobot-success-mixture": Arm(
+        "acrobot_swingup", "success", 1.0, rule="mixture", options=("--stop-when-unreachable",)
+    ),
     "cartpole-success-mixture": Arm("cartpole_swingup", "success", 1.0, rule="mixture", options=CARTPOLE),
     "pendulum-oracle": Arm("pendulum_swingup", "oracle", 1.0),
     "cartpole-success": Arm("cartpole_swingup", "success", 1.0, options=CARTPOLE),
