@@ -30,6 +30,7 @@ class Arm:
     policy: str = "feedback"
     explore: float = 0.0
     rule: str = "sequential"
+    expert_model: str = "robot"  # what the expert plans on: each episode's robot, or the nominal model
     options: tuple[str, ...] = ()  # more npp-learn options (a task without the paper's epsilon and L needs them)
 
     @property
@@ -37,13 +38,14 @@ class Arm:
         task = Path(self.task).parent.name if self.task.endswith(".toml") else self.task
         extra = f"-explore{self.explore:g}" if self.explore else ""
         extra += "" if self.rule == "sequential" else f"-{self.rule}"
+        extra += "" if self.expert_model == "robot" else f"-{self.expert_model}-expert"
         return f"{task}-{self.certify}-u{self.uncertainty:g}-{self.policy}{extra}"
 
     def command(self, seed: int, run_dir: Path, max_episodes: int, evaluate: int) -> list[str]:
         return [
             str(NPP_LEARN), "--task", self.task, "--seed", str(seed), "--certify", self.certify,
             "--uncertainty", f"{self.uncertainty:g}", "--policy", self.policy, "--explore", f"{self.explore:g}",
-            "--rule", self.rule,
+            "--rule", self.rule, "--expert-model", self.expert_model,
             "--max-episodes", str(max_episodes), "--evaluate", str(evaluate), "--run-dir", str(run_dir),
             *self.options,
         ]  # fmt: skip
@@ -57,6 +59,7 @@ ARMS = {
     "pendulum-success-half": Arm("pendulum_swingup", "success", 0.5),
     "pendulum-success-mixture": Arm("pendulum_swingup", "success", 1.0, rule="mixture"),
     "pendulum-success-explore-mixture": Arm("pendulum_swingup", "success", 1.0, explore=0.15, rule="mixture"),
+    "pendulum-success-mixture-nominal": Arm("pendulum_swingup", "success", 1.0, rule="mixture", expert_model="nominal"),
     "pendulum-success-path-mixture": Arm("pendulum_swingup", "success", 1.0, policy="path", rule="mixture"),
     "acrobot-success-mixture": Arm(
         "acrobot_swingup", "success", 1.0, rule="mixture", options=("--stop-when-unreachable",)
