@@ -189,6 +189,8 @@ class RobotNode(Node):
             layout = JointLayout.of_plant(plant, parse_names(settings.command_joints))
             nominal_mjcf = model_mjcf(plant)
             robot = settings.robot_of(plant)
+            # Written from the nominal model, before the robot is applied to it (robot_mjcf scales its values)
+            mjcf = nominal_mjcf if settings.publish_description == "nominal" else robot_mjcf(plant, robot)
             ModelParameters(plant.physics.model).apply(robot)  # its own model: nothing else holds it
         except Exception as exc:  # run_node turns this into a clean exit with the reason
             raise StartupError(f"cannot build the robot {settings.task} seed {settings.seed}: {exc}") from exc
@@ -207,7 +209,6 @@ class RobotNode(Node):
         self._applied = np.zeros(plant.action_dim)
         self.plant, self.layout, self.robot = plant, layout, robot
         self._effects = RobotEffects(robot, plant.action_dim)
-        mjcf = nominal_mjcf if settings.publish_description == "nominal" else robot_mjcf(plant, robot)
         if settings.publish_description == "nominal" and mjcf is not None:
             self.description_pub.publish(String(data=mjcf))
             described = f"the task's own MJCF on {settings.robot_description_topic}, not the model it runs"

@@ -537,6 +537,27 @@ def test_every_deploy_command_has_help() -> None:
         assert shown.returncode == 0 and ("usage" in shown.stdout.lower() or "subscribes" in shown.stdout), module
 
 
+def test_a_changed_robot_publishes_its_own_model_and_the_gate_places_it_outside_the_set(
+    runs, launch, ros_client, tmp_path: Path
+) -> None:
+    """npp-robot running gear x3 publishes the MJCF of that model (written from the nominal model, not scaled twice),
+    and for a run on a set npp-deploy's gate refuses it, naming the gear, the robot's value and the range."""
+    good, _ = runs
+    robots = with_robots(good, tmp_path / "robots")
+    launch("npp-robot", {"gear_scale": 3.0})
+    launch("npp-deploy")
+    deploy = Deploy(ros_client("changed_robot_test"))
+    deploy.has_description()
+    deploy.set(run_dir=str(robots))
+    seen = len(deploy.statuses)
+    assert not deploy.transition("configure")
+    health = deploy.health_where(lambda h: h.doing.startswith("configure refused"), "configure refused", since=seen)
+    assert (
+        "the robot's model lies outside the certified set (gear of actuator motor_0: the robot's 3 is x3 the "
+        "certified 1, outside the certified range x[0.8, 1.2])"
+    ) in health.doing, health.doing
+
+
 def test_npp_trial_rehearses_the_certified_run_on_the_real_time_robot(runs, tmp_path: Path) -> None:
     """npp-trial deploys through the gate and runs npp-robot in real time from fresh s0, episode by episode."""
     good, _ = runs
