@@ -12,6 +12,7 @@ import pytest
 from deploy_runs import FINGERPRINT, altered_copy, make_run
 
 from npp_ros.deployment.gate import Acceptance, GateRefusal, load_deployment
+from npp_ros.run.records import RunFileError
 from npp_ros.run.seal import SEAL_TABLE, part_name
 from npp_ros.run.store import RunStore
 
@@ -118,3 +119,19 @@ def test_the_seal_is_written_in_each_commit_and_extended_trajectory_by_trajector
     with sqlite3.connect(whole / "run.sqlite") as a, sqlite3.connect(resumed / "run.sqlite") as b:
         points = [dict(c.execute(f"SELECT part, sha256 FROM {SEAL_TABLE} WHERE part LIKE 'points.%'")) for c in (a, b)]
     assert points[0] == points[1]  # the chains extended commit by commit equal the chains computed at once
+
+
+def test_a_run_whose_file_was_edited_since_it_sealed_it_does_not_resume_or_write(tmp_path: Path) -> None:
+    """An edit between two writes would otherwise be sealed over as the run's own by the next one."""
+    stopped = make_run(tmp_path / "stopped", max_episodes=5)
+    edited = altered_copy(stopped, tmp_path / "edited", ("UPDATE episodes SET v_lb = v_lb + 1 WHERE episode = 2", ()))
+    before = (edited / "run.sqlite").read_bytes()
+    with pytest.raises(RunFileError, match=r"no longer holds what its run sealed \(episodes.v_lb changed since\)"):
+        make_run(edited, max_episodes=40)
+    with RunStore.open(edited / "run.sqlite") as store:
+        with pytest.raises(RunFileError, match="left untouched, and no run resumes from it"):
+            store.set_certificate({"edited": True})
+    assert (edited / "run.sqlite").read_bytes() == before
+    resumed = make_run(altered_copy(stopped, tmp_path / "intact"), max_episodes=40)  # an intact copy resumes
+    with RunStore.open(resumed / "run.sqlite") as store:
+        assert not store.check_seal().mismatches and len(store.episodes()) > 5

@@ -11,6 +11,7 @@ import pytest
 
 from npp_ros.policy.dataset import Trajectory
 from npp_ros.run.records import RunFileError
+from npp_ros.run.seal import SEAL_TABLE
 from npp_ros.run.store import FORMAT_VERSION, RunStore, gain_columns
 from tests.test_storage import META, row, trajectory
 
@@ -52,8 +53,9 @@ def test_an_altered_gain_is_damage(tmp_path: Path) -> None:
 
 
 def make_version_2(path: Path) -> None:
-    """Turn a file into what npp_ros wrote before gains: no gain columns, no feedback flag, version 2."""
+    """Turn a file into what npp_ros wrote before gains: no gain columns, no feedback flag, version 2, no seal."""
     conn = sqlite3.connect(path)
+    conn.execute(f"DROP TABLE IF EXISTS {SEAL_TABLE}")
     for column in gain_columns(META.state_dim, META.action_dim):
         conn.execute(f"ALTER TABLE points DROP COLUMN {column}")
     conn.execute("ALTER TABLE trajectories DROP COLUMN feedback")

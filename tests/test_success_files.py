@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from npp_ros.run.records import SUCCESS_COLUMNS
+from npp_ros.run.seal import SEAL_TABLE
 from npp_ros.run.store import FORMAT_VERSION, RunStore
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.task_file import TaskFileError
@@ -23,8 +24,10 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "two_link_arm"
 
 # ----------------------------------------------------------------------------- run files
 def without_success(path: Path, version_2: bool = False) -> None:
-    """What npp_ros wrote before success was recorded: no success columns (and, for version 2, no gains either)."""
+    """What npp_ros wrote before success was recorded: no success columns, no seal (and, for version 2, no gains
+    either)."""
     conn = sqlite3.connect(path)
+    conn.execute(f"DROP TABLE {SEAL_TABLE}")
     for column in SUCCESS_COLUMNS:
         conn.execute(f"ALTER TABLE episodes DROP COLUMN {column}")
     conn.commit()

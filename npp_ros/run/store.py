@@ -260,6 +260,7 @@ class RunStore:
             problems = store.metadata.mismatches(metadata)
             if problems:
                 raise RunFileError(f"{path} belongs to another run and was left untouched:\n  " + "\n  ".join(problems))
+            store._refuse_unless_as_sealed()
             store._lock = lock
             store._use_wal()
             store._upgrade()
@@ -273,11 +274,24 @@ class RunStore:
             lock.release()
             raise
 
+    def _refuse_unless_as_sealed(self) -> None:
+        """Before a run writes to its file again: the file must hold what the run sealed, or the next write would
+        seal an edit made since (a changed episode, a changed L) as the run's own. An unsealed file (from before
+        seals) is sealed by that write, as it is."""
+        changed = self.check_seal().mismatches
+        if changed:
+            raise RunFileError(
+                f"{self.path} no longer holds what its run sealed ({', '.join(changed)} changed since): it was left "
+                "untouched, and no run resumes from it. Restore the file from a copy, or start the run in a new "
+                "folder"
+            )
+
     def _writable(self) -> None:
         """Become the file's one writer before the first write of a store opened for reading."""
         if self._lock is None:
             self._lock = WriterLock.acquire(self.path)
             try:
+                self._refuse_unless_as_sealed()
                 self._use_wal()
                 self._upgrade()
             except BaseException:
