@@ -617,3 +617,58 @@ def test_a_robot_outside_the_certified_set_is_found_by_the_monitor_and_stops_it_
     assert health.level == WARN and "left the certified set of robots" in health.doing, health.doing
     client.wait_for(lambda: deploy.commands[-1][1] == [0.0], 30.0, "the safe command")
     assert "on_model_mismatch is stop: deactivating" in launch.log(proc)
+
+
+def test_npp_trial_outside_names_a_robot_by_its_parameters() -> None:
+    from npp_ros_graph.bench.trial import outside_robot
+
+    plant = get_task(TASK).make_plant(SEED)
+    assert outside_robot("gear=3", plant) == Robot((("gear", "motor_0", 3.0),))
+    both = outside_robot("mass[body_1]=1.5, damping=2, delay=2", plant)
+    assert both == Robot((("mass", "body_1", 1.5), ("damping", "joint_0", 2.0), ("damping", "joint_1", 2.0)), 2)
+    assert outside_robot(both.record(), plant) == both
+    for spec, says in (("gear=0", "positive"), ("gear=x", "positive"), ("torque=2", "no parameter 'torque'"),
+                       ("mass[pole]=2", "no body 'pole'"), ("delay=1.5", "whole number"), ("gear", "is not"),
+                       ('{"scales": []', "not a robot record")):  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(says)):
+            outside_robot(spec, plant)
+
+
+def test_npp_trial_outside_refuses_a_robot_inside_the_set_and_a_run_on_the_exact_model(runs, tmp_path: Path) -> None:
+    good, _ = runs
+    on_set = with_robots(good, tmp_path / "on-set")
+    for run, spec, says in ((on_set, "gear=1.1", "lies inside the certified set"), (good, "gear=3", "exact model")):
+        cmd = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(run), "--outside", spec, "--out", str(tmp_path)]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 2 and says in done.stderr, done.stderr
+
+
+def test_npp_trial_tries_a_run_on_a_set_on_a_robot_outside_it(runs, tmp_path: Path) -> None:
+    """npp-trial --outside gear=3 on a run certified on a set: the gate refuses the robot's true description naming
+    the gear, its value and the range; past the gate on the nominal description the monitor warns on /diagnostics
+    (on_model_mismatch warn), and stops npp-deploy, its commands and the robot's efforts going to zero (stop)."""
+    good, _ = runs
+    on_set = with_robots(good, tmp_path / "on-set")
+    folder = tmp_path / "trial"
+    cmd = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(on_set), "--outside", "gear=3", "--horizon", "50",
+           "--out", str(folder)]  # fmt: skip
+    subprocess.run(cmd, check=True, timeout=900)
+    out = json.loads((folder / "trial.json").read_text())
+    outside = out["outside"]
+    assert Robot.from_record(outside["robot"]) == Robot((("gear", "motor_0", 3.0),))
+    gate, warn, stopped = outside["gate"], outside["warn"], outside["stop"]
+    assert gate["refused"] and gate["publish_description"] == "robot", gate
+    assert (
+        "gear of actuator motor_0: the robot's 3 is x3 the certified 1, outside the certified range x[0.8, 1.2]"
+    ) in gate["reason"], gate
+    assert warn["warned"] and warn["publish_description"] == "nominal", warn
+    assert "leave the certified set of robots" in warn["status"] and "against the set's bound" in warn["error"], warn
+    assert 0 < warn["warn_after_s"] < 600 and warn["warn_after_steps"] >= 1, warn  # no bound on how soon
+    episode = warn["episode"]
+    assert episode["replay_mismatches"] == 0 and episode["first_command_answers_s0"], episode  # the gear x3 robot
+    assert stopped["stopped"] and stopped["commands_zero"] and stopped["safe_command"] == [0.0], stopped
+    assert "left the certified set of robots" in stopped["status"], stopped
+    assert stopped["commands_after_safe"] == 0 and stopped["robot_steps_zero"] >= 1, stopped
+    assert 0 < stopped["stop_after_s"] < 600, stopped
+    text = (folder / "trial.md").read_text()
+    assert "--outside gear=3" in text and "outside its set" in text
