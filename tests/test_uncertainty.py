@@ -13,6 +13,7 @@ import pytest
 
 from npp_ros.cli import learn
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.read import read_run
 from npp_ros.run.records import RunFileError
 from npp_ros.run.setup import NominalPlanExpert, PrivilegedExpert, build_config, build_loop
 from npp_ros.run.store import RunStore
@@ -182,6 +183,8 @@ def test_a_nominal_expert_run_records_it_names_it_in_its_certificate_and_cannot_
     loop.store.close()
     with RunStore.open(tmp_path / "run.sqlite") as store:
         assert store.metadata.expert_model == "nominal"
+    run = read_run(tmp_path)
+    assert run.expert_model == "nominal" and run.robots == UncertaintySet.from_record(nominal.uncertainty)
     with pytest.raises(RunFileError, match="expert_model: file has 'nominal'"):
         build_loop(privileged, expert, store_path=tmp_path / "run.sqlite")
     statement = over_robots("P_(s0~rho)[V - R <= 130] >= 0.9.", "mass x", REFERENCE["nominal"])

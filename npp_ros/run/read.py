@@ -27,6 +27,7 @@ from npp_ros.run.seal import SealCheck, check_file
 from npp_ros.run.setup import policy_for, spec_of
 from npp_ros.run.store import RUN_FILE, RunStore
 from npp_ros.tasks.registry import Task, get_task
+from npp_ros.tasks.uncertainty import UncertaintySet
 
 # The metadata a reader relies on, with the type each must have (RunConfig.metadata() writes them).
 METADATA_TYPES: dict[str, type] = {
@@ -59,6 +60,17 @@ class Run:
     def folder(self) -> Path:
         """The run folder (it holds the run file, its signature and the node logs)."""
         return self.file.parent
+
+    @property
+    def robots(self) -> UncertaintySet | None:
+        """The set of robots the run drew from and a certificate covers (None: the exact model)."""
+        record = str(self.metadata.uncertainty)
+        return UncertaintySet.from_record(record) if record else None
+
+    @property
+    def expert_model(self) -> str:
+        """Under uncertainty, what the expert planned on: each episode's robot, or the nominal model."""
+        return str(self.metadata.expert_model)
 
     @property
     def policy(self) -> NonparametricPolicy:
