@@ -191,6 +191,8 @@ def test_a_nominal_expert_run_records_it_names_it_in_its_certificate_and_cannot_
     assert "planning on the task's nominal model, its plan run on each episode's robot" in statement
     with pytest.raises(ValueError, match="expert model must be one of robot, nominal"):
         build_config(PENDULUM, 0, LIPSCHITZ, 130.0, uncertainty=1.0, expert_model="teacher")
+    with pytest.raises(ValueError, match="expert model nominal needs a set of robots"):
+        build_config(PENDULUM, 0, LIPSCHITZ, 130.0, expert_model="nominal")
 
 
 def test_a_held_out_check_against_the_nominal_expert_runs_its_plans_on_the_drawn_robots() -> None:

@@ -163,7 +163,7 @@ class RunRequest:
         check_gamma(self.gamma)
         check_radius(self.explore)
         check_uncertainty(self.uncertainty)
-        check_expert_model(self.expert_model)
+        check_expert_model(self.expert_model, self.uncertainty)
         if self.max_episodes < 1:
             raise ValueError(f"max_episodes must be >= 1, got {self.max_episodes!r}")
         if self.time_budget is not None:

@@ -159,7 +159,7 @@ def build_config(
         task, seed, definition.state_dim, definition.action_dim, spec,
         horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed), explore=check_radius(explore),
         uncertainty=uncertainty_record(task, seed, uncertainty, expert_model),
-        expert_model=check_expert_model(expert_model),
+        expert_model=check_expert_model(expert_model, uncertainty),
     )  # fmt: skip
 
 

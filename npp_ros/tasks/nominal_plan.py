@@ -49,9 +49,16 @@ REFERENCE = {  # what V^E is in a claim under uncertainty (npp_ros.certificate.a
 }
 
 
-def check_expert_model(name: str) -> ExpertModel:
+def check_expert_model(name: str, uncertainty: float | None = None) -> ExpertModel:
+    """A known expert model; with the run's ``uncertainty`` factor, refused where it would change nothing (on the
+    exact model the expert plans on the model either way), so that no run records a choice it did not make."""
     if name not in EXPERT_MODELS:
         raise ValueError(f"the expert model must be one of {', '.join(EXPERT_MODELS)}, got {name!r}")
+    if uncertainty == 0 and name != DEFAULT_EXPERT_MODEL:
+        raise ValueError(
+            f"expert model {name} needs a set of robots (uncertainty > 0): on the exact model the expert plans on "
+            "the model either way"
+        )
     return name  # type: ignore[return-value]
 
 
