@@ -583,6 +583,8 @@ class DeployNode(LifecycleNode):
             self.trigger_deactivate()
             return
         self._warn("model mismatch", problem)
+        if not was_outside:  # said on /diagnostics when found, not at its next status a second later
+            self.diagnostics.publish()
 
     def _refused_state(self, exc: RobotStateError) -> None:
         """A state the policy cannot act on: counted, named in the log and on /diagnostics, never fresh."""
