@@ -62,7 +62,7 @@ ARMS = {
     "pendulum-success-mixture-nominal": Arm("pendulum_swingup", "success", 1.0, rule="mixture", expert_model="nominal"),
     "pendulum-success-path-mixture": Arm("pendulum_swingup", "success", 1.0, policy="path", rule="mixture"),
     "acrobot-success-mixture": Arm(
-        "acrobot_swingup", "success", 1.0, rule="mixture", options=("--stop-when-unreachable",)
+        "acrobot_swingup", "success", 1.0, rule="mixture", options=("--lipschitz", "4300", "--stop-when-unreachable")
     ),
     "cartpole-success-mixture": Arm("cartpole_swingup", "success", 1.0, rule="mixture", options=CARTPOLE),
     "pendulum-oracle": Arm("pendulum_swingup", "oracle", 1.0),
