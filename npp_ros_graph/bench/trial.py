@@ -528,21 +528,31 @@ def summary(rows: list[TrialEpisode], epsilon: float) -> dict[str, Any]:
     return out
 
 
-def markdown(out: dict[str, Any]) -> str:
-    s, c = out["summary"], out["certificate"]
-    lines = [
-        "# npp-trial: the certified policy on the real-time robot",
+def report_head(out: dict[str, Any], title: str, run_ends: str) -> list[str]:
+    """A report's title, its command (date, load) and its run and certificate, the run's line ending ``run_ends``."""
+    c = out["certificate"]
+    return [
+        f"# npp-trial: {title}",
         "",
         f"Command: `{out['command']}` ({out['date']}; load average {out['load_average_start'][0]:.2f} at the start, "
         f"{out['load_average_end'][0]:.2f} at the end; {os.cpu_count()} cores).",
         "",
         f"Run: {out['run']} ({out['task']} seed {out['seed']}, H {out['horizon']}); certificate: epsilon "
         f"{c['epsilon']:g}, p {c['p']:g}, delta {c['delta']:g}, certify={c['certify']}, rule={c['rule']}, "
-        f"{c['policy_trajectories']} trajectories in the policy, acting {out.get('policy', 'open-loop')}. npp-deploy "
-        "loaded it through its gate "
-        f"(no override); npp-robot ran each episode in real time ({out['control_period_ms']:g} ms period) "
-        f"from a fresh s0, on {out.get('robots', MODEL)}.",
+        f"{c['policy_trajectories']} trajectories in the policy, acting {out.get('policy', 'open-loop')}{run_ends}",
         "",
+    ]
+
+
+def markdown(out: dict[str, Any]) -> str:
+    s = out["summary"]
+    lines = [
+        *report_head(
+            out,
+            "the certified policy on the real-time robot",
+            ". npp-deploy loaded it through its gate (no override); npp-robot ran each episode in real time "
+            f"({out['control_period_ms']:g} ms period) from a fresh s0, on {out.get('robots', MODEL)}.",
+        ),
         "| episodes | return robot / in process (median) | gap in process - robot: median / p90 / max "
         "| within epsilon of in process | fresh commands (median, min) | replay mismatches "
         "| upright robot / in process |",
@@ -584,18 +594,9 @@ def trial_episodes(executor: SingleThreadedExecutor, node: TrialNode, deployment
 
 
 def outside_markdown(out: dict[str, Any]) -> str:
-    c, o = out["certificate"], out["outside"]
+    o = out["outside"]
     lines = [
-        "# npp-trial: the certified policy on a robot outside its set",
-        "",
-        f"Command: `{out['command']}` ({out['date']}; load average {out['load_average_start'][0]:.2f} at the start, "
-        f"{out['load_average_end'][0]:.2f} at the end; {os.cpu_count()} cores).",
-        "",
-        f"Run: {out['run']} ({out['task']} seed {out['seed']}, H {out['horizon']}); certificate: epsilon "
-        f"{c['epsilon']:g}, p {c['p']:g}, delta {c['delta']:g}, certify={c['certify']}, rule={c['rule']}, "
-        f"{c['policy_trajectories']} trajectories in the policy, acting {out.get('policy', 'open-loop')}; certified on "
-        f"{out['robots']}.",
-        "",
+        *report_head(out, "the certified policy on a robot outside its set", f"; certified on {out['robots']}."),
         f"The robot tried: {o['robot_words']}, outside the set ({'; '.join(o['outside_reasons'])}). Each phase ran "
         "its own npp-robot (this robot, in real time, "
         f"{out['control_period_ms']:g} ms period, from the s0 of episode {FIRST_TRIAL_EPISODE:,d}) and its own "
