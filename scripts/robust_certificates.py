@@ -68,6 +68,9 @@ ARMS = {
     "pendulum-oracle": Arm("pendulum_swingup", "oracle", 1.0),
     "cartpole-success": Arm("cartpole_swingup", "success", 1.0, options=CARTPOLE),
     "cartpole-oracle": Arm("cartpole_swingup", "oracle", 1.0, options=CARTPOLE),
+    "rotary-oracle-path": Arm(
+        "examples/rotary_pendulum/task.toml", "oracle", 0.0, policy="path", options=("--stop-when-unreachable",)
+    ),
 }
 
 
