@@ -44,12 +44,15 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32
 
 from npp_ros.policy.dataset import Dataset
+from npp_ros.policy.spec import PolicySpec
 from npp_ros.run.store import new_run_id
 from npp_ros.tasks.lqr import LQRExpert, sample_initial_state
+from npp_ros.tasks.registry import control_space
 from npp_ros_graph.runtime.node import run_node
 from npp_ros_graph.transport.convert import (
     action_to_joint_state,
     plant_description,
+    policy_spec_to_msg,
     stamp,
     stamp_ns,
     state_to_joint_state,
@@ -116,10 +119,10 @@ class Driver(Node):
 
     def on_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
         total = self.data.num_trajectories
-        lip = self.expert.analytic_lipschitz()
         response.success, response.total, response.run = True, total, self.run
-        response.lipschitz, response.lipschitz_source = lip.value, lip.source
-        response.policy = "feedback"  # the default policy, with the LQR expert's gains: the costlier answer
+        # the default policy, with the LQR expert's gains (the costlier answer), as a run's supervisor sends it
+        spec = PolicySpec("feedback", self.expert.analytic_lipschitz(), control_space(self.expert.plant))
+        response.policy = policy_spec_to_msg(spec)
         stop = min(total, request.start + (request.max_count or 50))
         for k in range(request.start, stop):
             response.trajectories.append(self.seal.seal(trajectory_to_msg(k, self.data.trajectory(k), self.run)))
