@@ -271,6 +271,8 @@ def isolated_env(domain: int) -> dict[str, str]:
 def reserved_domain() -> Iterator[dict[str, str]]:
     """A ROS domain no other session (tests, runs) is using, with localhost-only discovery, for this process
     (rclpy initialised on it until the block ends) and, through the environment it yields, its partners."""
+    keys = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_STATIC_PEERS")
+    saved = {key: os.environ.get(key) for key in keys}
     with domain_id() as domain:
         env = isolated_env(int(domain))
         os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
@@ -280,6 +282,11 @@ def reserved_domain() -> Iterator[dict[str, str]]:
             yield env
         finally:
             rclpy.try_shutdown()
+            for key, value in saved.items():  # the caller's domain again: it may go on using ROS
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
 
 
 def measure(
