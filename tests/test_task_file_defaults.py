@@ -13,6 +13,7 @@ from npp_ros.certificate.choices import DATA_ANSWERS, DATA_FACTOR
 from npp_ros.cli import bench, experiment, learn
 from npp_ros.experiment.arms import default_arms
 from npp_ros.policy.dataset import Dataset
+from npp_ros.run.request import RunRequest, resolve_run
 from npp_ros.run.setup import build_config, build_loop, data_slope, resolve_lipschitz
 from npp_ros.tasks.registry import ExpertOptions, get_task
 from npp_ros.tasks.task_file import TaskFileError, load_task_file
@@ -138,3 +139,17 @@ def test_npp_bench_help_says_which_task_file_values_it_uses(capsys: pytest.Captu
         "a task file's [expert] keys" in text
         and "default: each task's own (1000 for the built-in tasks, a task file's key horizon)" in text
     )
+
+
+def test_a_task_files_policy_is_a_runs_default_and_the_command_line_overrides_it(tmp_path: Path) -> None:
+    name = task_file(tmp_path, add='policy = "path"')
+    assert get_task(name).default_policy == "path"
+    request = RunRequest(task=name, horizon=HORIZON, max_iterations=2)
+    assert request.policy is None  # the task decides
+    assert resolve_run(request).config.spec.policy == "path"
+    assert resolve_run(RunRequest.of(request, policy="feedback")).config.spec.policy == "feedback"
+    for folder in ("plain", "bad"):
+        (tmp_path / folder).mkdir()
+    assert get_task(task_file(tmp_path / "plain")).default_policy == "feedback"  # a file without the key
+    with pytest.raises(TaskFileError, match="policy: must be one of open-loop, feedback, path, got 'paths'"):
+        task_file(tmp_path / "bad", add='policy = "paths"')

@@ -74,16 +74,16 @@ def check_spec_choices(
     condition: str,
     p: float,
     delta: float,
-    policy: str,
+    policy: str | None,
     *,
     epsilon: float | None,
     certify: str | None,
     rule: str | None,
 ) -> None:
     """Refuse, with one line naming the field, what a CertificationSpec may not hold (its constructor checks its
-    fields here). None is a value the task decides (epsilon, certify, rule): it is checked when the spec is built,
-    so a node can check its parameters here before it knows the task, with the same code and no stand-ins."""
-    if policy not in POLICY_KINDS:
+    fields here). None is a value the task decides (epsilon, certify, rule, policy): it is checked when the spec is
+    built, so a node can check its parameters here before it knows the task, with the same code and no stand-ins."""
+    if policy is not None and policy not in POLICY_KINDS:
         raise ValueError(f"policy must be one of {', '.join(POLICY_KINDS)}, got {policy!r}")
     if condition not in CONDITIONS:
         raise ValueError(f"condition must be 'i' or 'ii', got {condition!r}")

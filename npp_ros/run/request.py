@@ -27,7 +27,7 @@ from npp_ros.certificate.certifier import (
     check_spec_choices,
 )
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, LIPSCHITZ_HELP, check_gamma, parse_lipschitz
-from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_HELP, POLICY_KINDS, PolicyKind
+from npp_ros.policy.feedback import POLICY_HELP, POLICY_KINDS, PolicyKind
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.explore import EXPLORE_HELP, check_radius
 from npp_ros.run.loop import RunConfig
@@ -92,6 +92,10 @@ def _certify_help() -> str:
     )
 
 
+def _policy_help() -> str:
+    return f"{POLICY_HELP}, unless the task names another (a task file's key policy)"
+
+
 RULE_HELP = (
     "when to stop: sequential (a streak of passes per policy, valid however often it is checked), mixture (a 20-pass "
     "screen, then a failure-tolerant mixture test of the frozen policy, also valid) or paper (the one-shot test of "
@@ -119,7 +123,7 @@ class RunRequest:
         default=None, metadata=spelled(_certify_help, CHOICE, choices=CERTIFY_MODES)
     )
     rule: StoppingRule | None = field(default=None, metadata=spelled(RULE_HELP, CHOICE, choices=STOPPING_RULES))
-    policy: PolicyKind = field(default=DEFAULT_POLICY, metadata=spelled(POLICY_HELP, CHOICE, choices=POLICY_KINDS))
+    policy: PolicyKind | None = field(default=None, metadata=spelled(_policy_help, CHOICE, choices=POLICY_KINDS))
     condition: Condition = field(default="i", metadata=spelled("Theorem 4.1 condition", CHOICE, choices=CONDITIONS))
     p: float = field(
         default=0.9,
@@ -253,7 +257,8 @@ def resolve_run(
     config = build_config(
         request.task, request.seed, lipschitz, epsilon,
         condition=request.condition, p=request.p, delta=request.delta, horizon=request.horizon, gamma=request.gamma,
-        certify=request.certify, rule=request.rule, policy=request.policy, explore=request.explore,
+        certify=request.certify, rule=request.rule, policy=request.policy or definition.default_policy,
+        explore=request.explore,
         uncertainty=request.uncertainty, expert_model=request.expert_model,
     )  # fmt: skip
     return ResolvedRun(request, options, expert, epsilon, lipschitz, config)

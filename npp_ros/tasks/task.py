@@ -22,7 +22,7 @@ from npp_ros.certificate.certifier import CheckedQuantity
 from npp_ros.certificate.choices import EPSILON_FLAG, LIPSCHITZ_CHOICES, LIPSCHITZ_FLAG
 from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.dataset import FloatArray, Trajectory
-from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.feedback import DEFAULT_POLICY, ControlSpace, PolicyKind
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.tasks.uncertainty import EXACT, Robot, UncertaintySet, as_robot
@@ -174,6 +174,7 @@ class Task:
     no_analytic_lipschitz: str = "its expert computes no bound on its value's slope"  # why 'analytic' is refused
     optimal_expert: bool = False  # the expert's values are V* (else claims are relative to the expert)
     default_horizon: int = DEFAULT_HORIZON  # the episode length when a command line gives none
+    default_policy: PolicyKind = DEFAULT_POLICY  # how the policy acts when a run names none (a task file's key policy)
     reward_range: tuple[float, float] | None = None  # what one step's reward can be, where known (answer checks)
     # When an episode did the task (npp_ros.tasks.success): every run measures its expert and its policy on it and
     # the certificate states both; None = the task states none, and the certificate says that nothing was measured.

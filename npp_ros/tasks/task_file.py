@@ -296,6 +296,7 @@ def _task(path: Path, digest: str, content: bytes) -> FileTask:
         stored_state=definition.stored_state(),
         initial_state_diameter=definition.initial_state_diameter(),
         default_certify=definition.certify,  # type: ignore[arg-type]  # checked against CERTIFY_MODES
+        default_policy=definition.policy,  # type: ignore[arg-type]  # checked against POLICY_KINDS
         no_analytic_lipschitz="its iLQR expert computes no bound on its value's slope",
         own_lipschitz=definition.lipschitz,
         own_lipschitz_note="the task file's key lipschitz: a choice of the policy's bounds, not a bound on the value",

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 
 from npp_ros.certificate.certifier import CERTIFY_MODES
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.policy.feedback import wrap_angle
+from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_KINDS, wrap_angle
 from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.tasks.task import DEFAULT_HORIZON, check_horizon
 from npp_ros.tasks.task_file_cost import DEFAULT_CONTROL_WEIGHT, DEFAULT_VELOCITY_WEIGHT
@@ -36,8 +36,8 @@ from npp_ros.trajopt.ilqr import check_time_budget
 from npp_ros.trajopt.receding import DEFAULT_PLANNER, PLANNER_KEYS, PlannerSettings, SettingError
 
 HASH_MARK = "#sha256="  # a task file's name: its absolute path, this, and its content's SHA-256
-TOP_KEYS = {"name", "model", "control_timestep", "horizon", "epsilon", "lipschitz", "certify", "actuators", "state",
-            "rho", "reward", "expert", "success", "uncertainty"}  # fmt: skip
+TOP_KEYS = {"name", "model", "control_timestep", "horizon", "epsilon", "lipschitz", "certify", "policy", "actuators",
+            "state", "rho", "reward", "expert", "success", "uncertainty"}  # fmt: skip
 EXPERT_KEYS = {"max_iterations", "time_budget", "stop", "values", "warm_start", "control_weight", "velocity_weight",
                "terms", *PLANNER_KEYS}  # fmt: skip
 WARM_STARTS = ("zero",)
@@ -62,6 +62,7 @@ class TaskDefinition:
     epsilon: float | None
     lipschitz: float | str  # a number (a user's L) or 'data'
     certify: str
+    policy: str  # how a run's policy acts when its command line names none
     joint_names: tuple[str, ...]
     actuator_names: tuple[str, ...]
     actuated_joint_names: tuple[str, ...]
@@ -119,7 +120,7 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
     reader.unknown_keys(doc, TOP_KEYS, "")
     model_path, model = load_model(reader, doc, path)
     dt = read_timestep(reader, doc, model)
-    horizon, epsilon, lipschitz, certify = _run_defaults(reader, doc)
+    horizon, epsilon, lipschitz, certify, policy = _run_defaults(reader, doc)
     joint_names, wrapped, invariant = read_state(reader, doc, model)
     actuator_names, actuated = read_actuators(reader, doc, model)
     low, high = read_rho(reader, doc, model)
@@ -131,14 +132,14 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
     return TaskDefinition(
         path=path, sha256=hashlib.sha256(content).hexdigest(), label=reader.text(label, "name"),
         model_path=model_path, dt=dt, horizon=horizon, epsilon=epsilon, lipschitz=lipschitz, certify=certify,
-        joint_names=joint_names, actuator_names=actuator_names, actuated_joint_names=actuated,
+        policy=policy, joint_names=joint_names, actuator_names=actuator_names, actuated_joint_names=actuated,
         wrapped=wrapped, rho_low=low, rho_high=high, reward=reward, cost_terms=cost_terms, expert=options,
         success=success, uncertainty=uncertainty, invariant=invariant,
     )  # fmt: skip
 
 
-def _run_defaults(reader: Reader, doc: dict[str, Any]) -> tuple[int, float | None, float | str, str]:
-    """The horizon, epsilon, L and certification mode a run takes when its command line gives none.
+def _run_defaults(reader: Reader, doc: dict[str, Any]) -> tuple[int, float | None, float | str, str, str]:
+    """The horizon, epsilon, L, certification mode and policy a run takes when its command line gives none.
 
     epsilon has no default (a gap in the task's own return units: the file or the command line says it); L
     defaults to 'data' (npp_ros.certificate.choices.DATA_RULE)."""
@@ -156,7 +157,10 @@ def _run_defaults(reader: Reader, doc: dict[str, Any]) -> tuple[int, float | Non
     certify = doc.get("certify", DEFAULT_CERTIFY)
     if certify not in CERTIFY_MODES:
         raise reader.fail("certify", f"must be one of {', '.join(CERTIFY_MODES)}, got {certify!r}")
-    return horizon, epsilon, lipschitz, certify
+    policy = doc.get("policy", DEFAULT_POLICY)
+    if policy not in POLICY_KINDS:
+        raise reader.fail("policy", f"must be one of {', '.join(POLICY_KINDS)}, got {policy!r}")
+    return horizon, epsilon, lipschitz, certify, policy
 
 
 def _read_planner(reader: Reader, expert: dict[str, Any]) -> PlannerSettings:
