@@ -15,10 +15,8 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
 from npp_ros.deployment.gate import Acceptance, load_deployment
-from npp_ros.run.evaluation import check_success
+from npp_ros.run.evaluation import check_success, held_out_initial_states
 
 
 def row(run_dir: Path, held_out: int) -> dict[str, object]:
@@ -31,8 +29,7 @@ def row(run_dir: Path, held_out: int) -> dict[str, object]:
     count = int(evaluation.get("rollouts", held_out))
     success = None
     if count:
-        rng = np.random.default_rng([int(meta.seed), 1 << 30])  # npp-learn's held-out stream (npp_ros/cli/learn.py)
-        states = np.array([deployment.task.sample_initial_state(rng) for _ in range(count)])
+        states = held_out_initial_states(deployment.task, int(meta.seed), count)
         check = check_success(deployment.policy, deployment.task, deployment.plant, states, int(meta.horizon),
                               p=0.9, delta=0.05)  # fmt: skip
         success = check.succeeded

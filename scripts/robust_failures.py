@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros import read_run
-from npp_ros.run.evaluation import held_out_robots
+from npp_ros.run.evaluation import held_out_initial_states, held_out_robots
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.uncertainty import Robot
@@ -32,8 +32,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"{args.run_dir}: needs a task with a success criterion and a run on a set of robots")
     horizon = int(run.metadata.horizon)
     plant, policy = task.make_plant(seed), run.policy
-    rng = np.random.default_rng([seed, 1 << 30])  # npp-learn's held-out stream
-    states = [task.sample_initial_state(rng) for _ in range(args.draws)]
+    states = held_out_initial_states(task, seed, args.draws)
     robots = held_out_robots(str(run.metadata.uncertainty), seed, args.draws)
     assert robots is not None
     counts = {"failed": 0, "succeeds without the delay": 0, "succeeds on the nominal model": 0}

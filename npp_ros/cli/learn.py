@@ -16,12 +16,10 @@ import warnings
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
-
 from npp_ros.certificate.authoring import L_FREE
 from npp_ros.cli.args import ListTasks, add_run_arguments, nonnegative_int, run_request
 from npp_ros.policy.lipschitz import LipschitzWarning
-from npp_ros.run.evaluation import check_policy, check_success, held_out_robots
+from npp_ros.run.evaluation import check_policy, check_success, held_out_initial_states, held_out_robots
 from npp_ros.run.loop import NPPLoop, RunResult
 from npp_ros.run.progress import Counter, StatusLine, unreachable_text
 from npp_ros.run.records import RunFileError, write_episode_log
@@ -122,8 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     evaluation = None
     succeeded = None
     if args.evaluate > 0 and len(loop.dataset):
-        rng = np.random.default_rng([args.seed, 1 << 30])  # a stream the run never used for s0
-        states = np.array([task.sample_initial_state(rng) for _ in range(args.evaluate)])
+        states = held_out_initial_states(task, args.seed, args.evaluate)
         certificate = result.certificate
         policy = loop.policy
         if certificate is not None and certificate.policy_trajectories != loop.policy_data.num_trajectories:

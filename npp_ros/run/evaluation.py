@@ -164,6 +164,14 @@ def check_policy(
 
 
 HELD_OUT_EPISODES = 1 << 30  # the first episode index of held-out draws: no run gets this far
+HELD_OUT_S0_STREAM = 1 << 30  # the rng stream of npp-learn's held-out s0 (a run's own s0 use [seed, episode])
+
+
+def held_out_initial_states(task: Task, seed: int, count: int) -> FloatArray:
+    """The first ``count`` s0 of npp-learn's held-out check of a run of ``seed``: a stream no run draws its s0 from,
+    the same at every rerun, so a later look at a run's held-out check sees the states it saw."""
+    rng = np.random.default_rng([seed, HELD_OUT_S0_STREAM])
+    return np.array([task.sample_initial_state(rng) for _ in range(count)])
 
 
 def held_out_robots(uncertainty: str, seed: int, count: int) -> list[Robot] | None:

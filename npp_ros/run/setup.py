@@ -42,11 +42,10 @@ from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, tracked_on_robot
+from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, stores_window_values, tracked_on_robot
 from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, control_space, get_task, task_label
 from npp_ros.tasks.sources import short_name
 from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot, supports_robots, where_expert_failed
-from npp_ros.trajopt.expert import DEFAULT_VALUES
 
 
 def resolve_lipschitz(
@@ -314,8 +313,8 @@ def build_loop(
         assert replay is not None
         driver = PolicyRollouts(replay) if drive else None
     if config.uncertainty and config.expert_model == "nominal":  # a nominal plan, run on the robot here
-        window = getattr(expert, "values", DEFAULT_VALUES) == "window"
         control = task_control_space(config.task, config.seed)
+        window = stores_window_values(expert)
         oracle = NominalPlanExpert(oracle or expert, task.make_plant(config.seed), control, window=window)
     elif oracle is None and config.uncertainty:  # in process: the expert plans on each episode's robot
         oracle = PrivilegedExpert(expert)

@@ -62,6 +62,12 @@ def check_expert_model(name: str, uncertainty: float | None = None) -> ExpertMod
     return name  # type: ignore[return-value]
 
 
+def stores_window_values(expert: Any) -> bool:
+    """Whether the expert's stored values are window values (the optimizer experts' default), which a tracked plan's
+    answer then stores too; else return-to-go."""
+    return getattr(expert, "values", DEFAULT_VALUES) == "window"
+
+
 def tracked_on_robot(
     plant: Plant, plan: Trajectory, initial_state: FloatArray, robot: Robot, space: ControlSpace, *, window: bool
 ) -> Trajectory:
@@ -101,7 +107,7 @@ def nominal_plan_returns(
 ) -> FloatArray:
     """The H-step return on robot k of the expert's nominal plan from s0 k, run as a run's answers are: the
     held-out reference of a claim whose expert plans on the nominal model. ``progress(done, total)`` after each."""
-    window = getattr(expert, "values", DEFAULT_VALUES) == "window"
+    window = stores_window_values(expert)
     space = control_space(plant)
     out = np.empty(len(states))
     for k, s0 in enumerate(states):
