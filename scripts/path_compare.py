@@ -1,28 +1,84 @@
-"""The per-step choice against the path policy on the same data: held-out success, no expert call.
+"""The policies on the same data and the same fresh s0: held-out success and return, and gap to the expert if asked.
 
 Usage: .venv/bin/python scripts/path_compare.py RUN_DIR [RUN_DIR ...] [--starts 200] [--prefixes 1,3,10]
+       [--kinds feedback,path] [--expert N]
 
 For each run folder, each prefix of its stored trajectories (the data as it was after that many expert calls; 0
-or a prefix past the end: all of them) and each policy (feedback: the greedy choice at every step; path:
-npp_ros.policy.path), the policy with the run's L is rolled out from ``--starts`` fresh s0 ~ rho (episodes
-10^6 + k of the run's stream, never drawn by a run) and judged on the task's success criterion. Both policies see
-the same data and the same s0, so the difference is the choice rule alone. Prints one markdown table.
+or a prefix past the end: all of them) and each policy kind (open-loop: the stored action at the greedy choice;
+feedback: the greedy choice at every step, with its expert's gains; path: npp_ros.policy.path), the policy with
+the run's L is rolled out from ``--starts`` fresh s0 ~ rho (episodes 10^6 + k of the run's stream, never drawn by
+a run) and judged on the task's success criterion and its return. Every kind sees the same data and the same s0,
+so a difference is the way the policy acts alone. With ``--expert N`` the task's expert (its default options) is
+asked from the first N of those s0 too, and each policy's share within the run's epsilon of the expert's H-step
+return is given: the oracle claim's quantity, on held-out s0. Prints one markdown table; ``--out FILE`` also
+writes it, with the rows as FILE.json.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from npp_ros.policy.bounds import NonparametricPolicy
-from npp_ros.run.setup import task_control_space
-from npp_ros.run.store import RunStore
-from npp_ros.tasks.registry import get_task, task_label
+from npp_ros.policy.feedback import check_policy_kind
+from npp_ros.run.read import read_run
+from npp_ros.run.setup import policy_for
+from npp_ros.tasks.registry import task_label
 from npp_ros.tasks.rollout import rollout_batch
 
 HELD_OUT = 10**6  # episode indices no run reaches
+
+
+def compare(run_dir: Path, starts: int, prefixes: list[int], kinds: list[str], asked: int) -> list[dict[str, object]]:
+    run = read_run(run_dir)
+    if run.robots is not None:
+        raise SystemExit(f"{run_dir}: a run on a set of robots; this compares on the exact model only")
+    task, seed, horizon, name = run.task, int(run.metadata.seed), int(run.metadata.horizon), str(run.metadata.task)
+    plant = task.make_plant(seed)
+    states = np.array([task.initial_state(seed, HELD_OUT + k) for k in range(starts)])
+    reference = None
+    if asked:
+        expert = task.make_expert(seed, horizon)
+        reference = np.asarray(task.expert_returns(expert, plant, states[:asked], horizon, None, None))
+    rows: list[dict[str, object]] = []
+    for prefix in prefixes:
+        count = run.dataset.num_trajectories if prefix <= 0 or prefix > run.dataset.num_trajectories else prefix
+        data = run.dataset.prefix(count)
+        for kind in kinds:
+            spec = replace(run.spec, policy=kind)
+            runs = rollout_batch(plant, policy_for(data, spec, name, seed).controller(), states, horizon)
+            returns = np.array([r.total_return for r in runs])
+            met = None if task.success is None else sum(bool(task.success.met(r.states)) for r in runs)
+            within = None
+            if reference is not None:
+                within = int(np.sum(reference - returns[:asked] <= float(run.spec.epsilon)))
+            rows.append({
+                "task": task_label(name), "seed": seed, "trajectories": count, "policy": kind, "starts": starts,
+                "succeeded": met, "return_median": float(np.median(returns)), "asked": asked, "within_epsilon": within,
+                "epsilon": float(run.spec.epsilon),
+                "expert_return_median": None if reference is None else float(np.median(reference)),
+            })  # fmt: skip
+    return rows
+
+
+def table(rows: list[dict[str, object]]) -> str:
+    lines = [
+        "| task | seed | trajectories | policy | success | return (median) | within epsilon of the expert |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        success = "-" if r["succeeded"] is None else f"{r['succeeded']}/{r['starts']}"
+        within = "-"
+        if r["within_epsilon"] is not None:
+            within = f"{r['within_epsilon']}/{r['asked']} (expert's median {r['expert_return_median']:.0f})"
+        lines.append(
+            f"| {r['task']} | {r['seed']} | {r['trajectories']} | {r['policy']} | {success} | "
+            f"{r['return_median']:.0f} | {within} |"
+        )
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -30,31 +86,19 @@ def main() -> None:
     ap.add_argument("run_dirs", type=Path, nargs="+", help="run folders (their run.sqlite)")
     ap.add_argument("--starts", type=int, default=200, help="fresh s0 per policy and prefix")
     ap.add_argument("--prefixes", default="1,3,10,0", help="trajectory counts to compare at (0: all)")
+    ap.add_argument("--kinds", default="feedback,path", help="policy kinds: open-loop, feedback, path")
+    ap.add_argument("--expert", type=int, default=0, help="ask the expert from the first N s0 (gap within epsilon)")
+    ap.add_argument("--out", type=Path, default=None, help="also write the table here, and the rows as .json")
     args = ap.parse_args()
-    print("| task | seed | trajectories | feedback: success | path: success | feedback / path return (median) |")
-    print("|---|---|---|---|---|---|")
-    for run_dir in args.run_dirs:
-        with RunStore.open(run_dir / "run.sqlite") as store:
-            meta, data = store.metadata, store.load_dataset()
-        task = get_task(str(meta.task))
-        if task.success is None:
-            raise SystemExit(f"{run_dir}: its task states no success criterion")
-        plant, space = task.make_plant(int(meta.seed)), task_control_space(str(meta.task), int(meta.seed))
-        starts = np.array([task.initial_state(int(meta.seed), HELD_OUT + k) for k in range(args.starts)])
-        for prefix in (int(p) for p in args.prefixes.split(",")):
-            count = data.num_trajectories if prefix <= 0 or prefix > data.num_trajectories else prefix
-            held = data.prefix(count)
-            cells = []
-            returns = []
-            for kind in ("feedback", "path"):
-                policy = NonparametricPolicy(held, float(meta.lipschitz), control=space, kind=kind)
-                runs = rollout_batch(plant, policy.controller(), starts, int(meta.horizon))
-                met = sum(bool(task.success.met(run.states)) for run in runs)
-                cells.append(f"{met}/{len(runs)}")
-                returns.append(float(np.median([run.total_return for run in runs])))
-            label = task_label(str(meta.task))
-            median = f"{returns[0]:.0f} / {returns[1]:.0f}"
-            print(f"| {label} | {meta.seed} | {count} | {cells[0]} | {cells[1]} | {median} |")
+    kinds = [check_policy_kind(k) for k in args.kinds.split(",")]
+    prefixes = [int(p) for p in args.prefixes.split(",")]
+    asked = min(args.expert, args.starts)
+    rows = [row for run_dir in args.run_dirs for row in compare(run_dir, args.starts, prefixes, kinds, asked)]
+    text = table(rows)
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+        args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
 
 
 if __name__ == "__main__":

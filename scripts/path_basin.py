@@ -1,0 +1,162 @@
+"""How far from a stored s0 one expert trajectory still carries the policy, and how far rho's s0 lie from the data.
+
+Usage: .venv/bin/python scripts/path_basin.py RUN_DIR [RUN_DIR ...] [--trajectories 4] [--radii 0.01,0.03,0.1,0.3]
+
+A certificate needs the policy within epsilon of the expert on 90% of rho. Over a stored trajectory alone, the
+run's policy (its kind and L, the task's control space) is rolled out from s0' = s_k + delta u, for the first
+``--trajectories`` trajectories k, each radius delta and ``--directions`` unit directions u (in the policy's
+distance: angles wrapped, invariant entries left out) pointing at fresh s0 ~ rho, so s0' lies where rho puts its
+starts. Each rollout is judged against that trajectory's stored H-step value at s_k (the expert's return from
+there; the expert's from s0' is not asked for: no expert call is made) and by the task's success criterion. At
+delta 0 the policy replays its expert.
+
+Then the data against rho: for ``--starts`` fresh s0, the distance to the nearest stored s0 and to the nearest
+stored state (the policy chooses among every stored state), in the same distance. Where fresh s0 lie farther
+from the data than the basin reaches, more trajectories are what the policy lacks.
+
+Fresh s0 come from npp-learn's held-out stream of the run's seed (npp_ros.run.evaluation.held_out_initial_states).
+Prints markdown; ``--out FILE`` also writes it with the rows as FILE.json. The exact model only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from npp_ros.policy.dataset import Dataset
+from npp_ros.policy.feedback import ControlSpace
+from npp_ros.run.evaluation import held_out_initial_states
+from npp_ros.run.read import read_run
+from npp_ros.run.setup import policy_for, task_control_space
+from npp_ros.tasks.registry import task_label
+from npp_ros.tasks.rollout import rollout_batch
+
+
+def single(data: Dataset, index: int) -> Dataset:
+    """The dataset holding trajectory ``index`` of ``data`` alone."""
+    out = Dataset(data.state_dim, data.action_dim, capacity=max(len(data.trajectory(index)), 1))
+    out.append(data.trajectory(index))
+    return out
+
+
+def nearest(probe: np.ndarray, points: np.ndarray, space: ControlSpace) -> np.ndarray:
+    """Each probe's distance to the nearest of ``points`` in the policy's distance (angles wrapped, invariant
+    entries left out; a plain KD-tree would miss the +-pi seam)."""
+    measured = list(space.measured)
+    out = np.empty(len(probe))
+    for i, state in enumerate(probe):
+        diff = space.difference(np.broadcast_to(state, points.shape).copy(), points)
+        out[i] = np.min(np.linalg.norm(diff[:, measured], axis=1))
+    return out
+
+
+def basin(run_dir: Path, trajectories: int, radii: list[float], directions: int, starts: int) -> dict[str, object]:
+    run = read_run(run_dir)
+    if run.robots is not None:
+        raise SystemExit(f"{run_dir}: a run on a set of robots; this measures the exact model only")
+    task, seed, horizon = run.task, int(run.metadata.seed), int(run.metadata.horizon)
+    name = str(run.metadata.task)
+    space = task_control_space(name, seed)
+    measured = list(space.measured)
+    data, epsilon = run.dataset, float(run.spec.epsilon)
+    offsets = np.asarray(data.trajectory_offsets)
+    s0 = data.states[offsets[:-1]]  # every stored trajectory's first state
+    fresh = held_out_initial_states(task, seed, max(directions, starts))
+    rows = []
+    for k in range(min(trajectories, data.num_trajectories)):
+        policy = policy_for(single(data, k), run.spec, name, seed)
+        toward = space.difference(fresh[:directions].copy(), np.broadcast_to(s0[k], (directions, s0.shape[1])))
+        norms = np.linalg.norm(toward[:, measured], axis=1)
+        units = toward[norms > 0] / norms[norms > 0, None]
+        reference = float(data.values[offsets[k]])
+        for radius in [0.0, *radii]:
+            starts_k = s0[k] + radius * units if radius > 0 else s0[k][None, :]
+            runs = rollout_batch(task.make_plant(seed), policy.controller(), starts_k, horizon)
+            gaps = np.array([reference - run.total_return for run in runs])
+            met = [bool(task.success.met(run.states)) for run in runs] if task.success is not None else []
+            rows.append(
+                {
+                    "trajectory": k,
+                    "radius": radius,
+                    "rollouts": len(runs),
+                    "within_epsilon": int(np.sum(gaps <= epsilon)),
+                    "succeeded": int(sum(met)) if met else None,
+                    "gap_median": float(np.median(gaps)),
+                }
+            )
+    probe = fresh[:starts]
+    nearest_s0 = nearest(probe, s0, space)
+    nearest_state = nearest(probe, data.states, space)
+    return {
+        "run": str(run_dir),
+        "task": task_label(name),
+        "seed": seed,
+        "horizon": horizon,
+        "epsilon": epsilon,
+        "policy": run.spec.policy,
+        "stored_trajectories": data.num_trajectories,
+        "rows": rows,
+        "fresh_s0": len(probe),
+        "nearest_stored_s0": {"median": float(np.median(nearest_s0)), "p90": float(np.quantile(nearest_s0, 0.9))},
+        "nearest_stored_state": {
+            "median": float(np.median(nearest_state)),
+            "p90": float(np.quantile(nearest_state, 0.9)),
+        },
+    }
+
+
+def table(result: dict[str, object]) -> list[str]:
+    rows = result["rows"]
+    assert isinstance(rows, list)
+    head = (
+        f"### {result['task']}, seed {result['seed']}: the {result['policy']} policy over one stored trajectory "
+        f"(epsilon {result['epsilon']:g}, H {result['horizon']})"
+    )
+    lines = [
+        head,
+        "",
+        "| distance from the stored s0 | within epsilon of the stored return | success | gap median |",
+        "|---|---|---|---|",
+    ]
+    for radius in sorted({r["radius"] for r in rows}):
+        at = [r for r in rows if r["radius"] == radius]
+        n = sum(r["rollouts"] for r in at)
+        within = sum(r["within_epsilon"] for r in at)
+        success = "-" if at[0]["succeeded"] is None else f"{sum(r['succeeded'] for r in at)}/{n}"
+        gap = float(np.median([r["gap_median"] for r in at]))
+        lines.append(f"| {radius:g} | {within}/{n} | {success} | {gap:.1f} |")
+    s0, state = result["nearest_stored_s0"], result["nearest_stored_state"]
+    assert isinstance(s0, dict) and isinstance(state, dict)
+    lines += [
+        "",
+        f"{result['fresh_s0']} fresh s0 against the run's {result['stored_trajectories']} stored trajectories: "
+        f"nearest stored s0 median {s0['median']:.3f} (90% within {s0['p90']:.3f}); nearest stored state median "
+        f"{state['median']:.3f} (90% within {state['p90']:.3f}).",
+        "",
+    ]
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run_dirs", type=Path, nargs="+", help="finished run folders (their run.sqlite)")
+    ap.add_argument("--trajectories", type=int, default=4, help="stored trajectories to start near (the first ones)")
+    ap.add_argument("--radii", default="0.01,0.03,0.1,0.3", help="distances from the stored s0, comma separated")
+    ap.add_argument("--directions", type=int, default=10, help="directions per trajectory and distance")
+    ap.add_argument("--starts", type=int, default=1000, help="fresh s0 for the distance to the data")
+    ap.add_argument("--out", type=Path, default=None, help="also write the tables here, and the rows as .json")
+    args = ap.parse_args()
+    radii = [float(r) for r in args.radii.split(",")]
+    results = [basin(run_dir, args.trajectories, radii, args.directions, args.starts) for run_dir in args.run_dirs]
+    text = "\n".join(line for result in results for line in table(result))
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+        args.out.with_suffix(".json").write_text(json.dumps(results, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
