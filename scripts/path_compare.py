@@ -1,12 +1,13 @@
 """The policies on the same data and the same fresh s0: held-out success and return, and gap to the expert if asked.
 
 Usage: .venv/bin/python scripts/path_compare.py RUN_DIR [RUN_DIR ...] [--starts 200] [--prefixes 1,3,10]
-       [--kinds feedback,path] [--expert N]
+       [--kinds feedback,path] [--lipschitz 4300,1000] [--expert N]
 
 For each run folder, each prefix of its stored trajectories (the data as it was after that many expert calls; 0
 or a prefix past the end: all of them) and each policy kind (open-loop: the stored action at the greedy choice;
 feedback: the greedy choice at every step, with its expert's gains; path: npp_ros.policy.path), the policy with
-the run's L is rolled out from ``--starts`` fresh s0 ~ rho (episodes 10^6 + k of the run's stream, never drawn by
+the run's L (or each L of ``--lipschitz``: the L the policy chooses by, which an oracle claim does
+not rest on) is rolled out from ``--starts`` fresh s0 ~ rho (episodes 10^6 + k of the run's stream, never drawn by
 a run) and judged on the task's success criterion and its return. Every kind sees the same data and the same s0,
 so a difference is the way the policy acts alone. With ``--expert N`` the task's expert (its default options) is
 asked from the first N of those s0 too, and each policy's share within the run's epsilon of the expert's H-step
@@ -32,7 +33,9 @@ from npp_ros.tasks.rollout import rollout_batch
 HELD_OUT = 10**6  # episode indices no run reaches
 
 
-def compare(run_dir: Path, starts: int, prefixes: list[int], kinds: list[str], asked: int) -> list[dict[str, object]]:
+def compare(
+    run_dir: Path, starts: int, prefixes: list[int], kinds: list[str], lipschitz: list[float], asked: int
+) -> list[dict[str, object]]:
     run = read_run(run_dir)
     if run.robots is not None:
         raise SystemExit(f"{run_dir}: a run on a set of robots; this compares on the exact model only")
@@ -47,8 +50,8 @@ def compare(run_dir: Path, starts: int, prefixes: list[int], kinds: list[str], a
     for prefix in prefixes:
         count = run.dataset.num_trajectories if prefix <= 0 or prefix > run.dataset.num_trajectories else prefix
         data = run.dataset.prefix(count)
-        for kind in kinds:
-            spec = replace(run.spec, policy=kind)
+        for kind, value in ((k, v) for k in kinds for v in lipschitz or [run.spec.lipschitz.value]):
+            spec = replace(run.spec, policy=kind, lipschitz=replace(run.spec.lipschitz, value=value))
             runs = rollout_batch(plant, policy_for(data, spec, name, seed).controller(), states, horizon)
             returns = np.array([r.total_return for r in runs])
             met = None if task.success is None else sum(bool(task.success.met(r.states)) for r in runs)
@@ -56,7 +59,8 @@ def compare(run_dir: Path, starts: int, prefixes: list[int], kinds: list[str], a
             if reference is not None:
                 within = int(np.sum(reference - returns[:asked] <= float(run.spec.epsilon)))
             rows.append({
-                "task": task_label(name), "seed": seed, "trajectories": count, "policy": kind, "starts": starts,
+                "task": task_label(name), "seed": seed, "trajectories": count, "policy": kind, "lipschitz": value,
+                "starts": starts,
                 "succeeded": met, "return_median": float(np.median(returns)), "asked": asked, "within_epsilon": within,
                 "epsilon": float(run.spec.epsilon),
                 "expert_return_median": None if reference is None else float(np.median(reference)),
@@ -66,8 +70,8 @@ def compare(run_dir: Path, starts: int, prefixes: list[int], kinds: list[str], a
 
 def table(rows: list[dict[str, object]]) -> str:
     lines = [
-        "| task | seed | trajectories | policy | success | return (median) | within epsilon of the expert |",
-        "|---|---|---|---|---|---|---|",
+        "| task | seed | trajectories | policy | L | success | return (median) | within epsilon of the expert |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         success = "-" if r["succeeded"] is None else f"{r['succeeded']}/{r['starts']}"
@@ -75,7 +79,7 @@ def table(rows: list[dict[str, object]]) -> str:
         if r["within_epsilon"] is not None:
             within = f"{r['within_epsilon']}/{r['asked']} (expert's median {r['expert_return_median']:.0f})"
         lines.append(
-            f"| {r['task']} | {r['seed']} | {r['trajectories']} | {r['policy']} | {success} | "
+            f"| {r['task']} | {r['seed']} | {r['trajectories']} | {r['policy']} | {r['lipschitz']:g} | {success} | "
             f"{r['return_median']:.0f} | {within} |"
         )
     return "\n".join(lines)
@@ -87,13 +91,17 @@ def main() -> None:
     ap.add_argument("--starts", type=int, default=200, help="fresh s0 per policy and prefix")
     ap.add_argument("--prefixes", default="1,3,10,0", help="trajectory counts to compare at (0: all)")
     ap.add_argument("--kinds", default="feedback,path", help="policy kinds: open-loop, feedback, path")
+    ap.add_argument("--lipschitz", default="", help="L values to choose by, comma separated (default: the run's)")
     ap.add_argument("--expert", type=int, default=0, help="ask the expert from the first N s0 (gap within epsilon)")
     ap.add_argument("--out", type=Path, default=None, help="also write the table here, and the rows as .json")
     args = ap.parse_args()
     kinds = [check_policy_kind(k) for k in args.kinds.split(",")]
     prefixes = [int(p) for p in args.prefixes.split(",")]
+    lipschitz = [float(v) for v in args.lipschitz.split(",") if v]
     asked = min(args.expert, args.starts)
-    rows = [row for run_dir in args.run_dirs for row in compare(run_dir, args.starts, prefixes, kinds, asked)]
+    rows = [
+        row for run_dir in args.run_dirs for row in compare(run_dir, args.starts, prefixes, kinds, lipschitz, asked)
+    ]
     text = table(rows)
     print(text)
     if args.out is not None:
