@@ -11,7 +11,8 @@ not rest on) is rolled out from ``--starts`` fresh s0 ~ rho (episodes 10^6 + k o
 a run) and judged on the task's success criterion and its return. Every kind sees the same data and the same s0,
 so a difference is the way the policy acts alone. With ``--expert N`` the task's expert (its default options) is
 asked from the first N of those s0 too, and each policy's share within the run's epsilon of the expert's H-step
-return is given: the oracle claim's quantity, on held-out s0. Prints one markdown table; ``--out FILE`` also
+return is given: the oracle claim's quantity, on held-out s0 (the JSON rows list the s0 outside it, with their
+gaps). Prints one markdown table; ``--out FILE`` also
 writes it, with the rows as FILE.json.
 """
 
@@ -55,15 +56,20 @@ def compare(
             runs = rollout_batch(plant, policy_for(data, spec, name, seed).controller(), states, horizon)
             returns = np.array([r.total_return for r in runs])
             met = None if task.success is None else sum(bool(task.success.met(r.states)) for r in runs)
-            within = None
+            within, outside = None, []
             if reference is not None:
-                within = int(np.sum(reference - returns[:asked] <= float(run.spec.epsilon)))
+                gaps = reference - returns[:asked]
+                within = int(np.sum(gaps <= float(run.spec.epsilon)))
+                outside = [
+                    [*states[k].tolist(), float(gaps[k])] for k in np.flatnonzero(gaps > float(run.spec.epsilon))
+                ]
             rows.append({
                 "task": task_label(name), "seed": seed, "trajectories": count, "policy": kind, "lipschitz": value,
                 "starts": starts,
                 "succeeded": met, "return_median": float(np.median(returns)), "asked": asked, "within_epsilon": within,
                 "epsilon": float(run.spec.epsilon),
                 "expert_return_median": None if reference is None else float(np.median(reference)),
+                "outside_epsilon": outside,  # [s0..., gap] of each asked s0 the policy missed by more than epsilon
             })  # fmt: skip
     return rows
 
