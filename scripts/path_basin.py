@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -123,6 +124,7 @@ def basin(
         units = toward[norms > 0] / norms[norms > 0, None]
         reference = float(data.values[offsets[k]])
         for gains_of, followed in paths.items():
+            print(f"{run_dir.name}: trajectory {k}, {gains_of} gains", file=sys.stderr)
             policy = policy_for(single(followed), run.spec, name, seed)
             for radius in [0.0, *radii]:
                 starts_k = s0[k] + radius * units if radius > 0 else s0[k][None, :]

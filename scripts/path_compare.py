@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from npp_ros.policy.feedback import check_policy_kind
+from npp_ros.run.progress import Counter
 from npp_ros.run.read import read_run
 from npp_ros.run.setup import policy_for
 from npp_ros.tasks.registry import task_label
@@ -46,13 +48,15 @@ def compare(
     reference = None
     if asked:
         expert = task.make_expert(seed, horizon)
-        reference = np.asarray(task.expert_returns(expert, plant, states[:asked], horizon, None, None))
+        asking = Counter(f"{run_dir.name}: the expert's returns")
+        reference = np.asarray(task.expert_returns(expert, plant, states[:asked], horizon, asking, None))
     rows: list[dict[str, object]] = []
     for prefix in prefixes:
         count = run.dataset.num_trajectories if prefix <= 0 or prefix > run.dataset.num_trajectories else prefix
         data = run.dataset.prefix(count)
         for kind, value in ((k, v) for k in kinds for v in lipschitz or [run.spec.lipschitz.value]):
             spec = replace(run.spec, policy=kind, lipschitz=replace(run.spec.lipschitz, value=value))
+            print(f"{run_dir.name}: {kind} policy, L {value:g}, {count} trajectories, {starts} s0", file=sys.stderr)
             runs = rollout_batch(plant, policy_for(data, spec, name, seed).controller(), states, horizon)
             returns = np.array([r.total_return for r in runs])
             met = None if task.success is None else sum(bool(task.success.met(r.states)) for r in runs)
