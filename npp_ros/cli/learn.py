@@ -19,11 +19,18 @@ from pathlib import Path
 from npp_ros.certificate.authoring import L_FREE
 from npp_ros.cli.args import ListTasks, add_run_arguments, nonnegative_int, run_request
 from npp_ros.policy.lipschitz import LipschitzWarning
-from npp_ros.run.evaluation import check_policy, check_success, held_out_initial_states, held_out_robots
-from npp_ros.run.loop import NPPLoop, RunResult
+from npp_ros.run.evaluation import (
+    KEPT_ANSWERS,
+    KeptAnswers,
+    check_policy,
+    check_success,
+    held_out_initial_states,
+    held_out_robots,
+)
+from npp_ros.run.loop import NPPLoop, RunConfig, RunResult
 from npp_ros.run.progress import Counter, StatusLine, unreachable_text
 from npp_ros.run.records import RunFileError, write_episode_log
-from npp_ros.run.request import FIELD_NAMES, resolve_run
+from npp_ros.run.request import FIELD_NAMES, RunRequest, resolve_run
 from npp_ros.run.setup import build_loop, expert_notice, lipschitz_checks, policy_for
 from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import StopsAtTimeBudget, get_task, task_label
@@ -51,7 +58,12 @@ def parser() -> argparse.ArgumentParser:
         "--rollouts", action="store_true", help="with --certify surrogate, let the policy drive every episode too"
     )
     ap.add_argument(
-        "--evaluate", type=nonnegative_int, default=100, metavar="N", help="after the run, N fresh rollouts (0: none)"
+        "--evaluate",
+        type=nonnegative_int,
+        default=100,
+        metavar="N",
+        help="after the run, N fresh rollouts (0: none); the expert's answers from them are kept in "
+        f"RUN_DIR/{KEPT_ANSWERS} as they arrive, and a rerun (or a larger N) asks only for the s0 not yet answered",
     )
     return ap
 
@@ -74,6 +86,17 @@ def run_to_end(loop: NPPLoop, max_episodes: int, stop_when_unreachable: bool) ->
         loop.run_episode()
     result = loop.run(loop.next_episode)  # runs nothing more: the result of the episodes stored
     return result, "certified" if result.certificate else "max-episodes"
+
+
+def answers_identity(request: RunRequest, config: RunConfig) -> str:
+    """What the expert's held-out answers of a run depend on: kept answers are used again only under the same."""
+    return json.dumps({
+        "task": config.task, "plant": config.plant_fingerprint, "seed": config.seed, "horizon": config.horizon,
+        "gamma": request.gamma,
+        "time_budget": request.time_budget, "max_iterations": request.max_iterations,
+        "expert_stop": request.expert_stop, "values": request.values, "uncertainty": config.uncertainty,
+        "expert_model": config.expert_model,
+    }, sort_keys=True)  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -137,7 +160,11 @@ def main(argv: list[str] | None = None) -> int:
             progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
             expert_progress=Counter("held-out: the expert's returns"),
             robots=held_out_robots(config.uncertainty, args.seed, args.evaluate), expert_model=config.expert_model,
+            kept=KeptAnswers(run_dir / KEPT_ANSWERS, answers_identity(request, config)),
         )  # fmt: skip
+        if evaluation is not None and evaluation.expert_answers_kept:
+            print(f"npp-learn: held-out: {evaluation.expert_answers_kept} of the expert's {evaluation.states} returns "
+                  f"kept from an earlier check of this run ({run_dir / KEPT_ANSWERS})", file=sys.stderr)  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LipschitzWarning)  # reported below, in the summary
         checks = lipschitz_checks(loop, expert, evaluation.visited_slope if evaluation else 0.0)

@@ -4,15 +4,21 @@
 policy queries, bit-identical to one-at-a-time rollouts) and records the largest value slope the
 policy visited. ``check_policy`` turns them into the test of a certificate's claim: the share of
 s0 whose gap to the value the claim speaks of is within epsilon, and a one-sided binomial test of
-P(gap <= epsilon) >= p at level delta.
+P(gap <= epsilon) >= p at level delta. The expert's returns it asks for are the slow part (seconds each): with
+:class:`KeptAnswers` each is written to the run folder as it arrives, so a check stopped at any moment loses none
+and a later, larger check asks only for the s0 it adds.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -88,6 +94,85 @@ class HeldOutCheck:
     wall_time: float
     visited_slope: float = float("nan")  # the largest |grad V^expert| the policy visited
     expert_budget_stops: int = 0  # reference answers the expert's time budget cut: they depend on the machine's speed
+    expert_answers_kept: int = 0  # reference answers an earlier check of the same run had asked for (KeptAnswers)
+
+
+KEPT_ANSWERS = "held-out-expert.jsonl"  # in the run folder, beside run.sqlite
+
+
+class KeptAnswers:
+    """The expert's returns of a run's held-out checks, one JSON line per s0, appended as each answer arrives.
+
+    The first line names what the answers depend on (``identity``: the task with its hash, the seed, the horizon,
+    the expert's settings, the set of robots and what the expert plans on); a file naming anything else is of
+    other answers and is started afresh. Line k holds s0 k of the held-out stream and the expert's return from it,
+    and is used again only for the same s0, bit for bit. Written with flush and fsync per line: a kill at any
+    moment leaves every answer before it (a torn last line is dropped on reading).
+    """
+
+    def __init__(self, path: Path, identity: str) -> None:
+        self.path = Path(path)
+        self.identity = hashlib.sha256(identity.encode()).hexdigest()
+
+    def _read(self) -> dict[int, tuple[list[float], float, bool]] | None:
+        """The kept answers by index (later lines win); None when there is no file of these answers."""
+        if not self.path.is_file():
+            return None
+        lines = self.path.read_text().splitlines()
+        try:
+            header = json.loads(lines[0]) if lines else None
+        except json.JSONDecodeError:
+            return None
+        if not isinstance(header, dict) or header.get("identity") != self.identity:
+            return None
+        kept: dict[int, tuple[list[float], float, bool]] = {}
+        for line in lines[1:]:
+            try:
+                row = json.loads(line)
+                value = math.nan if row["return"] is None else float(row["return"])
+                kept[int(row["k"])] = ([float(x) for x in row["s0"]], value, bool(row["budget_stop"]))
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                continue  # a line torn by a kill: its s0 is asked for again
+        return kept
+
+    def returns(
+        self,
+        states: FloatArray,
+        ask: Callable[[int], float],
+        stopped: Callable[[], int],
+        progress: Callable[[int, int], None] | None = None,
+    ) -> tuple[FloatArray, int, int]:
+        """The expert's return from each of ``states``: kept where an earlier check asked for the same s0, else
+        ``ask(k)`` now, appended at once. ``stopped()`` is the expert's count of answers its time budget cut.
+        Returns (returns, how many of them the budget cut, how many were kept)."""
+        kept = self._read()
+        if kept is None:  # no file, or one of other answers: start it with this identity
+            self.path.write_text(json.dumps({"identity": self.identity}) + "\n")
+            kept = {}
+        elif not self.path.read_bytes().endswith(b"\n"):
+            with self.path.open("a") as f:
+                f.write("\n")  # after a torn last line, the next answer starts a line of its own
+        usable = {k for k, row in kept.items() if k < len(states) and row[0] == states[k].tolist()}
+        out = np.empty(len(states))
+        cut = 0
+        if progress is not None:
+            progress(0, len(states))
+        with self.path.open("a") as f:
+            for k, s0 in enumerate(states):
+                if k in usable:
+                    out[k], stop = kept[k][1], kept[k][2]
+                else:
+                    before = stopped()
+                    out[k] = ask(k)
+                    stop = stopped() > before
+                    value = None if math.isnan(out[k]) else float(out[k])
+                    f.write(json.dumps({"k": k, "s0": s0.tolist(), "return": value, "budget_stop": stop}) + "\n")
+                    f.flush()
+                    os.fsync(f.fileno())
+                cut += int(stop)
+                if progress is not None:
+                    progress(k + 1, len(states))
+        return out, cut, len(usable)
 
 
 def budget_stops(expert: Expert) -> int:
@@ -114,6 +199,7 @@ def check_policy(
     chunk: int = CHUNK,
     robots: Sequence[Robot] | None = None,
     expert_model: str = DEFAULT_EXPERT_MODEL,
+    kept: KeptAnswers | None = None,
 ) -> HeldOutCheck:
     """Rolls ``policy`` out from ``states`` and measures the gap a certificate's claim is about.
 
@@ -128,23 +214,40 @@ def check_policy(
     ``robots`` (a run under model uncertainty): s0 k is checked on robot k, the policy's rollout and the expert's
     answer both, so the check is of the claim over (s0, theta); a held-out check of such a claim must draw both.
     ``expert_model`` (npp_ros.tasks.nominal_plan): the expert plans on robot k, or on the nominal model with its plan
-    then run on robot k, as the run's own answers were.
+    then run on robot k, as the run's own answers were. ``kept``: the expert's answers are kept there as they
+    arrive and taken from there where an earlier check of the same run asked for the same s0.
     """
     started = time.perf_counter()
+    answers_kept = 0
     returns, slopes = policy_rollouts(
         plant, policy, states, horizon, task.value_slope(expert), chunk=chunk, progress=progress, robots=robots
     )
     optimal = None if against_expert or robots is not None else task.optimal_returns(expert, plant, states, horizon)
     if optimal is None:
         if expert_returns is None:
-            before = budget_stops(expert)
-            if expert_progress is not None:
-                expert_progress(0, len(states))
-            if robots is not None and check_expert_model(expert_model) == "nominal":
-                reference = nominal_plan_returns(expert, plant, states, horizon, robots, expert_progress)
+            nominal = robots is not None and check_expert_model(expert_model) == "nominal"
+
+            def ask(
+                chosen: FloatArray, on: Sequence[Robot] | None, told: Callable[[int, int], None] | None
+            ) -> FloatArray:
+                if nominal:
+                    assert on is not None
+                    return nominal_plan_returns(expert, plant, chosen, horizon, on, told)
+                return task.expert_returns(expert, plant, chosen, horizon, told, on)
+
+            if kept is None:
+                before = budget_stops(expert)
+                if expert_progress is not None:
+                    expert_progress(0, len(states))
+                reference = ask(states, robots, expert_progress)
+                expert_budget_stops = budget_stops(expert) - before
             else:
-                reference = task.expert_returns(expert, plant, states, horizon, expert_progress, robots)
-            expert_budget_stops = budget_stops(expert) - before
+                reference, expert_budget_stops, answers_kept = kept.returns(
+                    states,
+                    lambda k: float(ask(states[k : k + 1], None if robots is None else robots[k : k + 1], None)[0]),
+                    lambda: budget_stops(expert),
+                    expert_progress,
+                )
         else:
             reference = np.asarray(expert_returns, dtype=np.float64)
         what = "the expert's H-step return"
@@ -159,7 +262,7 @@ def check_policy(
         states=count, reference=what, within=within, fraction=within / count, p_value=p_value,
         rejected=p_value < delta, below_v_lb=below, gap_q50=float(np.median(gaps)), gap_max=float(np.max(gaps)),
         wall_time=time.perf_counter() - started, visited_slope=float(np.max(slopes)) if len(slopes) else math.nan,
-        expert_budget_stops=expert_budget_stops if optimal is None else 0,
+        expert_budget_stops=expert_budget_stops if optimal is None else 0, expert_answers_kept=answers_kept,
     )  # fmt: skip
 
 
