@@ -106,3 +106,19 @@ def test_npp_learn_keeps_its_held_out_answers_and_a_larger_check_gives_what_a_fr
     assert "kept from an earlier check" not in fresh.stderr
     summaries = [json.loads((tmp_path / name / "summary.json").read_text())["evaluation"] for name in ("run", "fresh")]
     assert summaries[0] == summaries[1]
+
+
+def test_npp_learn_stopped_in_its_held_out_check_says_what_is_kept(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ctrl-C while the expert answers: exit 130 and where the answers are, not a traceback."""
+    import npp_ros.cli.learn as learn_cli
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(learn_cli, "check_policy", interrupted)
+    argv = ["--task", str(ARM), "--horizon", "20", "--epsilon", "5", "--max-episodes", "2", "--evaluate", "3"]
+    assert learn_cli.main([*argv, "--run-dir", str(tmp_path)]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted in the held-out check" in err and str(tmp_path / KEPT_ANSWERS) in err

@@ -154,14 +154,20 @@ def main(argv: list[str] | None = None) -> int:
                 robots=held_out_robots(config.uncertainty, args.seed, args.evaluate),
                 progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
             )  # fmt: skip
-        evaluation = None if config.spec.certify == "success" else check_policy(
-            policy, task, task.make_plant(args.seed), expert, states, args.horizon,
-            epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.spec.certify == "oracle",
-            progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
-            expert_progress=Counter("held-out: the expert's returns"),
-            robots=held_out_robots(config.uncertainty, args.seed, args.evaluate), expert_model=config.expert_model,
-            kept=KeptAnswers(run_dir / KEPT_ANSWERS, answers_identity(request, config)),
-        )  # fmt: skip
+        try:
+            evaluation = None if config.spec.certify == "success" else check_policy(
+                policy, task, task.make_plant(args.seed), expert, states, args.horizon,
+                epsilon=epsilon, p=args.p, delta=args.delta, against_expert=config.spec.certify == "oracle",
+                progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
+                expert_progress=Counter("held-out: the expert's returns"),
+                robots=held_out_robots(config.uncertainty, args.seed, args.evaluate), expert_model=config.expert_model,
+                kept=KeptAnswers(run_dir / KEPT_ANSWERS, answers_identity(request, config)),
+            )  # fmt: skip
+        except KeyboardInterrupt:
+            kept_at = run_dir / KEPT_ANSWERS
+            print(f"\nnpp-learn: interrupted in the held-out check; the run is stored and the expert's answers so "
+                  f"far are kept in {kept_at}: the same command goes on from there", file=sys.stderr)  # fmt: skip
+            return 130
         if evaluation is not None and evaluation.expert_answers_kept:
             print(f"npp-learn: held-out: {evaluation.expert_answers_kept} of the expert's {evaluation.states} returns "
                   f"kept from an earlier check of this run ({run_dir / KEPT_ANSWERS})", file=sys.stderr)  # fmt: skip
