@@ -118,7 +118,11 @@ class KeptAnswers:
         """The kept answers by index (later lines win); None when there is no file of these answers."""
         if not self.path.is_file():
             return None
-        lines = self.path.read_text().splitlines()
+        text = self.path.read_text()
+        if text and not text.endswith("\n"):  # a torn last line: the next answer must start a line of its own
+            with self.path.open("a") as f:
+                f.write("\n")
+        lines = text.splitlines()
         try:
             header = json.loads(lines[0]) if lines else None
         except json.JSONDecodeError:
@@ -149,9 +153,6 @@ class KeptAnswers:
         if kept is None:  # no file, or one of other answers: start it with this identity
             self.path.write_text(json.dumps({"identity": self.identity}) + "\n")
             kept = {}
-        elif not self.path.read_bytes().endswith(b"\n"):
-            with self.path.open("a") as f:
-                f.write("\n")  # after a torn last line, the next answer starts a line of its own
         usable = {k for k, row in kept.items() if k < len(states) and row[0] == states[k].tolist()}
         out = np.empty(len(states))
         cut = 0
