@@ -67,6 +67,7 @@ import shutil
 import sqlite3
 import sys
 import time
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
@@ -74,7 +75,7 @@ from typing import Any
 
 import numpy as np
 
-from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
+from npp_ros.policy.dataset import Dataset, DatasetError, FloatArray, Trajectory
 from npp_ros.run.records import EPISODE_COLUMNS, LATER_COLUMNS, SUCCESS_COLUMNS, EpisodeRow, RunFileError, RunMetadata
 from npp_ros.run.seal import SealCheck, check_seal, write_seal
 
@@ -94,13 +95,51 @@ BUSY_TIMEOUT_S = 30.0
 _SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_READONLY, _SQLITE_IOERR, _SQLITE_FULL = 5, 6, 8, 10, 13
 
 
-def trajectory_digest(trajectory: Trajectory) -> str:
-    """SHA-256 of the trajectory's numbers; a trajectory without gains has the digest older files recorded."""
-    h = hashlib.sha256()
+def _digest_arrays(trajectory: Trajectory) -> tuple[FloatArray, ...]:
     arrays = (trajectory.states, trajectory.actions, trajectory.values)
-    for arr in arrays if trajectory.gains is None else (*arrays, trajectory.gains):
-        h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+    return arrays if trajectory.gains is None else (*arrays, trajectory.gains)
+
+
+def trajectory_digest(trajectory: Trajectory) -> str:
+    """SHA-256 of the trajectory's numbers as the file stores them; a trajectory without gains has the digest older
+    files recorded.
+
+    SQLite keeps a REAL -0.0 as +0.0, so the digest is of each value plus 0.0 (which turns -0.0 into +0.0 and
+    leaves every other finite number as it is): what is digested is exactly what is read back. Values are finite
+    (Trajectory.validated), so no NaN payload reaches the file."""
+    h = hashlib.sha256()
+    for arr in _digest_arrays(trajectory):
+        h.update((np.ascontiguousarray(arr, dtype="<f8") + 0.0).tobytes())
     return h.hexdigest()
+
+
+# Files written before the digest was of stored values digested a -0.0 as itself. A trajectory of such a file whose
+# digest fails is searched for the zeros that were negative: each one alone, and each pair up to this many zeros.
+SIGNED_ZERO_PAIRS_UP_TO = 200
+
+
+class SignedZeroChecksum(UserWarning):
+    """A trajectory of an older file verified once its signed zeros were found (said, then read as stored)."""
+
+
+def signed_zeros_behind(trajectory: Trajectory, digest: str) -> int | None:
+    """How many of the trajectory's zeros, stored as +0.0, were -0.0 when an older writer took ``digest`` (1 or 2);
+    None when no such reading of them gives ``digest`` (the trajectory is damaged)."""
+    flat = np.concatenate([np.ascontiguousarray(a, dtype="<f8").ravel() + 0.0 for a in _digest_arrays(trajectory)])
+    zeros = np.flatnonzero(flat == 0.0)
+
+    def matches(*where: int) -> bool:
+        flipped = flat.copy()
+        flipped[list(where)] = -0.0
+        return hashlib.sha256(flipped.tobytes()).hexdigest() == digest
+
+    if any(matches(int(i)) for i in zeros):
+        return 1
+    if len(zeros) <= SIGNED_ZERO_PAIRS_UP_TO:
+        for a in range(len(zeros)):
+            if any(matches(int(zeros[a]), int(b)) for b in zeros[a + 1 :]):
+                return 2
+    return None
 
 
 def gain_columns(state_dim: int, action_dim: int) -> list[str]:
@@ -529,7 +568,16 @@ class RunStore:
             gains = block[:, q + 1 :].reshape(steps, m, n).copy() if has_gains else None
             traj = Trajectory(block[:, 2 : 2 + n].copy(), block[:, 2 + n : q].copy(), block[:, q].copy(), gains=gains)
             if trajectory_digest(traj) != digest:
-                raise RunFileError(f"{self.path} is damaged: trajectory {traj_id} fails its SHA-256 check")
+                flipped = signed_zeros_behind(traj, digest)
+                if flipped is None:
+                    raise RunFileError(f"{self.path} is damaged: trajectory {traj_id} fails its SHA-256 check")
+                warnings.warn(
+                    f"{self.path}: trajectory {traj_id}'s checksum was taken before {flipped} of its -0.0 values were "
+                    "stored as 0.0 (a writer from before checksums of stored values); it verifies with them, and "
+                    "nothing else differs",
+                    SignedZeroChecksum,
+                    stacklevel=2,
+                )
             try:
                 dataset.append(traj)
             except DatasetError as exc:
