@@ -3,6 +3,7 @@ a file from before seals reads as unsealed and is sealed at its next write."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import sqlite3
@@ -91,10 +92,18 @@ def test_rows_removed_or_added_and_the_seal_itself_edited_are_refused(good: Path
         assert named in str(refusal.value), (sql, str(refusal.value))
 
 
-def test_a_file_from_before_seals_reads_as_unsealed_and_is_sealed_at_its_next_write(good: Path, tmp_path: Path) -> None:
+def test_a_file_without_a_seal_is_refused_unless_allowed_by_name_and_is_sealed_at_its_next_write(
+    good: Path, tmp_path: Path
+) -> None:
+    """Dropping the seal table is an edit too: the gate refuses the file unless the operator allows unsealed files,
+    and says so in its provenance while it runs."""
     old = altered_copy(good, tmp_path / "old", (f"DROP TABLE {SEAL_TABLE}", ()))
-    deployment = load_deployment(old, ACCEPT)  # read as before
-    assert not deployment.seal.sealed and "unsealed" in deployment.seal.describe()
+    with pytest.raises(GateRefusal, match=r"has no seal, so nothing shows it unchanged since its run.*allow_unsealed"):
+        load_deployment(old, ACCEPT)
+    with pytest.raises(GateRefusal, match="has no seal"):  # override_gate is no way round it
+        load_deployment(old, dataclasses.replace(ACCEPT, override=True))
+    deployment = load_deployment(old, dataclasses.replace(ACCEPT, allow_unsealed=True))
+    assert not deployment.seal.sealed and "UNSEALED" in deployment.seal.describe()
     with RunStore.open(old / "run.sqlite") as store:
         certificate = store.certificate()
         assert certificate is not None

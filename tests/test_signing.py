@@ -3,12 +3,15 @@ one of them, unchanged since, and names the signer it found otherwise."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 import pytest
+from cryptography.hazmat.primitives import serialization
 from deploy_runs import FINGERPRINT, altered_copy, make_run
 
 from npp_ros.cli.sign import main as npp_sign
@@ -82,8 +85,58 @@ def test_an_edited_signed_run_is_refused(good: Path, keys: dict[str, Path], tmp_
         load_deployment(altered_copy(run, tmp_path / "edited", edit), trusting(keys["alice"]))
     resealed = altered_copy(run, tmp_path / "resealed", edit, resealed=True)
     assert (resealed / SIGNATURE_FILE).is_file()
-    with pytest.raises(GateRefusal, match=r"does not match the run as it stands .* changed after it was signed"):
+    with pytest.raises(GateRefusal, match=r"the run changed after ed25519:\w+ signed it \(signed seal"):
         load_deployment(resealed, trusting(keys["alice"]))
+
+
+def forged(run: Path, folder: Path, **fields: str) -> Path:
+    """A copy of a signed run whose run.sig has ``fields`` written over, as anyone who may write the folder can."""
+    shutil.copytree(run, folder)
+    record = json.loads((folder / SIGNATURE_FILE).read_text())
+    record.update(fields)
+    (folder / SIGNATURE_FILE).write_text(json.dumps(record))
+    return folder
+
+
+def test_a_signature_is_checked_with_the_trusted_keys_only_and_no_field_of_run_sig_forges_one(
+    good: Path, keys: dict[str, Path], tmp_path: Path
+) -> None:
+    """An editor widens what the run claims, seals it again, signs it with a key of their own and writes the trusted
+    key's fingerprint (and its public key) into run.sig: no trusted key verifies the signature, so it is refused,
+    for each field of run.sig written over and for the trusted signer's real signature moved onto the edited run."""
+    alice_pub = load_public_key(keys["alice"].with_suffix(".pub"))
+    alice = fingerprint(alice_pub)
+    alice_raw = alice_pub.public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw).hex()
+    genuine = read_signature(signed_copy(good, tmp_path / "genuine", keys["alice"]))
+    assert genuine is not None and genuine.scheme == 2
+    edit = ("UPDATE meta SET value = '3.0' WHERE key = 'epsilon'", ())
+    edited = signed_copy(altered_copy(good, tmp_path / "edited", edit, resealed=True), tmp_path / "e", keys["mallory"])
+    mallory = read_signature(edited)
+    assert mallory is not None
+    cases = {
+        "signer": (edited, {"signer": alice}, "claims signer"),
+        "public_key": (edited, {"public_key": alice_raw}, "altered or forged"),
+        "signer and public_key": (edited, {"signer": alice, "public_key": alice_raw}, "altered or forged"),
+        "signature (the trusted one's, moved)": (
+            edited, {"signer": alice, "public_key": alice_raw, "signature": genuine.signature}, "altered or forged"
+        ),
+        "everything but the digest (alice's run.sig whole)": (
+            edited, {k: v for k, v in asdict(genuine).items() if k != "digest"}, "altered or forged"
+        ),
+        "digest (alice's run.sig whole)": (edited, asdict(genuine), r"changed after ed25519:\w+ signed it"),
+        "signed_at": (tmp_path / "genuine", {"signed_at": "2020-01-01 00:00:00 UTC"}, "altered or forged"),
+        "scheme": (tmp_path / "genuine", {"scheme": 1}, "altered or forged"),
+    }  # fmt: skip
+    for k, (source, fields, reason) in enumerate(cases.values()):
+        run = forged(source, tmp_path / f"forged{k}", **fields)
+        with pytest.raises(GateRefusal, match=reason):
+            load_deployment(run, trusting(keys["alice"]))
+        assert npp_sign(["verify", str(run), "--trusted", str(keys["alice"].with_suffix(".pub"))]) == 1
+    bad_format = forged(tmp_path / "genuine", tmp_path / "format", format="other")
+    with pytest.raises(GateRefusal, match="is not a readable run signature"):
+        load_deployment(bad_format, trusting(keys["alice"]))
+    # Untouched, alice's signature still verifies, by her key alone.
+    assert load_deployment(tmp_path / "genuine", trusting(keys["alice"])).signed.startswith(f"signed by {alice} at")
 
 
 def test_a_key_is_never_overwritten_and_every_command_has_help(keys: dict[str, Path]) -> None:

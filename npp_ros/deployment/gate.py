@@ -13,8 +13,11 @@ It refuses:
 An operator may override the certificate and fingerprint checks (``Acceptance.override``), and every
 overridden reason is kept for the log and /diagnostics. Nothing overrides a file the store cannot read
 (npp_ros/run/read.py): its data are no run's, so there is no policy to deploy.
-The run file's seal names any edit after the run, but an editor can seal again; trusted keys
-(``Acceptance.trusted_keys``, signing.py) make the gate require the signature of one of them over the seal.
+The run file's seal names any edit after the run, but an editor can seal again: a seal is a checksum anyone
+with this code can recompute, not a proof of who wrote the run. Trusted keys (``Acceptance.trusted_keys``,
+signing.py) make the gate require the signature of one of them over the seal: that is the proof. A file without
+a seal is refused unless the operator allows unsealed files by name (``Acceptance.allow_unsealed``), since
+dropping the seal table is itself an edit.
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ class Acceptance:
     override: bool = False
     trusted_keys: tuple[Ed25519PublicKey, ...] = ()  # given any, only a run signed by one of them passes
     robot_description: str = ""  # the robot's MJCF: a run certified on a set of robots is compared with it
+    allow_unsealed: bool = False  # accept a run file without a seal (from before seals): nothing then names an edit
 
     def __post_init__(self) -> None:
         if not self.max_epsilon > 0:
@@ -116,6 +120,13 @@ def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
         raise GateRefusal(f"the run file was altered or damaged: {exc}") from None
     except UnknownTaskError as exc:
         raise GateRefusal(f"{run_file}: {exc}") from None
+    if not run.seal.sealed and not acceptance.allow_unsealed:
+        # A seal's absence is no proof of age: dropping the seal table is itself an edit. No override but by name.
+        raise GateRefusal(
+            f"{run_file} has no seal, so nothing shows it unchanged since its run (a file from before seals, or one "
+            "whose seal was removed): resume the run once to seal it (or sign it), or set allow_unsealed to accept "
+            "it knowingly"
+        )
     # A run the operator asked to be signed by a trusted key and is not: no override, as for altered data.
     unsigned, signed = signature_reasons(run_file.parent, run.seal.digest, acceptance.trusted_keys)
     if unsigned:

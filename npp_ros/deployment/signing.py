@@ -12,6 +12,7 @@ Keys are PEM files (PKCS#8 private, SubjectPublicKeyInfo public); a key is named
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -29,7 +30,10 @@ from npp_ros.run.store import RUN_FILE, RunStore
 
 SIGNATURE_FILE = "run.sig"
 SIGNATURE_FORMAT = "npp_ros.run-signature"
-_CONTEXT = b"npp_ros run seal v1\n"  # signed with the digest, so a signature means nothing in another context
+# Signed with the digest, so a signature means nothing in another context. Scheme 1 signed the digest alone;
+# scheme 2 (every signature made now) signs the time of signing too, so no field run.sig reports goes unsigned.
+_CONTEXTS = {1: b"npp_ros run seal v1\n", 2: b"npp_ros run seal v2\n"}
+SCHEME = 2
 
 
 class SigningError(ValueError):
@@ -94,17 +98,28 @@ class RunSignature:
     signed_at: str
     signature: str  # hex
     format: str = SIGNATURE_FORMAT
+    scheme: int = 1  # what was signed: 1 the digest; 2 the digest and signed_at (absent from older files: 1)
 
     def key(self) -> Ed25519PublicKey:
         return Ed25519PublicKey.from_public_bytes(bytes.fromhex(self.public_key))
 
-    def verifies(self, digest: str) -> bool:
-        """Whether the signature is the signer's over ``digest``."""
+    def message(self, digest: str) -> bytes:
+        """The bytes a signature of this scheme covers for a run of seal ``digest``."""
+        signed = digest if self.scheme == 1 else f"{digest}\n{self.signed_at}"
+        return _CONTEXTS[self.scheme] + signed.encode()
+
+    def verifies_by(self, key: Ed25519PublicKey, digest: str) -> bool:
+        """Whether the signature is ``key``'s over a run of seal ``digest`` (and, scheme 2, over signed_at)."""
         try:
-            self.key().verify(bytes.fromhex(self.signature), _CONTEXT + digest.encode())
+            key.verify(bytes.fromhex(self.signature), self.message(digest))
         except (InvalidSignature, ValueError):
             return False
         return True
+
+    def verifies(self, digest: str) -> bool:
+        """Whether the signature is by the key run.sig itself carries: says nothing of who signed (anyone can write
+        any key there); only a trusted key's verification does (:func:`signature_reasons`)."""
+        return self.verifies_by(self.key(), digest)
 
 
 def run_folder(run: str | Path) -> Path:
@@ -133,13 +148,15 @@ def sign_run(run: str | Path, private_key: Path) -> RunSignature:
     key = load_private_key(private_key)
     digest = sealed_digest(folder / RUN_FILE)
     public = key.public_key()
-    signature = RunSignature(
+    unsigned = RunSignature(
         digest=digest,
         public_key=public.public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw).hex(),
         signer=fingerprint(public),
         signed_at=time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-        signature=key.sign(_CONTEXT + digest.encode()).hex(),
+        signature="",
+        scheme=SCHEME,
     )
+    signature = dataclasses.replace(unsigned, signature=key.sign(unsigned.message(digest)).hex())
     tmp = folder / f".{SIGNATURE_FILE}.{os.getpid()}.new"
     tmp.write_text(json.dumps(asdict(signature), indent=2) + "\n")
     os.replace(tmp, folder / SIGNATURE_FILE)
@@ -156,6 +173,8 @@ def read_signature(folder: Path) -> RunSignature | None:
         signature = RunSignature(**record)
         if signature.format != SIGNATURE_FORMAT:
             raise ValueError(f"format {signature.format!r}")
+        if signature.scheme not in _CONTEXTS or isinstance(signature.scheme, bool):
+            raise ValueError(f"scheme {signature.scheme!r}")
         signature.key()  # a key of the right length
         bytes.fromhex(signature.signature)
     except (OSError, ValueError, TypeError) as exc:
@@ -164,8 +183,14 @@ def read_signature(folder: Path) -> RunSignature | None:
 
 
 def signature_reasons(folder: Path, digest: str, trusted: Sequence[Ed25519PublicKey]) -> tuple[list[str], str]:
-    """Why the run may not be deployed for its signature (none when it verifies by a trusted key, or when no key
-    is trusted), and one line that says who signed, for the log."""
+    """Why the run may not be deployed for its signature (none when a trusted key verifies it, or when no key is
+    trusted), and one line that says who signed, for the log.
+
+    The identity is the trusted key that verifies the signature over the file's own seal digest: nothing in run.sig
+    chooses the key it is checked with. Its ``public_key``, ``signer`` and ``digest`` fields are the signer's claims,
+    used only to say why a signature fails; a run.sig that names a trusted fingerprint beside another key's
+    signature verifies under no trusted key and is refused as what it is.
+    """
     try:
         signature = read_signature(folder)
     except RunFileError as exc:
@@ -174,18 +199,36 @@ def signature_reasons(folder: Path, digest: str, trusted: Sequence[Ed25519Public
     if signature is None:
         refused = [f"the run is unsigned; this deployment trusts only runs signed by {trusted_names}"]
         return (refused if trusted else []), "unsigned (no run.sig)"
-    if not digest or not signature.verifies(digest):
-        said = f"signature by {signature.signer} does not match the run as it stands"
-        reason = (
-            f"the run's {said} (signed digest {signature.digest[:16]}..., the file's {digest[:16] or 'none'}...): "
-            "the run changed after it was signed"
-        )
-        return ([reason] if trusted else []), said
-    said = f"signed by {signature.signer} at {signature.signed_at}"
     if not trusted:
+        said = f"run.sig names {signature.signer} at {signature.signed_at}"
         return [], said + " (not checked: no trusted keys given)"
-    if signature.signer not in {fingerprint(k) for k in trusted}:
-        return [
-            f"the run is signed by {signature.signer}, which this deployment does not trust ({trusted_names})"
-        ], said
-    return [], said
+    verifying = next((key for key in trusted if digest and signature.verifies_by(key, digest)), None)
+    if verifying is not None:
+        said_at = signature.signed_at
+        when = f"at {said_at}" if signature.scheme >= 2 else f"(its time unsigned: run.sig says {said_at})"
+        return [], f"signed by {fingerprint(verifying)} {when}"
+    return [_why_unverified(signature, digest, trusted_names)], f"not verified by a trusted key ({trusted_names})"
+
+
+def _why_unverified(signature: RunSignature, digest: str, trusted_names: str) -> str:
+    """The true reason no trusted key verifies run.sig, in one line."""
+    claimed_key = fingerprint(signature.key())
+    own = signature.verifies(signature.digest)  # a genuine signature by the key run.sig carries, over some digest
+    if not digest:
+        return "the run file is unsealed, so there is no digest a signature could be over"
+    if not own:
+        return (
+            f"run.sig holds no valid signature by the key it carries ({claimed_key}) over what it names (seal "
+            f"{signature.digest[:16]}..., signed at {signature.signed_at}): the signature file was altered or forged"
+        )
+    if claimed_key != signature.signer:
+        return (
+            f"run.sig claims signer {signature.signer} but its signature is by {claimed_key}, which this deployment "
+            f"does not trust ({trusted_names}): a forged signer"
+        )
+    if signature.digest != digest:
+        return (
+            f"the run changed after {claimed_key} signed it (signed seal {signature.digest[:16]}..., the file's "
+            f"{digest[:16]}...)"
+        )
+    return f"the run is signed by {claimed_key}, which this deployment does not trust ({trusted_names})"

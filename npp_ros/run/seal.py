@@ -15,7 +15,10 @@ trajectories (chain = SHA-256(chain || SHA-256(column values of the next traject
 hashes only the trajectories it added, and a check recomputes every chain from the start. The other tables
 are small and hashed whole at every commit (an episode's policy return is written after its row).
 
-A file without the seal table (from before seals) reads as unsealed; its next write seals it.
+A file without the seal table (from before seals) reads as unsealed; its next write seals it. Unsealed is not
+proof of age (dropping the table is an edit too): the deployment gate refuses such a file unless allowed by name.
+The seal is a checksum, not a proof of authorship: anyone with this code can recompute it after an edit. A
+signature over its digest (npp_ros.deployment.signing) is the proof.
 """
 
 from __future__ import annotations
@@ -165,7 +168,7 @@ class SealCheck:
 
     def describe(self) -> str:
         if not self.sealed:
-            return "unsealed (written before run files were sealed; its next write seals it)"
+            return "UNSEALED: nothing shows the file unchanged since its run (its next write seals it)"
         return f"sealed, digest {self.digest[:16]}..."
 
 

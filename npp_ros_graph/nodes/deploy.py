@@ -94,6 +94,8 @@ PARAMETERS = (
     Changeable("max_delta", 1.0, "largest certified delta (the claim's failure probability) accepted", 0.0, 1.0),
     Changeable("trusted_keys", "", "public keys (npp-sign keygen's NAME.pub files, comma-separated) whose "
                "signature a run must carry; empty = any run, signed or not (the log says which)"),
+    Changeable("allow_unsealed", False, "accept a run file without a seal (one from before seals, or whose seal was "
+               "removed): nothing then shows it unchanged since its run; /diagnostics says so while it runs"),
     Changeable("override_gate", False, "deploy even when the gate refuses (each reason logged as an error and kept on "
                "/diagnostics); never for a run file whose data fail their checksums"),
     Changeable("joint_states_topic", JOINT_STATES, "the robot's sensor_msgs/JointState topic"),
@@ -128,6 +130,7 @@ class DeploySettings:
     min_p: float
     max_delta: float
     trusted_keys: str
+    allow_unsealed: bool
     override_gate: bool
     joint_states_topic: str
     command_topic: str
@@ -147,7 +150,10 @@ class DeploySettings:
     def acceptance(self, model_fingerprint: str | None = None) -> Acceptance:
         fingerprint = self.robot_model_fingerprint if model_fingerprint is None else model_fingerprint
         keys = load_public_keys(parse_names(self.trusted_keys))  # a SigningError (a ValueError) names the file
-        return Acceptance(self.max_epsilon, self.min_p, self.max_delta, fingerprint, self.override_gate, keys)
+        return Acceptance(
+            self.max_epsilon, self.min_p, self.max_delta, fingerprint, self.override_gate, keys,
+            allow_unsealed=self.allow_unsealed,
+        )  # fmt: skip
 
 
 USAGE = f"""npp-deploy: one certified run's policy drives a robot over ros2_control topics (lifecycle node
