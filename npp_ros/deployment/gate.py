@@ -8,7 +8,11 @@ It refuses:
 - a run without a certificate, or with one that is not proven;
 - a certificate weaker than the operator accepts (epsilon, p, delta);
 - a robot whose model fingerprint is not the certified plant's, or, for a run certified on a set of
-  robots, whose description lies outside the set (robot_set.py).
+  robots, whose description lies outside the set (robot_set.py);
+- a run that does not follow from its own seed and stored expert answers (npp_ros.run.rederive): every episode's
+  s0 and robot drawn again, every check re-run with the policy as it then was, the certificate issued again, and
+  compared with the file; the first episode that differs is named. No override: an operator who knows why may
+  turn the re-derivation off (``Acceptance.rederive``).
 
 An operator may override the certificate and fingerprint checks (``Acceptance.override``), and every
 overridden reason is kept for the log and /diagnostics. Nothing overrides a file the store cannot read
@@ -24,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +43,7 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.run.read import Run, read_run
 from npp_ros.run.records import RunFileError, RunMetadata
+from npp_ros.run.rederive import rederive
 from npp_ros.run.seal import SealCheck
 from npp_ros.run.setup import policy_for
 from npp_ros.run.store import RUN_FILE
@@ -62,6 +68,7 @@ class Acceptance:
     trusted_keys: tuple[Ed25519PublicKey, ...] = ()  # given any, only a run signed by one of them passes
     robot_description: str = ""  # the robot's MJCF: a run certified on a set of robots is compared with it
     allow_unsealed: bool = False  # accept a run file without a seal (from before seals): nothing then names an edit
+    rederive: bool = True  # derive the run again from its seed and stored answers (rederive.py) and compare
 
     def __post_init__(self) -> None:
         if not self.max_epsilon > 0:
@@ -89,6 +96,7 @@ class Deployment:
     seal: SealCheck = UNSEALED  # the run file's seal, intact or absent (a file from before seals)
     signed: str = "unsigned"  # who signed the run, in words (signing.signature_reasons)
     robot: str = ""  # for a run certified on a set of robots: which robot of it the robot's model is, in words
+    derived: str = ""  # whether the run was derived again from its seed and answers, and what that found, in words
 
     @property
     def policy_trajectories(self) -> int:
@@ -109,10 +117,13 @@ class Deployment:
         return f"{head}; certificate {claim}, certify={spec.certify}, H {meta.horizon}, {proven}{robot}"
 
 
-def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
+def load_deployment(
+    run_dir: str | Path, acceptance: Acceptance, progress: Callable[[int, int], None] | None = None
+) -> Deployment:
     """The gate: the policy a run folder's certificate names, or a GateRefusal with every reason.
 
-    Only what the run file cannot give (npp_ros.run.read) is reported as damage; any other error is raised as itself."""
+    Only what the run file cannot give (npp_ros.run.read) is reported as damage; any other error is raised as itself.
+    ``progress(done, total)`` follows the re-derivation of the run's episodes."""
     run_file = _run_file(Path(run_dir))
     try:
         run = read_run(run_file)
@@ -131,7 +142,17 @@ def load_deployment(run_dir: str | Path, acceptance: Acceptance) -> Deployment:
     unsigned, signed = signature_reasons(run_file.parent, run.seal.digest, acceptance.trusted_keys)
     if unsigned:
         raise GateRefusal("; ".join(unsigned))
-    return dataclasses.replace(_pass_gate(run, acceptance), signed=signed)
+    deployment = _pass_gate(run, acceptance)  # the quick checks first: a refusal there needs no re-derivation
+    derived = "not derived again (rederive is off)"
+    if acceptance.rederive:
+        found = rederive(run, progress)
+        if not found.agrees:  # what the run's own seed and answers do not give was edited: no override
+            raise GateRefusal(
+                f"the run does not follow from its own seed and stored expert answers: {found.differences[0]} (an "
+                "edit sealed again, or a run made by a version of npp_ros whose policy acts otherwise)"
+            )
+        derived = f"derived again from its seed and answers: {found.episodes} episodes agree ({found.seconds:.1f} s)"
+    return dataclasses.replace(deployment, signed=signed, derived=derived)
 
 
 def _pass_gate(run: Run, acceptance: Acceptance) -> Deployment:

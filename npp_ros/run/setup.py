@@ -291,6 +291,7 @@ def build_loop(
     observers: Sequence[Observer] = (),
     oracle: Oracle | None = None,
     driver: EpisodeDriver | None = None,
+    answers: Oracle | None = None,
 ) -> NPPLoop:
     """The loop for ``config`` with this expert: every front end builds its run here, so a loop option is added once.
 
@@ -302,6 +303,9 @@ def build_loop(
     The policy's rollout is judged on the task's success criterion and explored from on one local replay: in one
     process it is the driver's own rollout; behind the graph's sim, the same rollout re-run on a local copy of the
     plant (deterministic, as every certificate assumes), so both give the same rows.
+
+    ``answers``: the run's expert answers as it stored them (a re-derivation of a stored run, rederive.py), the
+    oracle as it is: in process, and never wrapped, since a stored answer is already what the robot did.
     """
     if store is None and store_path is not None:
         store = RunStore.open_or_create(store_path, config.metadata())
@@ -312,7 +316,9 @@ def build_loop(
         drive = rollouts or config.spec.certify != "surrogate"
         assert replay is not None
         driver = PolicyRollouts(replay) if drive else None
-    if config.uncertainty and config.expert_model == "nominal":  # a nominal plan, run on the robot here
+    if answers is not None:
+        oracle = answers
+    elif config.uncertainty and config.expert_model == "nominal":  # a nominal plan, run on the robot here
         control = task_control_space(config.task, config.seed)
         window = stores_window_values(expert)
         oracle = NominalPlanExpert(oracle or expert, task.make_plant(config.seed), control, window=window)

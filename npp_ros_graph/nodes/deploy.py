@@ -32,7 +32,7 @@ import re
 import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -96,6 +96,10 @@ PARAMETERS = (
                "signature a run must carry; empty = any run, signed or not (the log says which)"),
     Changeable("allow_unsealed", False, "accept a run file without a seal (one from before seals, or whose seal was "
                "removed): nothing then shows it unchanged since its run; /diagnostics says so while it runs"),
+    Changeable("rederive", True, "derive the run again at configure from its seed and stored expert answers (each "
+               "episode's s0 and robot drawn again, each check re-run, the certificate issued again) and refuse a run "
+               "that differs; seconds to minutes, no expert call; false only for a run made by another npp_ros whose "
+               "policy acts otherwise"),
     Changeable("override_gate", False, "deploy even when the gate refuses (each reason logged as an error and kept on "
                "/diagnostics); never for a run file whose data fail their checksums"),
     Changeable("joint_states_topic", JOINT_STATES, "the robot's sensor_msgs/JointState topic"),
@@ -131,6 +135,7 @@ class DeploySettings:
     max_delta: float
     trusted_keys: str
     allow_unsealed: bool
+    rederive: bool
     override_gate: bool
     joint_states_topic: str
     command_topic: str
@@ -152,7 +157,7 @@ class DeploySettings:
         keys = load_public_keys(parse_names(self.trusted_keys))  # a SigningError (a ValueError) names the file
         return Acceptance(
             self.max_epsilon, self.min_p, self.max_delta, fingerprint, self.override_gate, keys,
-            allow_unsealed=self.allow_unsealed,
+            allow_unsealed=self.allow_unsealed, rederive=self.rederive,
         )  # fmt: skip
 
 
@@ -161,9 +166,21 @@ USAGE = f"""npp-deploy: one certified run's policy drives a robot over ros2_cont
 
 Managed: parameters are read at configure (change them while unconfigured); drive it with the standard
 lifecycle services (npp-deploy-ctl configure|activate|deactivate|
-cleanup|shutdown|stop|state, or `ros2 lifecycle set`). configure checks the run (checksums, a proven
-certificate, the operator's limits, the robot's model fingerprint) and fails with the reason; activate
-starts commanding; deactivate sends the safe command and stops.
+cleanup|shutdown|stop|state, or `ros2 lifecycle set`). configure is the gate: it fails, with the reason, on
+  - a run file that does not read (checksums of every trajectory, types of every stored value);
+  - a run file whose seal does not match it (an edit after the run), or that has no seal (unless allow_unsealed);
+  - with trusted_keys: a run not signed by one of them over its seal (the key that verifies is the signer);
+  - a run that does not follow from its own seed and stored expert answers (rederive: s0 and robots drawn again,
+    each check re-run, the certificate issued again, the first episode that differs named);
+  - no certificate, one that does not follow from the run's log, one not proven, or one weaker than max_epsilon,
+    min_p, max_delta;
+  - a robot whose model fingerprint is not the certified plant's or, for a run on a set of robots, whose
+    description lies outside the set.
+A seal is a checksum anyone with this code can recompute; a signature is the proof of who certified.
+activate starts commanding; while active the watchdog (state_timeout), the command limits, the coverage check
+and, for a run on a set of robots, the model monitor (on_model_mismatch) watch the robot; deactivate sends the
+safe command and stops. A certificate on a set of robots is an average over the set: it promises nothing for one
+robot of it.
 
 subscribes  joint_states_topic (sensor_msgs/JointState: names in any order, extra joints ignored)
             robot_description_topic (std_msgs/String, transient local: the robot's MJCF, for its fingerprint)
@@ -339,6 +356,17 @@ class DeployNode(LifecycleNode):
         names = ", ".join(p.name for p in params)
         return SetParametersResult(successful=False, reason=f"{names}: read at configure; clean up first")
 
+    def _rederive_progress(self) -> Callable[[int, int], None]:
+        """Logs the gate's re-derivation of the run every few seconds: a configure that takes a minute says why."""
+        last = [time.monotonic()]
+
+        def report(done: int, total: int) -> None:
+            if done == total or time.monotonic() - last[0] >= 5.0:
+                last[0] = time.monotonic()
+                self.get_logger().info(f"gate: deriving the run again from its seed, episode {done} of {total}")
+
+        return report
+
     def _read_settings(self) -> DeploySettings:
         return DeploySettings(**{param.name: self.get_parameter(param.name).value for param in PARAMETERS})
 
@@ -357,7 +385,7 @@ class DeployNode(LifecycleNode):
         except Exception as exc:  # whatever it is, configure fails with its reason, never silently
             return self._refuse("configure", f"{type(exc).__name__}: {exc}")
         try:
-            deployment = load_deployment(settings.run_dir, acceptance)
+            deployment = load_deployment(settings.run_dir, acceptance, progress=self._rederive_progress())
         except GateRefusal as exc:
             reason = str(exc)
             if source and "fingerprint" in reason:
@@ -378,7 +406,7 @@ class DeployNode(LifecycleNode):
             return self._refuse("configure", f"{type(exc).__name__}: {exc}")
         for reason in deployment.overridden:
             self.get_logger().error(f"GATE OVERRIDDEN (override_gate is true): {reason}")
-        provenance = f"run file {deployment.seal.describe()}; run {deployment.signed}"
+        provenance = f"run file {deployment.seal.describe()}; run {deployment.signed}; {deployment.derived}"
         if deployment.signed.startswith("signed by") and settings.trusted_keys.strip():
             self.get_logger().info(provenance)
         else:  # unsigned, or a signature nobody asked to check: the operator should know
@@ -634,7 +662,7 @@ class DeployNode(LifecycleNode):
         deployment, monitor = self.deployment, self.monitor
         if deployment is not None:
             values["policy"] = deployment.describe()
-            values["run provenance"] = f"{deployment.seal.describe()}; {deployment.signed}"
+            values["run provenance"] = f"{deployment.seal.describe()}; {deployment.signed}; {deployment.derived}"
             values["robot model fingerprint"] = f"{self.state.fingerprint[:12]}... from {self.state.fingerprint_source}"
             if monitor is not None:
                 values["model monitor"] = monitor.summary()

@@ -1,0 +1,177 @@
+"""A stored run derived again from its own seed: what a gate can check that no seal or signature can.
+
+A seal is a checksum anyone can recompute after an edit, and a signature says who signed, not that what they
+signed is right. But a run is a function of its settings, its seed and its expert's answers: each episode's s0 and
+robot are drawn from (seed, episode), each check is the policy as it then was rolled out on that robot from that s0
+(the plant is deterministic given the robot), and the certificate follows from the checks. So the run can be
+computed again, in process, with the stored answers as its oracle (no expert is asked), and compared with what the
+file says, row by row. An edit of a drawn robot, an s0, a check's outcome or return, a success flag, a trajectory
+(its checksum recomputed), epsilon or the set of robots (the seal recomputed) then shows as the first episode
+that differs, or as an answer asked from another state than the one stored.
+
+What this does not re-derive: the expert's answers themselves (asking again costs what the run cost, and an
+optimizer with a time budget need not answer the same twice). An answer that does not start where the run asked
+is a difference; an answer the run's expert never gave, starting at the right state, is not found here: that is
+what a signature is for.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
+from npp_ros.run.loop import RunConfig
+from npp_ros.run.read import Run
+from npp_ros.run.records import EpisodeRow
+from npp_ros.run.setup import build_loop
+from npp_ros.tasks.registry import Plant
+from npp_ros.tasks.rollout import episode_return
+from npp_ros.tasks.task import ExpertOptions
+from npp_ros.tasks.uncertainty import Robot, as_robot
+
+# Fields of a row that are measurements of the machine, not of the run.
+UNDERIVED = ("wall_time",)
+
+
+class AnswerMismatch(Exception):
+    """The re-derived run asked the expert for an answer the stored run does not hold where it asked."""
+
+
+class StoredAnswers:
+    """The oracle of a re-derivation: the run's stored trajectories, in stored order, each checked to start where
+    the re-derived run asks (a privileged expert's answers too: the robot is the episode's own, drawn again).
+
+    An answer's own return (what an oracle check compares the policy with) is not stored: it is the H-step return
+    of the answer's actions replayed on the episode's robot model from its start, as every expert computes it."""
+
+    def __init__(self, dataset: Dataset, plant: Plant) -> None:
+        self.dataset = dataset
+        self.plant = plant
+        self.given = 0
+
+    def trajectory(self, initial_state: FloatArray, robot: Robot | None = None) -> Trajectory:
+        index = self.given
+        if index >= self.dataset.num_trajectories:
+            raise AnswerMismatch(
+                f"the run asks the expert a {index + 1}th time; the file stores {self.dataset.num_trajectories} answers"
+            )
+        answer = self.dataset.trajectory(index)
+        # An expert stores the state its plant reads back after the reset: equal to the asked one but in its last bits.
+        if not np.allclose(answer.states[0], np.asarray(initial_state, dtype=np.float64), rtol=1e-9, atol=1e-9):
+            raise AnswerMismatch(
+                f"the run asks for trajectory {index} from {_state(initial_state)}; the stored one starts at "
+                f"{_state(answer.states[0])}"
+            )
+        self.given += 1
+        return replace(answer, expert_return=self._replayed_return(answer, robot))
+
+    def _replayed_return(self, answer: Trajectory, robot: Robot | None) -> float:
+        rewards = np.empty(len(answer))
+        with as_robot(self.plant, robot):
+            self.plant.reset(answer.states[0])
+            for t, action in enumerate(answer.actions):
+                rewards[t] = self.plant.step(action)
+        return episode_return(rewards)
+
+
+@dataclass(frozen=True)
+class Rederivation:
+    """What deriving the run again found: the first difference (empty: none), the episodes compared, the time."""
+
+    differences: tuple[str, ...]
+    episodes: int
+    seconds: float
+
+    @property
+    def agrees(self) -> bool:
+        return not self.differences
+
+
+def config_of(run: Run) -> RunConfig:
+    """The run's config as its file records it (every RunConfig field is a metadata key of the same name)."""
+    own = {f.name: getattr(run.metadata, f.name) for f in fields(RunConfig) if f.name != "spec"}
+    return RunConfig(**own, spec=run.spec)  # type: ignore[arg-type]
+
+
+def rederive(run: Run, progress: Callable[[int, int], None] | None = None) -> Rederivation:
+    """Run Algorithm 1 again over the run's stored answers and compare every episode and the certificate.
+
+    ``progress(done, total)`` is called after each episode. Stops at the first difference, which it names."""
+    started = time.perf_counter()
+    config = config_of(run)
+    expert = run.task.make_expert(config.seed, config.horizon, ExpertOptions(gamma=config.gamma))
+    rollouts = config.spec.certify == "surrogate" and any(row.policy_return is not None for row in run.episodes)
+    answers = StoredAnswers(run.dataset, run.task.make_plant(config.seed))
+    loop = build_loop(config, expert, rollouts=rollouts, answers=answers)
+    total = len(run.episodes)
+    for done, stored in enumerate(run.episodes, start=1):
+        try:
+            derived = loop.run_episode()
+        except AnswerMismatch as exc:
+            return _found(f"episode {stored.episode}: {exc}", done - 1, started)
+        difference = first_difference(stored, derived)
+        if difference:
+            return _found(f"episode {stored.episode}: {difference}", done - 1, started)
+        if progress is not None:
+            progress(done, total)
+    if answers.given != run.dataset.num_trajectories:
+        return _found(
+            f"the run asked the expert {answers.given} times; the file stores {run.dataset.num_trajectories} answers",
+            total,
+            started,
+        )
+    stored_record = None if run.certificate is None else run.certificate.record()
+    derived_record = None if loop.certificate is None else loop.certificate.record()
+    if stored_record != derived_record:
+        return _found(f"the certificate: {_record_difference(stored_record, derived_record)}", total, started)
+    return Rederivation((), total, time.perf_counter() - started)
+
+
+def first_difference(stored: EpisodeRow, derived: EpisodeRow) -> str:
+    """The first field in which a stored row differs from its re-derived one, in words ('' when none)."""
+    for item in fields(EpisodeRow):
+        if item.name in UNDERIVED:
+            continue
+        said, found = getattr(stored, item.name), getattr(derived, item.name)
+        if not _same(said, found):
+            return f"{item.name} is {_shown(said)} in the file, {_shown(found)} derived again from the run's seed"
+    return ""
+
+
+def _same(a: object, b: object) -> bool:
+    """Equal, numbers to a relative 1e-9: a return summed in another order differs in its last bits, an edit by far
+    more."""
+    if isinstance(a, float) and isinstance(b, float):
+        return a == b or (math.isnan(a) and math.isnan(b)) or math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-9)
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+def _record_difference(stored: dict[str, object] | None, derived: dict[str, object] | None) -> str:
+    if stored is None or derived is None:
+        return f"the file has {'none' if stored is None else 'one'}, deriving the run again gives " + (
+            "none" if derived is None else "one"
+        )
+    for key in sorted(set(stored) | set(derived)):
+        if not _same(stored.get(key), derived.get(key)):
+            return f"{key} is {_shown(stored.get(key))} in the file, {_shown(derived.get(key))} derived again"
+    return "its records differ"
+
+
+def _found(difference: str, episodes: int, started: float) -> Rederivation:
+    return Rederivation((difference,), episodes, time.perf_counter() - started)
+
+
+def _shown(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def _state(state: FloatArray) -> str:
+    return "[" + ", ".join(f"{float(v):.6g}" for v in np.ravel(state)) + "]"
