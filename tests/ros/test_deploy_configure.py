@@ -42,7 +42,7 @@ def test_a_gate_refusal_is_its_reason_and_anything_else_from_the_gate_is_named_b
     """The gate refuses with GateRefusal; a ValueError from inside it is a bug, not a refusal, and the operator
     sees its type rather than a message that reads like one of the gate's reasons."""
 
-    def gate(*_args: object) -> None:
+    def gate(*_args: object, **_kwargs: object) -> None:
         raise raised
 
     monkeypatch.setattr(deploy_node, "load_deployment", gate)
