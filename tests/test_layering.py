@@ -25,6 +25,7 @@ CORE_PARTS = (
     "npp_ros.tasks",
     "npp_ros.run",
     "npp_ros.deployment",
+    "npp_ros.identification",
     "npp_ros.experiment",
     "npp_ros.bench",
     "npp_ros.cli",
@@ -46,6 +47,7 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     "npp_ros.tasks": frozenset({"npp_ros.policy", "npp_ros.certificate", "npp_ros.trajopt"}),
     "npp_ros.run": BELOW_RUN,
     DEPLOYMENT: BELOW_RUN | {"npp_ros.run"},  # a certified run on a robot: reads run files, never runs Algorithm 1
+    "npp_ros.identification": BELOW_RUN | {"npp_ros.run"},  # a robot from its motion; the policy checked at it
     "npp_ros.experiment": BELOW_RUN | {"npp_ros.run"},
     "npp_ros.bench": BELOW_RUN | {"npp_ros.run"},
     "npp_ros.cli": CORE - {"npp_ros.cli"},
