@@ -22,6 +22,7 @@ from typing import Any, Union, get_args, get_origin, get_type_hints
 from npp_ros.certificate.certifier import Certificate, CertificationSpec
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset
+from npp_ros.run.per_robot.success_map import SuccessMap, model_bodies, run_success_map
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
 from npp_ros.run.seal import SealCheck, check_file
 from npp_ros.run.setup import policy_for, spec_of
@@ -71,6 +72,16 @@ class Run:
     def expert_model(self) -> str:
         """Under uncertainty, what the expert planned on: each episode's robot, or the nominal model."""
         return str(self.metadata.expert_model)
+
+    @property
+    def success_map(self) -> SuccessMap | None:
+        """Where in its set the run's policy (in its checks) and its expert (in its answers) failed the task, per bin
+        of each drawn parameter (npp_ros.run.per_robot.success_map); None for a run on the exact model."""
+        if self.robots is None:
+            return None
+        source = f"run {self.folder.name} ({self.task.name}, seed {self.metadata.seed}, {len(self.episodes)} episodes)"
+        bodies = model_bodies(self.task, int(self.metadata.seed))
+        return run_success_map(self.robots, self.episodes, source, bodies=bodies)
 
     @property
     def policy(self) -> NonparametricPolicy:
