@@ -1,0 +1,57 @@
+"""npp-identify on a bag: the joint states and commands a ros2_control robot's topics carry, as an MCAP bag holds them,
+identify the robot exactly as the in-process recording they were written from does."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from npp_ros.identification.excitation import multisine
+from npp_ros.identification.fit import identify
+from npp_ros.identification.recording import record_motion
+from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.uncertainty import Robot
+from npp_ros_graph.tools.bag import BagWriter, qos_entry
+from npp_ros_graph.tools.identify import main as npp_identify
+from npp_ros_graph.transport.convert import stamp
+
+
+def test_a_bag_of_joint_states_and_commands_identifies_the_robot(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    task = get_task("pendulum_swingup")
+    plant = task.make_plant(0)
+    robot = Robot((("mass", "pole", 1.1), ("gear", "torque", 0.9), ("damping", "hinge", 1.3)), 1, 1e-3, 2)
+    excitation = multisine(plant, 3.0)
+    recording = record_motion(plant, robot, lambda x: np.array([0.6 * np.sign(x[1])]), [math.pi, 0.0],
+                              excitation.steps, excitation.apply)  # fmt: skip
+    bag = BagWriter(tmp_path / "robot")
+    qos = [qos_entry(reliable=False, transient_local=False, depth=1)]
+    states = bag.add_topic("/joint_states", "sensor_msgs/msg/JointState", qos)
+    commands = bag.add_topic("/forward_effort_controller/commands", "std_msgs/msg/Float64MultiArray", qos)
+    start = 1_700_000_000 * 10**9
+    for t, (state, command) in enumerate(zip(recording.states, recording.commands, strict=True)):
+        at = start + round(t * plant.dt * 1e9)
+        # another joint first, and no effort (an empty sequence, which rosbags alone does not decode)
+        msg = JointState(name=["wheel", "hinge"], position=[0.0, state[0]], velocity=[0.0, state[1]])
+        msg.header.stamp = stamp(at)
+        bag.write(states, serialize_message(msg), at)
+        bag.write(commands, serialize_message(Float64MultiArray(data=[float(command[0])])), at + 3_000_000)
+    bag.write(commands, serialize_message(Float64MultiArray(data=[1.0, 2.0])), at + 4_000_000)  # wrong size: ignored
+    bag.close()
+    assert npp_identify([str(tmp_path / "robot"), "--task", "pendulum_swingup", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)["identification"]
+    direct = identify(task, recording).record()
+    assert out["delay"] == direct["delay"] == 1 and out["transitions"] == direct["transitions"]
+    for got, want in zip(out["combinations"], direct["combinations"], strict=True):
+        assert got["label"] == want["label"] and got["value"] == pytest.approx(want["value"], rel=1e-9)
+    assert out["verdict"] == "inside"
+    assert npp_identify([str(tmp_path / "robot"), "--task", "pendulum_swingup", "--command-topic", "/other"]) == 2
+    assert "0 commands on /other" in capsys.readouterr().err
