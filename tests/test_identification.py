@@ -15,10 +15,11 @@ import pytest
 
 from npp_ros.cli.identify import main as npp_identify
 from npp_ros.cli.learn import main as learn
-from npp_ros.identification.check import check_before_move, clopper_pearson_lower
+from npp_ros.identification.check import check_before_move, clopper_pearson_lower, successes_at
 from npp_ros.identification.excitation import multisine
 from npp_ros.identification.fit import identify
 from npp_ros.identification.recording import Recording, record_motion
+from npp_ros.run.evaluation import policy_rollouts
 from npp_ros.run.read import read_run
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.uncertainty import Robot, ScaleRange, UncertaintySet
@@ -177,3 +178,18 @@ def test_npp_identify_reads_a_recording_and_prints_json(tmp_path: Path, capsys: 
     assert abs(gear["value"] / 1.1 - 1) < 0.03
     assert npp_identify([str(path), "--task", "pendulum_swingup", "--check"]) == 2  # a check needs the run
     assert "--check needs --run" in capsys.readouterr().err
+
+
+def test_the_lockstep_rollouts_are_the_evaluations_one_at_a_time(lqr_run: Path) -> None:
+    """The check's rollouts, all s0 of one robot at once, give the successes npp_ros.run.evaluation's rollouts give
+    one robot per rollout, noise and delay included."""
+    run = read_run(lqr_run)
+    plant = run.task.make_plant(0)
+    robot = Robot((("gear", "motor_0", 0.5), ("mass", "body_1", 1.2)), 1, 0.05, 0)
+    states = np.array([run.task.sample_initial_state(np.random.default_rng(k)) for k in range(4)])
+    met = successes_at(plant, run.policy, run.task.success, robot, states, 1000)
+    drawn = [Robot(robot.scales, 1, 0.05, k) for k in range(4)]
+    one_by_one = np.zeros(4)
+    policy_rollouts(plant, run.policy, states, 1000, None, robots=drawn, met=one_by_one, criterion=run.task.success)
+    np.testing.assert_array_equal(met, one_by_one == 1)
+    assert 0 < met.sum() < 4  # some succeed, some do not: the comparison tells them apart
