@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Protocol
@@ -57,7 +58,14 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.spec import PolicySpec
-from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts, state_tuple
+from npp_ros.run.records import (
+    EpisodeRow,
+    RunFileError,
+    RunMetadata,
+    SuccessCounts,
+    UnrecordedSettings,
+    state_tuple,
+)
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.nominal_plan import REFERENCE
 from npp_ros.tasks.success import SuccessCriterion
@@ -145,11 +153,24 @@ class RunConfig:
     uncertainty: str = ""
     # Under uncertainty, the model the expert plans on: each episode's robot, or the nominal one (nominal_plan).
     expert_model: str = "robot"
+    # The expert's settings that decide its answers (records.EXPERT_SETTINGS), as its expert resolved them (the task's
+    # defaults filled in; records.expert_settings); None where an option does not apply to that expert.
+    expert_kind: str | None = None
+    time_budget: float | None = None
+    max_iterations: int | None = None
+    expert_stop: str | None = None
+    values: str | None = None
+    control_weight: float | None = None
 
     def metadata(self) -> RunMetadata:
         """What the run file records of this config: its own fields, the spec's record, where L came from."""
         own = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "spec"}
         return RunMetadata(**own, **self.spec.record(), lipschitz_detail=self.spec.lipschitz.detail)
+
+    def identity(self) -> dict[str, object]:
+        """Every recorded setting that decides the run's answers and checks (its metadata but where L came from): a
+        resume must ask for the same, and records kept beside the run (its held-out answers) are of it only."""
+        return {k: v for k, v in vars(self.metadata()).items() if k not in RunMetadata.PROVENANCE}
 
 
 @dataclass
@@ -276,9 +297,15 @@ class NPPLoop:
         return certifier, joined
 
     def _resume(self, store: RunStore) -> None:
-        problems = store.metadata.mismatches(self.config.metadata())
+        """Take up the stored run: refused (naming each setting, its recorded value and the asked one) unless this run
+        asks for what the file records; a file that never recorded some settings says so (UnrecordedSettings)."""
+        asked = self.config.metadata()
+        problems = store.metadata.mismatches(asked)
         if problems:
             raise RunFileError(f"{store.path} belongs to another run:\n  " + "\n  ".join(problems))
+        notice = store.metadata.unrecorded_notice(asked, store.path)
+        if notice:
+            warnings.warn(notice, UnrecordedSettings, stacklevel=2)
         self.dataset = store.load_dataset()
         self.policy_data = self.dataset
         self.rows = store.episodes()

@@ -28,6 +28,17 @@ class MissingMetadata(RunFileError, AttributeError):
     """A metadata key the run file lacks: a RunFileError naming it, and still an AttributeError for hasattr."""
 
 
+# The expert's settings that decide its answers, resolved (RunConfig's fields of these names): which of the task's
+# experts, its time budget, its iteration cap, what ends a request, what it stores as Q_t, the detuned lqr expert's
+# control-cost scale. None where the option does not apply to the run's expert.
+EXPERT_SETTINGS = ("expert_kind", "time_budget", "max_iterations", "expert_stop", "values", "control_weight")
+
+
+class UnrecordedSettings(UserWarning):
+    """A run resumes a file made before run files recorded some of the settings its answers depend on: what those
+    settings were for the stored answers is not known, and nothing claims it (RunMetadata.unrecorded_settings)."""
+
+
 class RunMetadata(SimpleNamespace):
     """What a run file was made for: the meta table's values by name, as ``RunConfig.metadata()`` gives them.
 
@@ -43,6 +54,10 @@ class RunMetadata(SimpleNamespace):
         "uncertainty": "",
         "expert_model": "robot",
     }
+    # Absent from files made before run files recorded the expert's settings. What they were for such a file's
+    # answers is not known: they are never compared, never written in later (a value written then would claim the
+    # older answers too), and read as None; every resume says which are missing (unrecorded_settings).
+    UNKNOWN_BEFORE = EXPERT_SETTINGS
 
     def __getattr__(self, name: str) -> object:
         """Only called for a key the meta table lacks (a hand-edited or damaged file): say which."""
@@ -50,21 +65,65 @@ class RunMetadata(SimpleNamespace):
             raise AttributeError(name)
         if name in self.BEFORE_RECORDED:
             return self.BEFORE_RECORDED[name]
+        if name in self.UNKNOWN_BEFORE:
+            return None
         raise MissingMetadata(f"the run file's metadata has no {name!r} (hand-edited or damaged?)")
 
     def mismatches(self, asked: RunMetadata) -> list[str]:
+        """One line per value ``asked`` differs in from this file's: the key, the recorded value and the asked one.
+        A key this (older) file never recorded is no mismatch (RECORDED_SINCE, UNKNOWN_BEFORE)."""
         return [
             f"{name}: file has {getattr(self, name, None)!r}, this run asks for {value!r}"
             for name, value in vars(asked).items()
             if name not in self.PROVENANCE
             and getattr(self, name, None) != value
             and not (name in self.RECORDED_SINCE and not hasattr(self, name))
+            and not (name in self.UNKNOWN_BEFORE and name not in vars(self))
         ]
 
     def unrecorded(self, asked: RunMetadata) -> dict[str, object]:
-        """What ``asked`` records that this (older) file does not yet."""
+        """What ``asked`` records that this (older) file does not yet, and the file takes from now on."""
         names = [name for name in self.RECORDED_SINCE if hasattr(asked, name) and not hasattr(self, name)]
         return {name: getattr(asked, name) for name in names}
+
+    def unrecorded_settings(self, asked: RunMetadata) -> dict[str, object]:
+        """The settings ``asked`` records that this (older) file never did (UNKNOWN_BEFORE), with the values asked:
+        the file's answers so far were made under settings nobody recorded."""
+        own = vars(self)
+        return {name: value for name, value in vars(asked).items() if name in self.UNKNOWN_BEFORE and name not in own}
+
+    def unrecorded_notice(self, asked: RunMetadata, path: Path) -> str:
+        """What a resume of this file says when it never recorded some of ``asked``'s settings ('' when it did)."""
+        missing = self.unrecorded_settings(asked)
+        if not missing:
+            return ""
+        asks = ", ".join(f"{name} {value!r}" for name, value in missing.items())
+        return (
+            f"{path} was made before run files recorded {', '.join(missing)}: the settings its stored answers were "
+            f"made with are not known, so they are not checked; this run asks for {asks} and records none of them "
+            "(they would claim the older answers too)"
+        )
+
+
+def expert_settings(expert: object, kind: str, options: object) -> dict[str, object]:
+    """The EXPERT_SETTINGS a run records of its expert: as the built expert resolved them (the task's defaults filled
+    in, so that asking for the default and asking for its value are the same run), else as ``options`` (the
+    ExpertOptions it was built with) asked; None where an option does not apply to this expert (the closed-form lqr
+    experts have no time budget; only the detuned one has a control-cost scale)."""
+
+    def resolved(name: str, asked: object, kinds: tuple[type, ...]) -> object:
+        value = getattr(expert, name, asked)
+        return value if isinstance(value, kinds) and not isinstance(value, bool) else asked
+
+    weight = getattr(expert, "control_weight", None)
+    return {
+        "expert_kind": kind,
+        "time_budget": resolved("time_budget", getattr(options, "time_budget", None), (int, float)),
+        "max_iterations": resolved("max_iterations", getattr(options, "max_iterations", None), (int,)),
+        "expert_stop": resolved("stop", getattr(options, "stop", None), (str,)),
+        "values": resolved("values", getattr(options, "values", None), (str,)),
+        "control_weight": float(weight) if isinstance(weight, (int, float)) else None,
+    }
 
 
 @dataclass(frozen=True)

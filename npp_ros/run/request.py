@@ -259,6 +259,6 @@ def resolve_run(
         condition=request.condition, p=request.p, delta=request.delta, horizon=request.horizon, gamma=request.gamma,
         certify=request.certify, rule=request.rule, policy=request.policy or definition.default_policy,
         explore=request.explore,
-        uncertainty=request.uncertainty, expert_model=request.expert_model,
+        uncertainty=request.uncertainty, expert_model=request.expert_model, options=options, expert=expert,
     )  # fmt: skip
     return ResolvedRun(request, options, expert, epsilon, lipschitz, config)

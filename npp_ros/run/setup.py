@@ -40,10 +40,18 @@ from npp_ros.policy.lipschitz import (
 )
 from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
-from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts
+from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts, expert_settings
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, stores_window_values, tracked_on_robot
-from npp_ros.tasks.registry import Expert, MeasuresValueSlope, Plant, control_space, get_task, task_label
+from npp_ros.tasks.registry import (
+    Expert,
+    ExpertOptions,
+    MeasuresValueSlope,
+    Plant,
+    control_space,
+    get_task,
+    task_label,
+)
 from npp_ros.tasks.sources import short_name
 from npp_ros.tasks.uncertainty import Robot, UncertaintySet, as_robot, supports_robots, where_expert_failed
 
@@ -138,6 +146,8 @@ def build_config(
     explore: float = 0.0,
     uncertainty: float = 0.0,
     expert_model: str = DEFAULT_EXPERT_MODEL,
+    options: ExpertOptions | None = None,
+    expert: Expert | None = None,
 ) -> RunConfig:
     """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
     ``rule`` None the default rule of that checked quantity (DEFAULT_RULES), ``policy`` how the policy acts,
@@ -145,6 +155,11 @@ def build_config(
     ``uncertainty`` > 0 the task's uncertainty set, its ranges' distance from the nominal model multiplied by this
     (1: the set the task declares; 0: the exact model), a robot drawn from it per episode (:func:`robot_fn`),
     ``expert_model`` the model the expert plans on then (npp_ros.tasks.nominal_plan).
+
+    ``options`` are the expert's (None: the task's, with this gamma) and ``expert`` the run's expert built with them
+    (None: one is built here to read them off): the config records the settings that decide its answers as that
+    expert resolved them (records.expert_settings), so a run asking for the task's default and one asking for its
+    value are the same run.
 
     Refuses a bad combination (ValueError) when the run is defined, not episodes later.
     """
@@ -154,12 +169,27 @@ def build_config(
         condition, epsilon, p, delta, lipschitz, definition.initial_state_diameter,
         certify=certify, rule=rule or DEFAULT_RULES[certify], policy=check_policy_kind(policy),
     )  # fmt: skip
+    options = ExpertOptions(gamma=gamma) if options is None else options
+    settings = (
+        _expert_settings(task, seed, horizon, replace(options, threads=None))
+        if expert is None
+        else expert_settings(expert, definition.expert_kind(options), options)
+    )
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,
         horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed), explore=check_radius(explore),
         uncertainty=uncertainty_record(task, seed, uncertainty, expert_model),
-        expert_model=check_expert_model(expert_model, uncertainty),
+        expert_model=check_expert_model(expert_model, uncertainty), **settings,  # type: ignore[arg-type]
     )  # fmt: skip
+
+
+@functools.lru_cache(maxsize=64)
+def _expert_settings(task: str, seed: int, horizon: int, options: ExpertOptions) -> dict[str, object]:
+    """build_config's expert settings where no expert is given: the task's expert built with ``options`` (speed-only
+    ones cleared), read off once per options (building an expert compiles its model)."""
+    definition = get_task(task)
+    expert = definition.make_expert(seed, horizon, options)
+    return expert_settings(expert, definition.expert_kind(options), options)
 
 
 def uncertainty_record(task: str, seed: int, factor: float, expert_model: str = DEFAULT_EXPERT_MODEL) -> str:
