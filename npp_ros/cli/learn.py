@@ -29,8 +29,8 @@ from npp_ros.run.evaluation import (
 )
 from npp_ros.run.loop import NPPLoop, RunConfig, RunResult
 from npp_ros.run.progress import Counter, StatusLine, unreachable_text
-from npp_ros.run.records import RunFileError, write_episode_log
-from npp_ros.run.request import FIELD_NAMES, RunRequest, resolve_run
+from npp_ros.run.records import RunFileError, UnrecordedSettings, write_episode_log
+from npp_ros.run.request import FIELD_NAMES, resolve_run
 from npp_ros.run.setup import build_loop, expert_notice, lipschitz_checks, policy_for
 from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import StopsAtTimeBudget, get_task, task_label
@@ -88,15 +88,10 @@ def run_to_end(loop: NPPLoop, max_episodes: int, stop_when_unreachable: bool) ->
     return result, "certified" if result.certificate else "max-episodes"
 
 
-def answers_identity(request: RunRequest, config: RunConfig) -> str:
-    """What the expert's held-out answers of a run depend on: kept answers are used again only under the same."""
-    return json.dumps({
-        "task": config.task, "plant": config.plant_fingerprint, "seed": config.seed, "horizon": config.horizon,
-        "gamma": request.gamma,
-        "time_budget": request.time_budget, "max_iterations": request.max_iterations,
-        "expert_stop": request.expert_stop, "values": request.values, "uncertainty": config.uncertainty,
-        "expert_model": config.expert_model,
-    }, sort_keys=True)  # fmt: skip
+def answers_identity(config: RunConfig) -> str:
+    """What the expert's held-out answers of a run depend on: the run's own identity (RunConfig.identity, the
+    settings its file records), so kept answers are used again only for the run that asked for them."""
+    return json.dumps(config.identity(), sort_keys=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,10 +105,17 @@ def main(argv: list[str] | None = None) -> int:
         status = StatusLine(
             epsilon, args.condition, max_episodes=args.max_episodes, prefix="npp-learn: ", certify=config.spec.certify
         )
-        loop = build_loop(config, expert, store_path=run_dir / RUN_FILE, rollouts=args.rollouts, observers=[status])
+        with warnings.catch_warnings(record=True) as notices:
+            warnings.simplefilter("always", UnrecordedSettings)
+            loop = build_loop(config, expert, store_path=run_dir / RUN_FILE, rollouts=args.rollouts, observers=[status])
     except (ValueError, RunFileError) as exc:
         print(f"npp-learn: {exc}", file=sys.stderr)
         return 2
+    for notice in notices:  # a resumed file that never recorded some settings: said at every resume
+        if issubclass(notice.category, UnrecordedSettings):
+            print(f"npp-learn: note: {notice.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(notice.message, notice.category, notice.filename, notice.lineno)
     args.horizon = request.horizon
 
     label = task_label(args.task)  # a task file's name key; its path and hash stay in the run file and summary.json
@@ -161,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
                 progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
                 expert_progress=Counter("held-out: the expert's returns"),
                 robots=held_out_robots(config.uncertainty, args.seed, args.evaluate), expert_model=config.expert_model,
-                kept=KeptAnswers(run_dir / KEPT_ANSWERS, answers_identity(request, config)),
+                kept=KeptAnswers(run_dir / KEPT_ANSWERS, answers_identity(config)),
             )  # fmt: skip
         except KeyboardInterrupt:
             kept_at = run_dir / KEPT_ANSWERS

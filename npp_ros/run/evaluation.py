@@ -103,11 +103,11 @@ KEPT_ANSWERS = "held-out-expert.jsonl"  # in the run folder, beside run.sqlite
 class KeptAnswers:
     """The expert's returns of a run's held-out checks, one JSON line per s0, appended as each answer arrives.
 
-    The first line names what the answers depend on (``identity``: the task with its hash, the seed, the horizon,
-    the expert's settings, the set of robots and what the expert plans on); a file naming anything else is of
-    other answers and is started afresh. Line k holds s0 k of the held-out stream and the expert's return from it,
-    and is used again only for the same s0, bit for bit. Written with flush and fsync per line: a kill at any
-    moment leaves every answer before it (a torn last line is dropped on reading).
+    The first line names what the answers depend on, by its hash (``identity``: npp-learn gives the run's own,
+    RunConfig.identity, every setting its run file records, the expert's as its expert resolved them); a file
+    naming anything else is of other answers and is started afresh. Line k holds s0 k of the held-out stream and
+    the expert's return from it, and is used again only for the same s0, bit for bit. Written with flush and fsync
+    per line: a kill at any moment leaves every answer before it (a torn last line is dropped on reading).
     """
 
     def __init__(self, path: Path, identity: str) -> None:
