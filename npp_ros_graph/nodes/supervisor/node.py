@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -29,6 +30,7 @@ from std_msgs.msg import UInt32
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
+from npp_ros.run.records import UnrecordedSettings
 from npp_ros.run.request import FIELD_NAMES, PLANT_FIELDS, RunRequest, resolve_run
 from npp_ros.run.setup import build_loop, initial_state_fn, robot_fn
 from npp_ros.run.store import RUN_FILE, RunStore
@@ -292,10 +294,14 @@ class SupervisorNode(Node):
                 self.reset, self.seal, self.run_id, self.handshake, self.publish_trajectories,
                 stop=self.stop, logger=log, timeout=s.rollout_timeout,
             )  # fmt: skip
-            self.loop = loop = build_loop(
-                config, expert, store=store, oracle=oracle, driver=rollouts if s.rollouts else None,
-                observers=[reporter],
-            )  # fmt: skip
+            with warnings.catch_warnings(record=True) as notices:
+                warnings.simplefilter("always", UnrecordedSettings)
+                self.loop = loop = build_loop(
+                    config, expert, store=store, oracle=oracle, driver=rollouts if s.rollouts else None,
+                    observers=[reporter],
+                )  # fmt: skip
+            for notice in notices:  # a resumed file that never recorded some settings: said at every resume
+                log.warning(str(notice.message))
             self.get_logger().info(
                 f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
                 f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
