@@ -172,6 +172,7 @@ def test_a_claim_on_a_certified_run_is_kept_and_says_what_it_claims(certified_ru
         "P_(theta~Theta)[P_(s0~rho)[" in claim.statement and "nor that every robot of the set is one" in claim.statement
     )
     assert "for any robot" not in claim.text() and "no expert call" in claim.text()
+    assert claim.seen.startswith("of 8 robots, ") and "not a claim" in claim.seen
     record = json.loads(claim_file(folder, settings).read_text())
     assert record["claim"]["certified"] and len(record["checks"]) == 8
     assert str(folder.parent) not in json.dumps(record["claim"])  # the record names the folder, not this machine

@@ -347,6 +347,7 @@ class RobotClaim:
     test: int
     delta_spent: float
     statement: str
+    seen: str = ""  # what the checks' success counts show, robot by robot: a description, not a claim
 
     def text(self) -> str:
         return "\n".join([
@@ -361,7 +362,26 @@ class RobotClaim:
             f"{self.expert_calls} expert calls ({NO_EXPERT})",
             f"  test            {self.test}, spent delta {self.delta_spent:.4g}",
             f"  statement       {self.statement}",
+            *([f"  seen            {self.seen}"] if self.seen else []),
         ])  # fmt: skip
+
+
+SEEN_BANDS = (1.0, 0.95, 0.9, 0.8, 0.5)  # the success shares robots are counted above, in what a claim saw
+
+
+def seen_counts(successes: Sequence[int], m: int, p_r: float) -> str:
+    """The robots of the checks by their share of successes of m: a plug-in description of r(theta) over the set
+    (each share is r(theta) measured on m starts), which the checks saw and no rule certified."""
+    if not successes:
+        return ""
+    shares = np.asarray(successes, dtype=np.float64) / m
+    bands = ", ".join(f">= {band:g}: {int(np.sum(shares >= band - 1e-12))}" for band in SEEN_BANDS)
+    reached = int(np.sum(shares >= p_r - 1e-12))
+    return (
+        f"of {len(shares)} robots, {reached} ({reached / len(shares):.0%}) met the task on at least p_r = {p_r:g} of "
+        f"their {m} starts; robots by their share of starts met: {bands}; the lowest {shares.min():.2f}, the median "
+        f"{float(np.median(shares)):.2f} (what the checks saw, not a claim)"
+    )
 
 
 def claim_statement(settings: ClaimSettings, outcome: ClaimOutcome, robots: str, policy: str) -> str:
@@ -530,6 +550,7 @@ def claim_for_run(
         passed=outcome.passed, rollouts=outcome.checks * settings.m, expert_calls=0,
         test=outcome.status.test, delta_spent=outcome.status.test_delta,
         statement=claim_statement(settings, outcome, robots.describe(), described),
+        seen=seen_counts([c.successes for c in checks[: outcome.checks]], settings.m, settings.p_r),
     )  # fmt: skip
     write_atomically(path, finished_record(header, claim, checks))
     return claim
