@@ -3,6 +3,7 @@ them altered the ways the gate must catch."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import sqlite3
@@ -87,8 +88,17 @@ LQR_ROBOTS = UncertaintySet(
 )
 
 
-def with_robots(source: Path, folder: Path, robots: UncertaintySet = LQR_ROBOTS) -> Path:
-    """A copy of a certified run folder whose metadata records ``robots`` (resolved on the run's model) as its set."""
+def with_robots(folder: Path, robots: UncertaintySet = LQR_ROBOTS) -> Path:
+    """A real lqr_2_1 run on a set of robots (``robots``, resolved on the run's model): each episode draws its robot
+    and the expert plans on it. The feedback policy (the LQR law) certifies it in about 30 episodes, in seconds."""
+    expert = get_task(TASK).make_expert(SEED, HORIZON)
+    lipschitz = resolve_lipschitz(TASK, "analytic", expert)
+    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, certify="oracle", policy="feedback")
     record = robots.resolved(get_task(TASK).make_plant(SEED).physics.model).record()
-    edit = ("INSERT OR REPLACE INTO meta (key, value) VALUES ('uncertainty', ?)", (json.dumps(record),))
-    return altered_copy(source, folder, edit, resealed=True)
+    loop = build_loop(dataclasses.replace(config, uncertainty=record), expert, store_path=folder / "run.sqlite")
+    try:
+        assert loop.run(300).certified
+    finally:
+        assert loop.store is not None
+        loop.store.close()
+    return folder

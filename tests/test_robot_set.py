@@ -22,7 +22,7 @@ from npp_ros.tasks.uncertainty import ModelParameters, Robot, model_elements
 def runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("robot-set")
     exact = make_run(root / "exact")
-    return exact, with_robots(exact, root / "robots")
+    return exact, with_robots(root / "robots")
 
 
 def described(robot: Robot, task: str = TASK) -> str:

@@ -542,8 +542,7 @@ def test_a_changed_robot_publishes_its_own_model_and_the_gate_places_it_outside_
 ) -> None:
     """npp-robot running gear x3 publishes the MJCF of that model (written from the nominal model, not scaled twice),
     and for a run on a set npp-deploy's gate refuses it, naming the gear, the robot's value and the range."""
-    good, _ = runs
-    robots = with_robots(good, tmp_path / "robots")
+    robots = with_robots(tmp_path / "robots")
     launch("npp-robot", {"gear_scale": 3.0})
     launch("npp-deploy")
     deploy = Deploy(ros_client("changed_robot_test"))
@@ -579,8 +578,7 @@ def test_npp_trial_rehearses_the_certified_run_on_the_real_time_robot(runs, tmp_
 def test_npp_trial_tries_a_run_on_a_set_of_robots_on_robots_drawn_from_it(runs, tmp_path: Path) -> None:
     """Each trial episode's npp-robot is a robot drawn from the run's set; the robot moves exactly as that robot's
     model does (its efforts replayed on it), and the episode names it."""
-    good, _ = runs
-    on_set = with_robots(good, tmp_path / "on-set")
+    on_set = with_robots(tmp_path / "on-set")
     cmd = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(on_set), "--episodes", "2", "--horizon", "50",
            "--out", str(tmp_path / "trial")]  # fmt: skip
     subprocess.run(cmd, check=True, timeout=600)
@@ -599,8 +597,7 @@ def test_a_robot_outside_the_certified_set_is_found_by_the_monitor_and_stops_it_
     whose gear is 3 times the model's while it publishes the nominal MJCF: the gate accepts the description
     (the nominal model lies in the set), the monitor then finds the transitions outside it: WARN with the
     measure and the bound, and with on_model_mismatch stop the node deactivates and sends the safe command."""
-    good, _ = runs
-    robots = with_robots(good, tmp_path / "robots")
+    robots = with_robots(tmp_path / "robots")
     launch("npp-robot", {"gear_scale": 3.0, "publish_description": "nominal"})
     proc = launch("npp-deploy")
     client = ros_client("monitor_test")
@@ -636,7 +633,7 @@ def test_npp_trial_outside_names_a_robot_by_its_parameters() -> None:
 
 def test_npp_trial_outside_refuses_a_robot_inside_the_set_and_a_run_on_the_exact_model(runs, tmp_path: Path) -> None:
     good, _ = runs
-    on_set = with_robots(good, tmp_path / "on-set")
+    on_set = with_robots(tmp_path / "on-set")
     for run, spec, says in ((on_set, "gear=1.1", "lies inside the certified set"), (good, "gear=3", "exact model")):
         cmd = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(run), "--outside", spec, "--out", str(tmp_path)]
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -647,8 +644,7 @@ def test_npp_trial_tries_a_run_on_a_set_on_a_robot_outside_it(runs, tmp_path: Pa
     """npp-trial --outside gear=3 on a run certified on a set: the gate refuses the robot's true description naming
     the gear, its value and the range; past the gate on the nominal description the monitor warns on /diagnostics
     (on_model_mismatch warn), and stops npp-deploy, its commands and the robot's efforts going to zero (stop)."""
-    good, _ = runs
-    on_set = with_robots(good, tmp_path / "on-set")
+    on_set = with_robots(tmp_path / "on-set")
     folder = tmp_path / "trial"
     cmd = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(on_set), "--outside", "gear=3", "--horizon", "50",
            "--out", str(folder)]  # fmt: skip
