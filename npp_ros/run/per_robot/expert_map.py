@@ -60,5 +60,8 @@ def expert_map(
         draws.append((robot, None, met))
         if progress is not None:
             progress(k + 1, count, robot, met)
-    source = f"{task.name}'s expert on {count} draws of (s0, robot), uncertainty {factor:g}, seed {seed}"
+    source = (
+        f"{task.name}'s expert on {count} draws of (s0, robot), uncertainty {factor:g}, seed {seed} (it plans on "
+        "each robot's model: its answers do not feel the delay, as in a run)"
+    )
     return success_map(robots, draws, source, bins=bins, bodies=model_bodies(task, seed))
