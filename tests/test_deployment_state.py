@@ -102,6 +102,28 @@ def test_a_model_mismatch_warns_while_commanding_and_an_operator_stop_does_not()
     assert state.status({}).level == Level.WARN
 
 
+def test_a_model_mismatch_stays_a_warning_until_the_operator_clears_it() -> None:
+    """The monitor's finding is latched: a robot found outside the set is the same robot when its transitions look
+    fine a while later, and after a stop; only the operator (or a cleanup) clears it."""
+    state = active()
+    state.answered(0.0001, 1.0, resumed=False)
+    assert state.mismatch_found("gear x0.6: 12 of the last 20 transitions exceed")
+    assert not state.mismatch_found("a later finding")  # the first is kept
+    latched = state.status({}, model_mismatch=state.model_mismatch, now=5.0)
+    assert (latched.level, latched.error) == (Level.WARN, "gear x0.6: 12 of the last 20 transitions exceed")
+    state.stopped(MODEL_MISMATCH, "safe command [0.0] sent")
+    state.became("inactive")
+    state.activated()  # activated again: still the robot that was found outside
+    assert state.status({}, model_mismatch=state.model_mismatch, now=6.0).level == Level.WARN
+    assert state.mismatch_cleared() == "gear x0.6: 12 of the last 20 transitions exceed"
+    assert state.values()["last event"] == "the operator cleared the model monitor's finding"
+    assert state.status({}, model_mismatch=state.model_mismatch, now=7.0).level == Level.OK
+    assert state.mismatch_cleared() == ""
+    state.mismatch_found("found again")
+    state.cleaned_up()
+    assert state.model_mismatch == ""
+
+
 def test_the_levels_are_diagnostic_msgs_own() -> None:
     """/diagnostics publishes the level as it is (npp_ros_graph/runtime/diagnostics.py, DiagnosticStatus)."""
     assert [int(level) for level in Level] == [0, 1, 2]

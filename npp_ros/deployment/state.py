@@ -105,6 +105,10 @@ class DeploymentState:
     stale: str = ""  # while the watchdog has expired: what it found
     stopped_because: str = ""  # why the node last stopped commanding, and when: shown while inactive
     stopped_for: str = ""  # the same, the reason alone
+    # What the model monitor found when the robot's transitions first left the certified set: WARN until the operator
+    # clears it (or cleans up), however the robot moves after. The robot is the same robot; a quiet spell says
+    # nothing of it.
+    model_mismatch: str = ""
     stopping_for: str = ""  # the reason a deactivate now in progress was asked for
     refused_at: float = -math.inf  # monotonic time of the last refused state
     refused_reason: str = ""
@@ -143,7 +147,22 @@ class DeploymentState:
         self.fingerprint = self.fingerprint_source = ""
 
     def cleaned_up(self) -> None:
-        self.refusal = self.stopped_because = self.stopped_for = ""
+        self.refusal = self.stopped_because = self.stopped_for = self.model_mismatch = ""
+
+    def mismatch_found(self, problem: str) -> bool:
+        """The model monitor finds the robot outside the certified set: latched (True when newly found)."""
+        if self.model_mismatch:
+            return False
+        self.model_mismatch = problem
+        self.note(problem)
+        return True
+
+    def mismatch_cleared(self) -> str:
+        """The operator clears the latched finding; what was cleared ('' when there was none)."""
+        cleared, self.model_mismatch = self.model_mismatch, ""
+        if cleared:
+            self.note("the operator cleared the model monitor's finding")
+        return cleared
 
     def activated(self) -> None:
         """A new activation: its timing, arrivals and refusals start afresh (the counters go on)."""
@@ -264,8 +283,8 @@ class DeploymentState:
         now: float | None = None,
     ) -> Status:
         """What the node does now: ``values`` are shown with it; ``overridden`` (the gate was), ``watchdog_expired``
-        and ``model_mismatch`` (the model monitor's summary while the robot's transitions leave the certified set)
-        are what the node's parts say; ``now`` is monotonic. The last event is among the values, never the level."""
+        and ``model_mismatch`` (the model monitor's finding, latched until the operator clears it) are what the
+        node's parts say; ``now`` is monotonic. The last event is among the values, never the level."""
         if self.refusal:
             return Status(self.refusal, values, Level.ERROR)
         if self.commanding:
@@ -273,6 +292,8 @@ class DeploymentState:
         doing = f"{self.lifecycle}: not commanding"
         if self.stopped_because and self.lifecycle == "inactive":
             doing += f" ({self.stopped_because})"
+        if model_mismatch:
+            return Status(doing, values, Level.WARN, model_mismatch)
         return Status(doing, values, Level.WARN if self.stopped_for in STOPPED_BY_ITSELF else Level.OK)
 
     def _commanding_status(
@@ -285,7 +306,7 @@ class DeploymentState:
             usable = "joint states stopped" if not self.since_fresh.any() else "joint states unusable"
             doing = f"active, {usable}: safe command sent; commanding resumes when usable states flow"
             return Status(doing, values, Level.WARN, self.stale)
-        if mismatch and self.answered_at is not None:
+        if mismatch:  # latched: said while the robot is commanded at all, whatever its last transitions look like
             doing = "active: commanding the robot, whose transitions leave the certified set of robots"
             return Status(doing, values, Level.WARN, mismatch)
         recent = (time.monotonic() if now is None else now) - self.refused_at < RECENT_S

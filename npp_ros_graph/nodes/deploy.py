@@ -71,6 +71,7 @@ from npp_ros_graph.transport.parameters import Param, declare_settings, paramete
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, LATCHED_QOS
 
 STOP_SERVICE = "~/stop"
+CLEAR_MISMATCH_SERVICE = "~/clear_model_mismatch"
 ROBOT_DESCRIPTION = "/robot_description"  # robot_state_publisher's topic (std_msgs/String, transient local)
 WAIT_SLICE_S = 0.1  # configure's wait for the description looks again at least this often (and for a stop)
 NUMBERS = re.compile(r"[-+]?\d+(?:\.\d*)?(?:e[-+]?\d+)?")
@@ -116,9 +117,10 @@ PARAMETERS = (
     Changeable("coverage_radius", 0.0, "distance from the policy's data beyond which a state is reported as outside "
                "the certificate's coverage; 0 = the farthest a checked s0 of the run lay from it", 0.0),
     Changeable("stop_outside_coverage", False, "deactivate at the first state outside the coverage (or non-finite)"),
-    Changeable("on_model_mismatch", "warn", "a run certified on a set of robots: what to do when the robot's "
-               "transitions leave what the set explains (the model monitor): warn on /diagnostics, or also stop "
-               "(deactivate, the safe command sent)", choices=MISMATCH_ACTIONS),
+    Changeable("on_model_mismatch", "stop", "a run certified on a set of robots: what to do when the robot's "
+               "transitions leave what the set explains (the model monitor): stop (deactivate, the safe command "
+               "sent; the default: nothing was certified for such a robot), or warn on /diagnostics and go on "
+               "commanding; either way WARN stays until clear_model_mismatch", choices=MISMATCH_ACTIONS),
 )  # fmt: skip
 
 
@@ -148,7 +150,9 @@ class DeploySettings:
     on_model_mismatch: str
 
     def __post_init__(self) -> None:
-        self.acceptance()
+        # The limits are checked now; the key files are read at configure, where a bad one is configure's refusal
+        # with its reason (at start it would stop the node, and npp-deploy-ctl could only say it is not found).
+        Acceptance(self.max_epsilon, self.min_p, self.max_delta)
         if not all(t.strip() for t in (self.joint_states_topic, self.command_topic, self.robot_description_topic)):
             raise ValueError("joint_states_topic, command_topic and robot_description_topic must name topics")
 
@@ -188,6 +192,8 @@ publishes   command_topic (std_msgs/Float64MultiArray, one entry per command joi
             /diagnostics (diagnostic_msgs/DiagnosticArray: lifecycle state, gate, what it does now, the last
             event and its time, refusals, watchdog, clamps, coverage, answer time, state period)
 serves      /<node>/stop (std_srvs/Trigger): deactivate at once
+            /<node>/clear_model_mismatch (std_srvs/Trigger): the operator clears the model monitor's finding,
+            which stays WARN on /diagnostics until then
             /<node>/change_state, get_state, ... (lifecycle_msgs)
 
 {parameter_help(PARAMETERS)}
@@ -223,6 +229,7 @@ class DeployNode(LifecycleNode):
         self._state_sub = None
         self.command_pub: Publisher | None = None  # created at configure, on the configured topic
         self.create_service(Trigger, STOP_SERVICE, self.on_stop)
+        self.create_service(Trigger, CLEAR_MISMATCH_SERVICE, self.on_clear_mismatch)
         # From the start, not at configure: the description is latched, and configure must find it there.
         self._description_sub = self.create_subscription(
             String, self.settings.robot_description_topic, self.on_description, LATCHED_QOS
@@ -526,6 +533,18 @@ class DeployNode(LifecycleNode):
         response.message = "stopped: safe command sent, inactive" if response.success else "could not deactivate"
         return response
 
+    def on_clear_mismatch(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """The operator has seen the model monitor's finding: /diagnostics is OK again until the next one."""
+        cleared = self.state.mismatch_cleared()
+        if self.monitor is not None:
+            self.monitor.reset()  # a new window: the finding cleared is not found again from the same transitions
+        response.success = True
+        response.message = f"cleared: {cleared}" if cleared else "no model mismatch to clear"
+        if cleared:
+            self.get_logger().warning(f"the operator cleared the model monitor's finding: {cleared}")
+            self.diagnostics.publish()
+        return response
+
     # ---------------------------------------------------------------- control
     def on_joint_state(self, msg: JointState) -> None:
         """Answer the newest joint state: those already behind this one on the wire are checked too, and a
@@ -609,15 +628,14 @@ class DeployNode(LifecycleNode):
         if not monitor.outside:
             return
         problem = f"the robot's transitions leave the certified set of robots: {monitor.summary()}"
-        if not was_outside:
-            self.state.note(problem)
+        newly = self.state.mismatch_found(problem) and not was_outside
         if self.settings.on_model_mismatch == "stop" and self.active:
             self.get_logger().error(f"{problem}; on_model_mismatch is stop: deactivating")
             self.state.stop_requested(MODEL_MISMATCH)
             self.trigger_deactivate()
             return
         self._warn("model mismatch", problem)
-        if not was_outside:  # said on /diagnostics when found, not at its next status a second later
+        if newly:  # said on /diagnostics when found, not at its next status a second later
             self.diagnostics.publish()
 
     def _refused_state(self, exc: RobotStateError) -> None:
@@ -679,7 +697,7 @@ class DeployNode(LifecycleNode):
             values,
             overridden=deployment is not None and bool(deployment.overridden),
             watchdog_expired=self.watchdog.expired,
-            model_mismatch=monitor.summary() if monitor is not None and monitor.outside else "",
+            model_mismatch=self.state.model_mismatch,
         )
         return health_of_state(status)
 

@@ -29,7 +29,8 @@ from npp_ros_graph.runtime.node import release
 from npp_ros_graph.transport.topics import SERVICE_QOS
 
 TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
-COMMANDS = (*TRANSITIONS, "stop", "state")
+COMMANDS = (*TRANSITIONS, "stop", "clear-mismatch", "state")
+SERVICES = {"stop": "stop", "clear-mismatch": "clear_model_mismatch"}  # commands that call a Trigger service
 REASON_WAIT_S = 3.0  # the node publishes its diagnostics at once on a refusal, and every second
 RESEND_S = 5.0  # a question (get_state) is asked again after this long without an answer
 # The lifecycle states each transition starts from (the standard managed-node state machine).
@@ -143,8 +144,8 @@ def run(command: str, control: DeployControl) -> int:
     if command == "state":
         print(f"{control.target}: {control.state()}")
         return 0
-    if command == "stop":
-        answer = control.call(Trigger, "stop", Trigger.Request())
+    if command in SERVICES:
+        answer = control.call(Trigger, SERVICES[command], Trigger.Request())
         print(f"{control.target}: {answer.message}")
         return 0 if answer.success else 1
     before = control.state()
@@ -164,7 +165,12 @@ def main(argv: list[str] | None = None) -> int:
     ros_args = args_in[args_in.index("--ros-args") :] if "--ros-args" in args_in else []
     own = args_in[: len(args_in) - len(ros_args)]
     ap = argparse.ArgumentParser(prog="npp-deploy-ctl", description=__doc__)
-    ap.add_argument("command", choices=COMMANDS, help="a lifecycle transition, stop (deactivate at once) or state")
+    ap.add_argument(
+        "command",
+        choices=COMMANDS,
+        help="a lifecycle transition, stop (deactivate at once), clear-mismatch (clear the model monitor's finding, "
+        "WARN until then) or state",
+    )
     ap.add_argument("--node", default="/npp_deploy", help="the npp-deploy node's full name")
     ap.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the node and for each answer")
     args = ap.parse_args(own)

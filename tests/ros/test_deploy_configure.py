@@ -93,3 +93,18 @@ def test_trusted_keys_refuse_a_run_signed_by_another_key_naming_it(
     deploy.set_parameters([Parameter("trusted_keys", value=f"{tmp_path / 'trusted.pub'}, {tmp_path / 'other.pub'}")])
     assert deploy.on_configure(None) == TransitionCallbackReturn.SUCCESS  # type: ignore[arg-type]
     assert deploy.deployment is not None and deploy.deployment.signed.startswith(f"signed by {signer}")
+
+
+def test_a_trusted_key_that_cannot_be_read_is_configures_refusal_not_a_stopped_node(
+    deploy: deploy_node.DeployNode, tmp_path: Path
+) -> None:
+    """A bad trusted_keys path is read at configure: the node stays up and configure says which file and why."""
+    run = make_run(tmp_path / "run")
+    deploy.set_parameters([
+        Parameter("run_dir", value=str(run)), Parameter("robot_model_fingerprint", value=FINGERPRINT),
+        Parameter("trusted_keys", value=str(tmp_path / "missing.pub")),
+    ])  # fmt: skip
+    assert deploy.on_configure(None) == TransitionCallbackReturn.FAILURE  # type: ignore[arg-type]
+    assert "cannot read the public key" in deploy.refusal and "missing.pub" in deploy.refusal, deploy.refusal
+    deploy.set_parameters([Parameter("trusted_keys", value="")])
+    assert deploy.on_configure(None) == TransitionCallbackReturn.SUCCESS  # type: ignore[arg-type]

@@ -80,6 +80,7 @@ class Deploy:
         self.get = client.client(GetState, f"{node}/get_state")
         self.params = client.client(SetParameters, f"{node}/set_parameters")
         self.stopper = client.client(Trigger, f"{node}/stop")
+        self.clearer = client.client(Trigger, f"{node}/clear_model_mismatch")
         self.statuses: list[Any] = []
         self.commands: list[tuple[float, list[float]]] = []
         client.node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS_QOS)
@@ -602,11 +603,14 @@ def test_a_robot_outside_the_certified_set_is_found_by_the_monitor_and_stops_it_
     proc = launch("npp-deploy")
     client = ros_client("monitor_test")
     deploy = Deploy(client)
-    deploy.deploy(robots, fingerprint=None, state_timeout=2.0)
+    deploy.deploy(robots, fingerprint=None, state_timeout=2.0, on_model_mismatch="warn")
     health = deploy.health_where(lambda h: "leave the certified set" in h.doing, "the monitor's warning")
     assert health.level == WARN and "against the set's bound" in health.error, health
     assert "robot: the nominal model, inside the certified set" in str(health.values["policy"])
     assert "model monitor: " in launch.log(proc) and "corners of the certified set" in launch.log(proc)
+    cleared = client.call(deploy.clearer, Trigger.Request())  # the operator has seen it; the robot is unchanged
+    assert cleared.success and cleared.message.startswith("cleared: the robot's transitions leave"), cleared.message
+    assert "the operator cleared the model monitor's finding" in launch.log(proc)
 
     assert deploy.transition("deactivate") and deploy.transition("cleanup")
     deploy.deploy(robots, fingerprint=None, state_timeout=2.0, on_model_mismatch="stop")
