@@ -50,11 +50,12 @@ def test_a_description_inside_the_set_is_accepted_and_named(runs) -> None:
     deployment = load_deployment(robots, Acceptance(robot_description=described(inside)))
     assert (
         deployment.robot
-        == "the nominal model with mass of body_1 x1.15, gear of motor_0 x0.85, inside the certified set"
+        == "the nominal model with mass of body_1 x1.15, gear of motor_0 x0.85, inside the certified set "
+        "(whose certificate is an average over the set)"
     )
     assert "robot: the nominal model with mass of body_1 x1.15" in deployment.describe()
     nominal = load_deployment(robots, Acceptance(robot_description=described(Robot())))
-    assert nominal.robot == "the nominal model, inside the certified set"
+    assert nominal.robot == "the nominal model, inside the certified set (whose certificate is an average over the set)"
     # The certified fingerprint alone places the nominal model in the set, as the operator's parameter gives it.
     assert load_deployment(robots, Acceptance(model_fingerprint=FINGERPRINT)).robot.startswith("the nominal model")
 

@@ -212,14 +212,14 @@ def gate_reasons(
             return [f"the robot's description: {exc}"], ""
         if not match.inside:
             return [f"the robot's model lies outside the certified set ({'; '.join(match.reasons)})"], ""
-        return [], f"{match.describe()}, inside the certified set"
+        return [], f"{match.describe()}, inside the certified set (whose certificate is an average over the set)"
     if fingerprint_reasons:
         return [*fingerprint_reasons, "the run certifies a set of robots: give the robot's MJCF to place it in it"], ""
     nominal = Robot(tuple((s.parameter, n, 1.0) for s in robots.resolved(plant.physics.model).scales for n in s.names))  # type: ignore[attr-defined]
     outside = robots.contains(nominal)
     if outside:
         return [f"the nominal model lies outside the certified set ({'; '.join(outside)})"], ""
-    return [], "the nominal model, inside the certified set"
+    return [], "the nominal model, inside the certified set (whose certificate is an average over the set)"
 
 
 # ---------------------------------------------------------------------------------------------- a robot as MJCF
