@@ -526,19 +526,24 @@ def _place(
     upper = np.concatenate([np.full(a_count, np.inf), high])
     solved = optimize.lsq_linear(matrix, -z, bounds=(lower, upper), method="bvls")
     z_hat = z + kernel @ solved.x[:a_count]
-    nearest = solved.x[a_count:]  # the set's robot nearest to what the motion determines
+    outside = [j for j in range(p) if not low[j] - 1e-9 <= z_hat[j] <= high[j] + 1e-9]
     reasons = []
-    for combination, row in zip(result.combinations, rows, strict=True):
-        if abs(math.log(combination.value) - row @ nearest) > 1e-6:
-            reasons.append(
-                f"{combination.label} = {combination.value:.4g} [{combination.low:.4g}, {combination.high:.4g}]: "
-                f"the set's nearest robot has {math.exp(row @ nearest):.4g}"
-            )
-    for j, (parameter, name) in enumerate(names):
-        if not low[j] - 1e-9 <= z_hat[j] <= high[j] + 1e-9:
+    if outside:
+        for combination, row in zip(result.combinations, rows, strict=True):
+            reach = (np.minimum(row * low, row * high).sum(), np.maximum(row * low, row * high).sum())
+            if not reach[0] - 1e-9 <= math.log(combination.value) <= reach[1] + 1e-9:
+                reasons.append(
+                    f"{combination.label} = {combination.value:.4g} [{combination.low:.4g}, {combination.high:.4g}]; "
+                    f"the set's robots have it in [{math.exp(reach[0]):.4g}, {math.exp(reach[1]):.4g}]"
+                )
+        if not reasons:
+            reasons.append("each combination lies within what the set's robots reach, but no robot of the set has "
+                           "them all together")  # fmt: skip
+        for j in outside:
+            parameter, name = names[j]
             lo, hi = ranges[parameter, name]
-            reasons.append(f"{parameter} of {name} would be x{math.exp(z_hat[j]):.4g}, outside the set's "
-                           f"[{lo:g}, {hi:g}]")  # fmt: skip
+            reasons.append(f"the robot nearest the set with these combinations has {parameter} of {name} "
+                           f"x{math.exp(z_hat[j]):.4g}, outside the set's [{lo:g}, {hi:g}]")  # fmt: skip
     if delay > robots.action_delay:
         reasons.append(f"action delay {delay} exceeds the set's 0..{robots.action_delay} control steps")
     inside = not reasons
