@@ -168,7 +168,9 @@ def test_the_check_before_moving_refuses_a_robot_its_policy_fails_on(lqr_run: Pa
     assert "must not move" in both.summary()
 
 
-def test_npp_identify_reads_a_recording_and_prints_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_npp_identify_reads_a_recording_and_prints_json(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], lqr_run: Path
+) -> None:
     path = tmp_path / "robot.npz"
     pendulum_recording(pendulum_robot(1.0, 1.1, 0.8, 0), seconds=3.0).save(path)
     assert npp_identify([str(path), "--task", "pendulum_swingup", "--max-delay", "1", "--json"]) == 0
@@ -178,6 +180,8 @@ def test_npp_identify_reads_a_recording_and_prints_json(tmp_path: Path, capsys: 
     assert abs(gear["value"] / 1.1 - 1) < 0.03
     assert npp_identify([str(path), "--task", "pendulum_swingup", "--check"]) == 2  # a check needs the run
     assert "--check needs --run" in capsys.readouterr().err
+    assert npp_identify([str(path), "--run", str(lqr_run), "--check"]) == 2  # no set to place a robot in
+    assert "certified on the exact model" in capsys.readouterr().err
 
 
 def test_the_lockstep_rollouts_are_the_evaluations_one_at_a_time(lqr_run: Path) -> None:
