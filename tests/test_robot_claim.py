@@ -31,6 +31,7 @@ from npp_ros.run.per_robot.claim import (
     claim_robot,
     claim_starts,
     decide,
+    pass_rate_upper,
     robot_check,
     rollouts_on_robot,
     threshold_for,
@@ -257,3 +258,17 @@ def test_the_run_gives_its_map(certified_run: Path) -> None:
     assert success.policy.judged == len(checked) and success.expert.judged == 1
     delay = next(t for t in success.tables if t.axis.name == "delay")
     assert sum(t.judged for t in delay.policy) == len(checked)
+
+
+def test_a_survey_goes_on_past_the_point_where_the_claim_is_out_of_reach() -> None:
+    """One robot in four fails: after the first failure the mixture rule cannot certify within 60 checks, and stops
+    there unless asked for 40 checks at least; the pass rate's upper bound then says the target is out of reach."""
+    settings = ClaimSettings(0.9, 0.8, 50, 45)
+    successes = [50, 50, 50, 10] * 25
+    early = decide(settings, lambda i: successes[i], 60)
+    assert not early.certified and early.stopped == "unreachable" and early.checks == 4
+    survey = decide(settings, lambda i: successes[i], 60, min_checks=40)
+    assert not survey.certified and survey.checks == 40 and survey.passed == 30
+    assert pass_rate_upper(30, 40, 0.1) < settings.target < pass_rate_upper(40, 40, 0.1)
+    with pytest.raises(ValueError, match="min checks"):
+        decide(settings, lambda i: successes[i], 10, min_checks=20)

@@ -87,6 +87,9 @@ def parser() -> argparse.ArgumentParser:
                        help="the stopping rule over robot checks (mixture: a frozen policy learns nothing from a "
                        "failure, and the mixture test tolerates some)")  # fmt: skip
     claim.add_argument("--max-checks", type=int, default=DEFAULT_MAX_CHECKS, help="robot checks at most")
+    claim.add_argument("--min-checks", type=int, default=0,
+                       help="robot checks to make even once the rule can no longer certify within --max-checks (a "
+                       "survey of the set beside the claim; they never make a false claim likelier)")  # fmt: skip
     claim.add_argument("--json", type=Path, default=None, help="also write the claim's record here")
 
     threshold = commands.add_parser(
@@ -159,7 +162,9 @@ def make_claim(args: argparse.Namespace) -> int:
     settings = as_settings(args.q, args.p_r, args.m, args.c, args.beta, args.delta, args.rule)
     run = read_run(args.run)
     try:
-        claim = claim_for_run(run, settings, max_checks=args.max_checks, progress=stderr_progress)
+        claim = claim_for_run(
+            run, settings, max_checks=args.max_checks, min_checks=args.min_checks, progress=stderr_progress
+        )
     except KeyboardInterrupt:
         print(f"npp-robots: stopped; the robot checks made so far are kept in {claim_file(run.folder, settings)}: "
               "the same command goes on from them", file=sys.stderr)  # fmt: skip

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.stats import beta as beta_dist
 from scipy.stats import binom
 
 from npp_ros.certificate.certifier import (
@@ -169,11 +170,13 @@ def decide(
     successes: Callable[[int], int],
     max_checks: int,
     on_check: Callable[[int, int, CertificationStatus], None] | None = None,
+    min_checks: int = 0,
 ) -> ClaimOutcome:
     """Feeds robot checks 0, 1, ... (``successes(i)``: X_i) to the claim's rule until it certifies, reaches
-    ``max_checks``, or cannot certify within them (stopping early only gives up chances to certify)."""
-    if max_checks < 1:
-        raise ValueError(f"max checks must be >= 1, got {max_checks}")
+    ``max_checks``, or, after ``min_checks`` (a survey of the set beside the claim), cannot certify within them.
+    When to stop is free under a sequentially valid rule: stopping early only gives up chances to certify."""
+    if not 1 <= max_checks or not 0 <= min_checks <= max_checks:
+        raise ValueError(f"need 0 <= min checks <= max checks and max checks >= 1, got {min_checks}, {max_checks}")
     spec = settings.spec()
     certifier = claim_certifier(spec)
     passed = 0
@@ -189,7 +192,7 @@ def decide(
             on_check(i, x, status)
         if status.certified:
             return ClaimOutcome(True, i + 1, passed, status, "certified")
-        if status.reachable_within(max_checks - i - 1) is False:
+        if i + 1 >= min_checks and status.reachable_within(max_checks - i - 1) is False:
             return ClaimOutcome(False, i + 1, passed, status, "unreachable" if i + 1 < max_checks else "budget")
     return ClaimOutcome(False, max_checks, passed, status, "budget")
 
@@ -369,18 +372,30 @@ class RobotClaim:
 SEEN_BANDS = (1.0, 0.95, 0.9, 0.8, 0.5)  # the success shares robots are counted above, in what a claim saw
 
 
-def seen_counts(successes: Sequence[int], m: int, p_r: float) -> str:
+def pass_rate_upper(passed: int, checks: int, delta: float) -> float:
+    """The one-sided Clopper-Pearson upper bound on P(pass) at level delta from ``passed`` of ``checks`` (a count
+    fixed in advance): an upper bound below the claim's target says the target is out of reach at these m and c."""
+    return 1.0 if passed >= checks else float(beta_dist.ppf(1 - delta, passed + 1, checks - passed))
+
+
+def seen_counts(successes: Sequence[int], settings: ClaimSettings) -> str:
     """The robots of the checks by their share of successes of m: a plug-in description of r(theta) over the set
-    (each share is r(theta) measured on m starts), which the checks saw and no rule certified."""
+    (each share is r(theta) measured on m starts), which the checks saw and no rule certified; and the pass rate with
+    its upper bound."""
     if not successes:
         return ""
+    m, p_r = settings.m, settings.p_r
+    passed = sum(x >= settings.c for x in successes)
+    upper = pass_rate_upper(passed, len(successes), settings.delta)
     shares = np.asarray(successes, dtype=np.float64) / m
     bands = ", ".join(f">= {band:g}: {int(np.sum(shares >= band - 1e-12))}" for band in SEEN_BANDS)
     reached = int(np.sum(shares >= p_r - 1e-12))
     return (
         f"of {len(shares)} robots, {reached} ({reached / len(shares):.0%}) met the task on at least p_r = {p_r:g} of "
         f"their {m} starts; robots by their share of starts met: {bands}; the lowest {shares.min():.2f}, the median "
-        f"{float(np.median(shares)):.2f} (what the checks saw, not a claim)"
+        f"{float(np.median(shares)):.2f}; passed {passed} of {len(shares)}, P(pass) <= {upper:.3f} with probability "
+        f"{1 - settings.delta:g} (Clopper-Pearson, as if the count were fixed in advance) against the target "
+        f"{settings.target:.4f} (what the checks saw, not a claim)"
     )
 
 
@@ -417,6 +432,7 @@ def make_claim(
     header: dict[str, Any] | None = None,
     kept: Sequence[RobotCheck] = (),
     max_checks: int = DEFAULT_MAX_CHECKS,
+    min_checks: int = 0,
     on_check: Callable[[RobotCheck, CertificationStatus, bool], None] | None = None,
 ) -> tuple[ClaimOutcome, list[RobotCheck]]:
     """Runs the claim's rule over robot checks: ``kept`` ones first (never drawn again), then ``check(i)`` for the
@@ -442,7 +458,7 @@ def make_claim(
         if on_check is not None:
             on_check(made[i], status, i < len(kept))
 
-    outcome = decide(settings, successes, max_checks, heard)
+    outcome = decide(settings, successes, max_checks, heard, min_checks)
     return outcome, made[: max(outcome.checks, len(kept))]
 
 
@@ -478,6 +494,7 @@ def claim_for_run(
     settings: ClaimSettings,
     *,
     max_checks: int = DEFAULT_MAX_CHECKS,
+    min_checks: int = 0,
     progress: Callable[[str], None] | None = None,
 ) -> RobotClaim:
     """Q(q, p_r) for a certified run on a set: its frozen policy checked on robots drawn from the set, the checks
@@ -541,7 +558,14 @@ def claim_for_run(
             f"{settings.rule} rule; {len(kept)} robot checks kept in the run folder"
         )
     outcome, checks = make_claim(
-        settings, check, file=path, header=header, kept=kept, max_checks=max_checks, on_check=heard
+        settings,
+        check,
+        file=path,
+        header=header,
+        kept=kept,
+        max_checks=max_checks,
+        min_checks=min_checks,
+        on_check=heard,
     )
     claim = RobotClaim(
         task=run.task.name, run=name, robots=robots.describe(), policy=described, q=settings.q, p_r=settings.p_r,
@@ -550,7 +574,7 @@ def claim_for_run(
         passed=outcome.passed, rollouts=outcome.checks * settings.m, expert_calls=0,
         test=outcome.status.test, delta_spent=outcome.status.test_delta,
         statement=claim_statement(settings, outcome, robots.describe(), described),
-        seen=seen_counts([c.successes for c in checks[: outcome.checks]], settings.m, settings.p_r),
+        seen=seen_counts([c.successes for c in checks[: outcome.checks]], settings),
     )  # fmt: skip
     write_atomically(path, finished_record(header, claim, checks))
     return claim
