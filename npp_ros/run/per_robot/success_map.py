@@ -132,7 +132,8 @@ class SuccessMap:
         return "\n".join(lines)
 
     def worst(self, least: int = 10) -> str:
-        """The bin where the policy (else the expert) did worst among bins with at least ``least`` judged."""
+        """The bin where the policy (else the expert) did worst among bins with at least ``least`` judged ("" where
+        none did worse than the total)."""
         who = "policy" if self.policy.judged else "expert"
         found = [
             (getattr(part, who)[k].rate, part.axis.name, label, getattr(part, who)[k])
@@ -140,8 +141,9 @@ class SuccessMap:
             for k, label in enumerate(part.axis.labels())
             if getattr(part, who)[k].judged >= least
         ]
-        if not found:
-            return ""
+        total = getattr(self, who)
+        if not found or min(item[0] for item in found) >= total.rate:
+            return ""  # no bin below the total: nowhere worse to point at
         _, name, label, tally = min(found, key=lambda item: item[0])
         return f"  worst bin of the {who} (at least {least} judged): {name} {label}, {tally.text()}"
 
