@@ -98,13 +98,23 @@ def config_of(run: Run) -> RunConfig:
     return RunConfig(**own, spec=run.spec)  # type: ignore[arg-type]
 
 
+def expert_options(config: RunConfig) -> ExpertOptions:
+    """The options the run's expert was built with, as its file records them (None: the task's; a file from before
+    they were recorded gives the task's own). Only its closed-form values and value basis are used here."""
+    recorded = {
+        "kind": config.expert_kind, "time_budget": config.time_budget, "max_iterations": config.max_iterations,
+        "stop": config.expert_stop, "values": config.values, "control_weight": config.control_weight,
+    }  # fmt: skip
+    return ExpertOptions(gamma=config.gamma, **{k: v for k, v in recorded.items() if v is not None})  # type: ignore[arg-type]
+
+
 def rederive(run: Run, progress: Callable[[int, int], None] | None = None) -> Rederivation:
     """Run Algorithm 1 again over the run's stored answers and compare every episode and the certificate.
 
     ``progress(done, total)`` is called after each episode. Stops at the first difference, which it names."""
     started = time.perf_counter()
     config = config_of(run)
-    expert = run.task.make_expert(config.seed, config.horizon, ExpertOptions(gamma=config.gamma))
+    expert = run.task.make_expert(config.seed, config.horizon, expert_options(config))
     rollouts = config.spec.certify == "surrogate" and any(row.policy_return is not None for row in run.episodes)
     answers = StoredAnswers(run.dataset, run.task.make_plant(config.seed))
     loop = build_loop(config, expert, rollouts=rollouts, answers=answers)
