@@ -8,10 +8,10 @@ the damping), the commands shifted by the true delay (it has no integer delay of
 (the whole recording simulated open loop from its first state) and optimizer, from the nominal model.
 
 It needs mujoco.sysid's imports (plotly, tabulate, imageio), which the project does not install; for this
-measurement only, e.g. ``pip install --target /tmp/sysid plotly tabulate imageio`` (then remove the numpy that pip
-puts there) and ``PYTHONPATH=/tmp/sysid``:
+measurement only, e.g. ``pip install --target runs/sysid-deps plotly tabulate imageio`` (then remove the numpy that
+pip puts there) and ``PYTHONPATH=runs/sysid-deps``:
 
-    PYTHONPATH=/tmp/sysid .venv/bin/python scripts/identify_sysid_compare.py --run RUN --out results/identification
+    PYTHONPATH=runs/sysid-deps .venv/bin/python scripts/identify_sysid_compare.py --run RUN --out results/identification
 """
 
 from __future__ import annotations
