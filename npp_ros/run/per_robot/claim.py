@@ -527,9 +527,10 @@ def claim_for_run(
     header = {"identity": identity, "settings": asdict(settings), "beta": settings.beta, "target": settings.target}
     plant = run.task.make_plant(seed)
     robots = run.robots
+    count = run.certificate.policy_trajectories
     described = (
-        f"the {run.spec.policy} policy over the certificate's first {run.certificate.policy_trajectories} expert "
-        f"trajectories (run {name}), frozen"
+        f"the {run.spec.policy} policy over the certificate's {count} expert "
+        f"{'trajectory' if count == 1 else 'trajectories'} (run {name}), frozen"
     )
 
     def check(i: int) -> RobotCheck:
