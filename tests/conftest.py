@@ -6,12 +6,18 @@ Modules that run whole experiments, command lines or thousands of simulated runs
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 from npp_ros.policy.dataset import Dataset
 from npp_ros.tasks.lqr import LQRExpert, episode_rng, sample_initial_state
+
+# The gate remembers runs it derived again in the user's cache folder: each test session gets its own (node processes
+# started by the tests inherit it), so no test finds another session's agreements, nor writes the user's.
+os.environ["NPP_ROS_CACHE"] = tempfile.mkdtemp(prefix="npp-ros-test-cache-")
 
 SLOW_MODULES = {
     "test_experiment.py",  # npp-experiment end to end, several times

@@ -135,3 +135,22 @@ def test_the_re_derivation_may_be_turned_off_by_name_and_says_so(good: Path, tmp
     deployment = load_deployment(edited, dataclasses.replace(ACCEPT, rederive=False))
     assert deployment.derived == "not derived again (rederive is off)"
     assert np.isfinite(deployment.policy.lipschitz)
+
+
+def test_an_agreement_is_remembered_on_this_machine_for_exactly_that_content(
+    good: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Derived again once, the same unchanged file passes at once at its next deployment; the agreement is kept in
+    the operator's cache folder (never in the run folder), under the file's seal digest, so it holds for exactly that
+    content: the same run edited and sealed again is derived again, and refused."""
+    monkeypatch.setenv("NPP_ROS_CACHE", str(tmp_path / "cache"))
+    run = altered_copy(good, tmp_path / "run")
+    first = load_deployment(run, ACCEPT)
+    assert first.derived.startswith("derived again from its seed and answers:"), first.derived
+    again = load_deployment(run, ACCEPT)
+    assert "on this machine at" in again.derived and "episodes agreed (this content, unchanged since)" in again.derived
+    assert (tmp_path / "cache" / "rederived" / f"{read_run(run).seal.digest}.json").is_file()
+    assert sorted(path.name for path in run.iterdir()) == sorted(path.name for path in good.iterdir())
+    edited = altered_copy(run, tmp_path / "edited", _edit_row(run, 8, "policy_return", 123.0), resealed=True)
+    with pytest.raises(GateRefusal, match="episode 8: policy_return"):
+        load_deployment(edited, ACCEPT)

@@ -43,7 +43,7 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.run.read import Run, read_run
 from npp_ros.run.records import RunFileError, RunMetadata
-from npp_ros.run.rederive import rederive
+from npp_ros.run.rederive import AgreedRuns, rederive
 from npp_ros.run.seal import SealCheck
 from npp_ros.run.setup import policy_for
 from npp_ros.run.store import RUN_FILE
@@ -144,13 +144,21 @@ def load_deployment(
         raise GateRefusal("; ".join(unsigned))
     deployment = _pass_gate(run, acceptance)  # the quick checks first: a refusal there needs no re-derivation
     derived = "not derived again (rederive is off)"
-    if acceptance.rederive:
+    agreed = AgreedRuns()
+    before = agreed.find(run.seal.digest) if acceptance.rederive else None
+    if before is not None:
+        derived = (
+            f"derived again from its seed and answers on this machine at {before.get('at')}: "
+            f"{before.get('episodes')} episodes agreed (this content, unchanged since)"
+        )
+    elif acceptance.rederive:
         found = rederive(run, progress)
         if not found.agrees:  # what the run's own seed and answers do not give was edited: no override
             raise GateRefusal(
                 f"the run does not follow from its own seed and stored expert answers: {found.differences[0]} (an "
                 "edit sealed again, or a run made by a version of npp_ros whose policy acts otherwise)"
             )
+        agreed.remember(run.seal.digest, found)
         derived = f"derived again from its seed and answers: {found.episodes} episodes agree ({found.seconds:.1f} s)"
     return dataclasses.replace(deployment, signed=signed, derived=derived)
 

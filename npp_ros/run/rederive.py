@@ -9,6 +9,10 @@ file says, row by row. An edit of a drawn robot, an s0, a check's outcome or ret
 (its checksum recomputed), epsilon or the set of robots (the seal recomputed) then shows as the first episode
 that differs, or as an answer asked from another state than the one stored.
 
+A re-derivation that agreed is remembered on the machine that made it (:class:`AgreedRuns`, in the user's cache
+folder, never in the run folder an editor may write), under the run's seal digest and this npp_ros's version: the
+same file, unchanged, is not derived again at its next deployment.
+
 What this does not re-derive: the expert's answers themselves (asking again costs what the run cost, and an
 optimizer with a time budget need not answer the same twice). An answer that does not start where the run asked
 is a difference; an answer the run's expert never gave, starting at the right state, is not found here: that is
@@ -17,10 +21,15 @@ what a signature is for.
 
 from __future__ import annotations
 
+import contextlib
+import importlib.metadata
+import json
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -90,6 +99,60 @@ class Rederivation:
     @property
     def agrees(self) -> bool:
         return not self.differences
+
+
+class AgreedRuns:
+    """Seal digests of runs this machine derived again and found to agree, one small JSON file each.
+
+    The folder is the operator's own (``NPP_ROS_CACHE``, else ``$XDG_CACHE_HOME/npp_ros``, else ``~/.cache/npp_ros``),
+    apart from any run folder: whoever may write a run folder must not be able to say it was checked. A digest
+    names the file's every stored value, so an entry holds for exactly that content."""
+
+    def __init__(self, folder: Path | None = None) -> None:
+        self.folder = (folder or cache_folder()) / "rederived"
+
+    def _entry(self, digest: str) -> Path:
+        return self.folder / f"{digest}.json"
+
+    def find(self, digest: str) -> dict[str, object] | None:
+        """What was found when this digest was derived again with this npp_ros, or None."""
+        if not digest:
+            return None
+        try:
+            entry = json.loads(self._entry(digest).read_text())
+        except (OSError, ValueError):
+            return None
+        ok = isinstance(entry, dict) and entry.get("digest") == digest and entry.get("npp_ros") == _version()
+        return entry if ok else None
+
+    def remember(self, digest: str, found: Rederivation) -> None:
+        """Keep an agreement (a failure to keep it costs only a later re-derivation)."""
+        if not digest or not found.agrees:
+            return
+        entry = {
+            "digest": digest, "npp_ros": _version(), "episodes": found.episodes, "seconds": round(found.seconds, 3),
+            "at": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+        }  # fmt: skip
+        with contextlib.suppress(OSError):
+            self.folder.mkdir(parents=True, exist_ok=True)
+            tmp = self.folder / f".{digest}.{os.getpid()}.new"
+            tmp.write_text(json.dumps(entry) + "\n")
+            os.replace(tmp, self._entry(digest))
+
+
+def cache_folder() -> Path:
+    """The user's npp_ros cache folder (``NPP_ROS_CACHE``, ``$XDG_CACHE_HOME/npp_ros`` or ``~/.cache/npp_ros``)."""
+    if os.environ.get("NPP_ROS_CACHE"):
+        return Path(os.environ["NPP_ROS_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "npp_ros"
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("npp_ros")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def config_of(run: Run) -> RunConfig:
