@@ -88,12 +88,13 @@ LQR_ROBOTS = UncertaintySet(
 )
 
 
-def with_robots(folder: Path, robots: UncertaintySet = LQR_ROBOTS) -> Path:
+def with_robots(folder: Path, robots: UncertaintySet = LQR_ROBOTS, horizon: int = HORIZON) -> Path:
     """A real lqr_2_1 run on a set of robots (``robots``, resolved on the run's model): each episode draws its robot
-    and the expert plans on it. The feedback policy (the LQR law) certifies it in about 30 episodes, in seconds."""
-    expert = get_task(TASK).make_expert(SEED, HORIZON)
+    and the expert plans on it. The feedback policy (the LQR law) certifies it in about 30 episodes, in seconds; at
+    the task's own horizon (1000) its rollouts settle, as lqr_2_1's success criterion asks."""
+    expert = get_task(TASK).make_expert(SEED, horizon)
     lipschitz = resolve_lipschitz(TASK, "analytic", expert)
-    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, certify="oracle", policy="feedback")
+    config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=horizon, certify="oracle", policy="feedback")
     record = robots.resolved(get_task(TASK).make_plant(SEED).physics.model).record()
     loop = build_loop(dataclasses.replace(config, uncertainty=record), expert, store_path=folder / "run.sqlite")
     try:

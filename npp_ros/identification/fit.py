@@ -137,6 +137,7 @@ class Identification:
             "fixed": list(self.fixed),
             "parameters": [list(p) for p in self.parameters],
             "estimate": json.loads(self.estimate.record()),
+            "region": [json.loads(robot.record()) for robot in self.region()],  # what a check before moving runs at
             "singular_values": list(self.singular_values),
             "noise": list(self.noise),
             "transitions": self.transitions,

@@ -34,6 +34,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -64,6 +65,9 @@ from npp_ros.deployment.state import (
     wall_time,
 )
 from npp_ros.deployment.timing import Watchdog
+from npp_ros.identification.identified import check_identified_robot
+from npp_ros.run.read import read_run
+from npp_ros.tasks.uncertainty import UncertaintySet
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health, health_of_state
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, request_stop, run_node, stop_requested
 from npp_ros_graph.transport.convert import float64_array
@@ -101,6 +105,15 @@ PARAMETERS = (
                "episode's s0 and robot drawn again, each check re-run, the certificate issued again) and refuse a run "
                "that differs; seconds to minutes, no expert call; false only for a run made by another npp_ros whose "
                "policy acts otherwise"),
+    Changeable("identified_robot", "", "this robot identified from its own motion (the JSON npp-identify --json "
+               "writes of a recording of it): configure simulates the certified policy at the identified robot and "
+               "refuses when the lower bound on its success there is below robot_min_success; empty = no check at "
+               "this robot (the set's certificate is an average over the set)"),
+    Changeable("robot_check_starts", 60, "s0 ~ rho per point of the identified region in that check", 1, 100000),
+    Changeable("robot_min_success", 0.0, "the success the policy must have at the identified robot (a lower "
+               "confidence bound); 0 = the certificate's p", 0.0, 1.0),
+    Changeable("robot_check_delta", 0.05, "the check's level: every point's bound holds at once with probability "
+               ">= 1 - this", 1e-6, 0.5),
     Changeable("override_gate", False, "deploy even when the gate refuses (each reason logged as an error and kept on "
                "/diagnostics); never for a run file whose data fail their checksums"),
     Changeable("joint_states_topic", JOINT_STATES, "the robot's sensor_msgs/JointState topic"),
@@ -138,6 +151,10 @@ class DeploySettings:
     trusted_keys: str
     allow_unsealed: bool
     rederive: bool
+    identified_robot: str
+    robot_check_starts: int
+    robot_min_success: float
+    robot_check_delta: float
     override_gate: bool
     joint_states_topic: str
     command_topic: str
@@ -179,7 +196,9 @@ cleanup|shutdown|stop|state, or `ros2 lifecycle set`). configure is the gate: it
   - no certificate, one that does not follow from the run's log, one not proven, or one weaker than max_epsilon,
     min_p, max_delta;
   - a robot whose model fingerprint is not the certified plant's or, for a run on a set of robots, whose
-    description lies outside the set.
+    description lies outside the set;
+  - with identified_robot: a robot at which the certified policy, simulated at the robot identified from its own
+    motion, has a lower confidence bound on its success below robot_min_success (default the certificate's p).
 A seal is a checksum anyone with this code can recompute; a signature is the proof of who certified.
 activate starts commanding; while active the watchdog (state_timeout), the command limits, the coverage check
 and, for a run on a set of robots, the model monitor (on_model_mismatch) watch the robot; deactivate sends the
@@ -219,6 +238,7 @@ class DeployNode(LifecycleNode):
         self.limits: CommandLimits | None = None
         self.coverage: Coverage | None = None
         self.monitor: ModelMonitor | None = None  # a run certified on a set of robots: its transitions are watched
+        self.robot_check = ""  # the check at the identified robot, in words ("" on the exact model)
         self._monitor_arrival = -1  # the arrival count of the last state the monitor took
         self.description: Description | None = None
         self._raw: np.ndarray | None = None  # the last joint state taken, [positions, velocities]
@@ -374,6 +394,36 @@ class DeployNode(LifecycleNode):
 
         return report
 
+    def _check_robot(self, settings: DeploySettings, deployment: Deployment, robots: UncertaintySet) -> str:
+        """The check before the robot moves, at the robot identified_robot names (npp_ros.identification.identified):
+        its verdict in words, or a ValueError with the reason it must not move. Without one, on a set: a warning
+        that nothing is known of this robot beyond the set's average."""
+        if not settings.identified_robot.strip():
+            if robots.empty:
+                return ""
+            self.get_logger().warning(
+                "the certificate on the set of robots is an average over the set and promises nothing for this one "
+                "robot: give identified_robot (npp-identify --json of its recorded motion) to check the policy at it"
+            )
+            return "not checked at this robot (no identified_robot)"
+        run = read_run(deployment.run_file)
+        last = [time.monotonic()]
+
+        def report(done: int, total: int) -> None:
+            if done == total or time.monotonic() - last[0] >= 5.0:
+                last[0] = time.monotonic()
+                self.get_logger().info(f"robot check: point {done} of {total} of the identified region simulated")
+
+        move, words = check_identified_robot(
+            run, Path(settings.identified_robot), n=settings.robot_check_starts,
+            p=settings.robot_min_success or None, delta_g=settings.robot_check_delta, progress=report,
+        )  # fmt: skip
+        verdict = move.summary().splitlines()[0]
+        if not move.accepted:
+            raise ValueError(f"the robot identified from its own motion ({words}): {verdict}; not commanded")
+        self.get_logger().info(f"robot check ({words}): {verdict}")
+        return verdict
+
     def _read_settings(self) -> DeploySettings:
         return DeploySettings(**{param.name: self.get_parameter(param.name).value for param in PARAMETERS})
 
@@ -411,6 +461,13 @@ class DeployNode(LifecycleNode):
             return self._refuse("configure", str(exc))
         except Exception as exc:
             return self._refuse("configure", f"{type(exc).__name__}: {exc}")
+        try:
+            robot_check = self._check_robot(settings, deployment, robots)
+        except ValueError as exc:  # an identification that does not fit this run, or a robot it must not move
+            return self._refuse("configure", str(exc))
+        except Exception as exc:
+            return self._refuse("configure", f"{type(exc).__name__}: {exc}")
+        self.robot_check = robot_check
         for reason in deployment.overridden:
             self.get_logger().error(f"GATE OVERRIDDEN (override_gate is true): {reason}")
         provenance = f"run file {deployment.seal.describe()}; run {deployment.signed}; {deployment.derived}"
@@ -681,6 +738,8 @@ class DeployNode(LifecycleNode):
         if deployment is not None:
             values["policy"] = deployment.describe()
             values["run provenance"] = f"{deployment.seal.describe()}; {deployment.signed}; {deployment.derived}"
+            if self.robot_check:
+                values["robot check"] = self.robot_check
             values["robot model fingerprint"] = f"{self.state.fingerprint[:12]}... from {self.state.fingerprint_source}"
             if monitor is not None:
                 values["model monitor"] = monitor.summary()

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from deploy_runs import FINGERPRINT, make_run
+from deploy_runs import FINGERPRINT, make_run, with_robots
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 
@@ -15,6 +16,8 @@ import npp_ros_graph.nodes.deploy as deploy_node
 from npp_ros.cli.sign import main as npp_sign
 from npp_ros.deployment.gate import GateRefusal
 from npp_ros.deployment.signing import fingerprint, load_public_key
+from npp_ros.run.read import read_run
+from npp_ros.tasks.uncertainty import Robot
 
 
 @pytest.fixture
@@ -108,3 +111,41 @@ def test_a_trusted_key_that_cannot_be_read_is_configures_refusal_not_a_stopped_n
     assert "cannot read the public key" in deploy.refusal and "missing.pub" in deploy.refusal, deploy.refusal
     deploy.set_parameters([Parameter("trusted_keys", value="")])
     assert deploy.on_configure(None) == TransitionCallbackReturn.SUCCESS  # type: ignore[arg-type]
+
+
+def test_identified_robot_checks_the_policy_at_that_robot_before_it_moves(
+    deploy: deploy_node.DeployNode, tmp_path: Path
+) -> None:
+    """A run on a set of robots and an identification of the robot at hand (as npp-identify --json writes it): at the
+    nominal robot the policy settles lqr_2_1 from every start and configure passes, saying so; at a robot whose
+    motor gives a hundredth, it settles none and configure refuses, naming the robot and the bound."""
+    run = with_robots(tmp_path / "run", horizon=1000)
+    read = read_run(run)
+    assert read.robots is not None
+
+    def identified(robot: Robot, name: str) -> Path:
+        record = {"identification": {
+            "task": "lqr_2_1", "set": read.robots.describe(), "verdict": "inside", "delay": robot.action_delay,
+            "combinations": [{"label": "gear of motor_0 / mass of body_1", "value": 1.0, "low": 0.99, "high": 1.01}],
+            "region": [json.loads(robot.record())],
+        }}  # fmt: skip
+        (tmp_path / name).write_text(json.dumps(record))
+        return tmp_path / name
+
+    deploy.set_parameters([
+        Parameter("run_dir", value=str(run)), Parameter("robot_model_fingerprint", value=FINGERPRINT),
+        Parameter("identified_robot", value=str(identified(Robot(), "nominal.json"))),
+        Parameter("robot_check_starts", value=6), Parameter("robot_min_success", value=0.5),
+    ])  # fmt: skip
+    assert deploy.on_configure(None) == TransitionCallbackReturn.SUCCESS, deploy.refusal  # type: ignore[arg-type]
+    assert deploy.robot_check.startswith("the robot may move: the certified policy's success at the worst of 1 points")
+    assert deploy.health().values["robot check"] == deploy.robot_check
+    assert deploy.on_cleanup(None) == TransitionCallbackReturn.SUCCESS  # type: ignore[arg-type]
+    weak = Robot((("gear", "motor_0", 0.01),))
+    deploy.set_parameters([Parameter("identified_robot", value=str(identified(weak, "weak.json")))])
+    assert deploy.on_configure(None) == TransitionCallbackReturn.FAILURE  # type: ignore[arg-type]
+    assert "the robot identified from its own motion (gear of motor_0 / mass of body_1 1 [0.99, 1.01]" in deploy.refusal
+    assert "the robot must not move" in deploy.refusal and "0/6 at gear[motor_0] x0.010" in deploy.refusal
+    deploy.set_parameters([Parameter("identified_robot", value=str(tmp_path / "nowhere.json"))])
+    assert deploy.on_configure(None) == TransitionCallbackReturn.FAILURE  # type: ignore[arg-type]
+    assert "cannot read the identified robot" in deploy.refusal, deploy.refusal
