@@ -197,3 +197,29 @@ def test_the_lockstep_rollouts_are_the_evaluations_one_at_a_time(lqr_run: Path) 
     policy_rollouts(plant, run.policy, states, 1000, None, robots=drawn, met=one_by_one, criterion=run.task.success)
     np.testing.assert_array_equal(met, one_by_one == 1)
     assert 0 < met.sum() < 4  # some succeed, some do not: the comparison tells them apart
+
+
+def test_a_window_of_motion_is_judged_outside_or_not_and_two_in_a_row_find_the_robot() -> None:
+    """npp-deploy's window identification (npp_ros.identification.window): three seconds of a gear x0.6 robot's
+    motion lie outside the pendulum's set, the nominal robot's do not; the window keeps its last seconds, is due once
+    a second of motion, and finds the robot outside only when two windows in a row are."""
+    from npp_ros.identification.window import MotionWindow, judge
+
+    record = PENDULUM.uncertainty.record()
+    verdicts = {}
+    for name, robot in (("weak", pendulum_robot(1.0, 0.6, 1.0, 0)), ("nominal", pendulum_robot(1.0, 1.0, 1.0, 0))):
+        motion = pendulum_recording(robot, 3.0)
+        window = MotionWindow(seconds=3.0, every=1.0, in_a_row=2)
+        due = None
+        for t in range(len(motion)):
+            window.add(float(motion.times[t]), motion.states[t], motion.commands[t])
+            due = window.due() or due
+        assert due is not None and window.due() is None  # once due, not again within the next second
+        verdicts[name] = judge("pendulum_swingup", 0, record, *due)
+        assert not window.found(verdicts[name])  # one window alone finds nothing
+        assert window.found(verdicts[name]) == verdicts[name].outside
+    assert verdicts["weak"].outside and "gear" in verdicts["weak"].said, verdicts["weak"]
+    assert not verdicts["nominal"].outside, verdicts["nominal"]
+    at_rest = np.tile(HANGING, (20, 1))
+    none = judge("pendulum_swingup", 0, record, np.arange(20) * 0.02, at_rest, np.zeros((20, 1)))
+    assert not none.outside and none.said.startswith("no finding"), none

@@ -368,10 +368,20 @@ def _fit_delay(
 
     def spread(err: FloatArray) -> FloatArray:
         rms = np.sqrt(np.mean(err.reshape(-1, err.shape[-1]) ** 2, axis=0))
-        return np.maximum(rms, 1e-12 * max(float(rms.max()), 1e-300))
+        # A window in which the nominal model is exact to the last bit (a robot held at rest, no noise) has no
+        # spread: the floor keeps the weights finite, and the fit then reports what it cannot tell.
+        return np.maximum(rms, max(1e-12 * float(rms.max()), 1e-150))
 
     z = np.zeros(p)
-    weights = 1.0 / spread(errors(z[None])[0])
+    nominal = errors(z[None])[0]
+    if float(np.abs(nominal).max()) <= 1e-12 * max(1.0, float(np.abs(reached).max())):
+        # Rounding alone: the nominal model reproduces every step (a robot held at rest, no noise). Weights from
+        # such errors would make any factor look certain; the motion tells nothing here.
+        raise ValueError(
+            "the nominal model reproduces this motion to rounding (no noise, nothing the parameters move): "
+            "there is nothing to fit"
+        )
+    weights = 1.0 / spread(nominal)
     for _ in range(2):
         w = weights
 

@@ -28,11 +28,13 @@ from __future__ import annotations
 
 import functools
 import math
+import multiprocessing
 import re
 import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -66,6 +68,7 @@ from npp_ros.deployment.state import (
 )
 from npp_ros.deployment.timing import Watchdog
 from npp_ros.identification.identified import check_identified_robot
+from npp_ros.identification.window import WINDOW_S, MotionWindow, WindowVerdict, judge
 from npp_ros.run.read import read_run
 from npp_ros.tasks.uncertainty import UncertaintySet
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health, health_of_state
@@ -105,6 +108,10 @@ PARAMETERS = (
                "episode's s0 and robot drawn again, each check re-run, the certificate issued again) and refuse a run "
                "that differs; seconds to minutes, no expert call; false only for a run made by another npp_ros whose "
                "policy acts otherwise"),
+    Changeable("monitor_window", WINDOW_S, "a run on a set of robots: seconds of the robot's latest motion the set's "
+               "parameters are fitted to, about once a second in a worker process; two windows in a row with no robot "
+               "of the set inside the fit's 95% intervals are a model mismatch (on_model_mismatch); 0 = off", 0.0,
+               60.0),
     Changeable("identified_robot", "", "this robot identified from its own motion (the JSON npp-identify --json "
                "writes of a recording of it): configure simulates the certified policy at the identified robot and "
                "refuses when the lower bound on its success there is below robot_min_success; empty = no check at "
@@ -151,6 +158,7 @@ class DeploySettings:
     trusted_keys: str
     allow_unsealed: bool
     rederive: bool
+    monitor_window: float
     identified_robot: str
     robot_check_starts: int
     robot_min_success: float
@@ -239,6 +247,11 @@ class DeployNode(LifecycleNode):
         self.coverage: Coverage | None = None
         self.monitor: ModelMonitor | None = None  # a run certified on a set of robots: its transitions are watched
         self.robot_check = ""  # the check at the identified robot, in words ("" on the exact model)
+        # The window identification (npp_ros.identification.window): its motion, its worker and the fit under way.
+        self.window: MotionWindow | None = None
+        self._judges: ProcessPoolExecutor | None = None
+        self._judging: Future[WindowVerdict] | None = None
+        self._window_said = ""
         self._monitor_arrival = -1  # the arrival count of the last state the monitor took
         self.description: Description | None = None
         self._raw: np.ndarray | None = None  # the last joint state taken, [positions, velocities]
@@ -476,6 +489,7 @@ class DeployNode(LifecycleNode):
         else:  # unsigned, or a signature nobody asked to check: the operator should know
             self.get_logger().warning(provenance)
         self.deployment, self.layout, self.coverage, self.monitor = deployment, layout, coverage, monitor
+        self.window = MotionWindow(settings.monitor_window) if monitor is not None and settings.monitor_window else None
         self.state.configured(fingerprint, source)
         self.limits = CommandLimits.of_plant(plant, settings.effort_limit)
         self.watchdog.timeout = settings.state_timeout
@@ -508,6 +522,8 @@ class DeployNode(LifecycleNode):
         self._monitor_arrival = -1
         if self.monitor is not None:
             self.monitor.reset()
+        if self.window is not None:
+            self.window.restart()
         self.state.activated()
         self.watchdog.arm()
         self.get_logger().info("active: commanding the robot from its next usable joint state")
@@ -554,6 +570,10 @@ class DeployNode(LifecycleNode):
             self.destroy_publisher(self.command_pub)
             self.command_pub = None
         self.deployment = self.layout = self.limits = self.coverage = self.monitor = None
+        self.window, self._judging, self._window_said = None, None, ""
+        if self._judges is not None:
+            self._judges.shutdown(wait=False, cancel_futures=True)
+            self._judges = None
         self.state.released()
         self._raw, self._last_answered = None, None
 
@@ -635,13 +655,15 @@ class DeployNode(LifecycleNode):
             return
         self._last_answered = stamp
         try:
-            self._answer(raw, deployment, layout, started)
+            self._answer(raw, deployment, layout, started, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
         except Exception as exc:  # a single state must never take the node down
             if not rclpy.ok():
                 return  # the context is gone (the process is ending): nothing more can be sent
             self._refused_state(RobotStateError(f"could not answer it: {type(exc).__name__}: {exc}"))
 
-    def _answer(self, raw: np.ndarray, deployment: Deployment, layout: JointLayout, started: float) -> None:
+    def _answer(
+        self, raw: np.ndarray, deployment: Deployment, layout: JointLayout, started: float, stamp: float
+    ) -> None:
         state = stored_state(deployment.plant, raw)
         assert self.coverage is not None and self.limits is not None
         policy = deployment.policy
@@ -669,23 +691,60 @@ class DeployNode(LifecycleNode):
         if outcome == "resumed":
             self.get_logger().info("joint states flow again: commanding resumes")
             self.diagnostics.publish()
-        self._watch_model(raw, action, outcome == "resumed")
+        self._watch_model(raw, action, outcome == "resumed", stamp)
 
-    def _watch_model(self, raw: np.ndarray, action: np.ndarray, resumed: bool) -> None:
-        """After the command went out: check the transition into this state against the certified set."""
+    def _watch_model(self, raw: np.ndarray, action: np.ndarray, resumed: bool, stamp: float) -> None:
+        """After the command went out: check the transition into this state against the certified set, and the
+        latest seconds of motion by identification (in a worker: a fit never holds up a command)."""
         monitor = self.monitor
         if monitor is None:
             return
         arrived = self.state.arrived_since_activation
         if resumed or arrived != self._monitor_arrival + 1:
             monitor.restart()  # a state skipped (overtaken, refused) or a stale spell: no one-step transition
+            if self.window is not None:
+                self.window.restart()
         self._monitor_arrival = arrived
+        self._watch_window(raw, action, stamp)
         was_outside = monitor.outside
         monitor.observe(raw, action)
         if not monitor.outside:
             return
         problem = f"the robot's transitions leave the certified set of robots: {monitor.summary()}"
-        newly = self.state.mismatch_found(problem) and not was_outside
+        self._mismatch(problem, newly=self.state.mismatch_found(problem) and not was_outside)
+
+    def _watch_window(self, raw: np.ndarray, action: np.ndarray, stamp: float) -> None:
+        """Feed the motion window; take a finished fit's verdict; hand the next due window to the worker."""
+        window, deployment = self.window, self.deployment
+        if window is None or deployment is None:
+            return
+        window.add(stamp, raw, action)
+        judging = self._judging
+        if judging is not None and judging.done():
+            self._judging = None
+            try:
+                verdict = judging.result()
+            except Exception as exc:  # a worker that died or a fit that failed: said, and the window goes on
+                self._warn("window identification", f"a window's identification failed: {type(exc).__name__}: {exc}")
+            else:
+                self._window_said = f"last window (ending {verdict.end:.2f} s): {verdict.said}"
+                if window.found(verdict):
+                    problem = (
+                        f"the robot identified from its last {window.in_a_row} windows of {window.seconds:g} s of "
+                        f"motion lies outside the certified set of robots: {verdict.said}"
+                    )
+                    self._mismatch(problem, newly=self.state.mismatch_found(problem))
+                    return
+        due = window.due() if self._judging is None else None
+        if due is None:
+            return
+        if self._judges is None:  # spawned, not forked: a worker of its own, apart from the ROS context
+            self._judges = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        meta = deployment.metadata
+        self._judging = self._judges.submit(judge, str(meta.task), int(meta.seed), str(meta.uncertainty), *due)
+
+    def _mismatch(self, problem: str, *, newly: bool) -> None:
+        """The robot was found outside the certified set (by either monitor): stop or warn, as the operator chose."""
         if self.settings.on_model_mismatch == "stop" and self.active:
             self.get_logger().error(f"{problem}; on_model_mismatch is stop: deactivating")
             self.state.stop_requested(MODEL_MISMATCH)
@@ -743,6 +802,8 @@ class DeployNode(LifecycleNode):
             values["robot model fingerprint"] = f"{self.state.fingerprint[:12]}... from {self.state.fingerprint_source}"
             if monitor is not None:
                 values["model monitor"] = monitor.summary()
+            if self._window_said:
+                values["window identification"] = self._window_said
             if deployment.overridden:
                 values["gate overridden"] = "; ".join(deployment.overridden)
         description = self.description
@@ -764,6 +825,8 @@ class DeployNode(LifecycleNode):
         if self.active:
             self.stop_commanding(self.stopped_by or "exiting")
         self.watchdog.close()
+        if self._judges is not None:
+            self._judges.shutdown(wait=False, cancel_futures=True)
         super().destroy_node()
 
 
