@@ -608,6 +608,8 @@ def test_a_robot_outside_the_certified_set_is_found_by_the_monitor_and_stops_it_
     assert health.level == WARN and "against the set's bound" in health.error, health
     assert "robot: the nominal model, inside the certified set" in str(health.values["policy"])
     assert "model monitor: " in launch.log(proc) and "corners of the certified set" in launch.log(proc)
+    windowed = deploy.health_where(lambda h: "window identification" in h.values, "a window identified", timeout=120)
+    assert "the set: " in str(windowed.values["window identification"]), windowed.values  # the fit's own verdict
     cleared = client.call(deploy.clearer, Trigger.Request())  # the operator has seen it; the robot is unchanged
     assert cleared.success and cleared.message.startswith("cleared: the robot's transitions leave"), cleared.message
     assert "the operator cleared the model monitor's finding" in launch.log(proc)
