@@ -375,12 +375,12 @@ def _fit_delay(
     z = np.zeros(p)
     nominal = errors(z[None])[0]
     if float(np.abs(nominal).max()) <= 1e-12 * max(1.0, float(np.abs(reached).max())):
-        # Rounding alone: the nominal model reproduces every step (a robot held at rest, no noise). Weights from
-        # such errors would make any factor look certain; the motion tells nothing here.
-        raise ValueError(
-            "the nominal model reproduces this motion to rounding (no noise, nothing the parameters move): "
-            "there is nothing to fit"
-        )
+        # Rounding alone: the nominal model with this delay reproduces every step (a simulated robot without noise).
+        # That is the fit, exactly; weights from such errors would make any other factor look certain instead.
+        rms = np.maximum(np.sqrt(np.mean(nominal.reshape(-1, nominal.shape[-1]) ** 2, axis=0)), 1e-300)
+        say(f"delay {delay}: the nominal model reproduces the motion to rounding")
+        jac = _central_jacobian(errors, z, np.ones_like(rms))
+        return _DelayResult(delay, z, float(np.sum(np.log(rms))), tuple(rms.tolist()), jac, np.zeros(nominal.size))
     weights = 1.0 / spread(nominal)
     for _ in range(2):
         w = weights
