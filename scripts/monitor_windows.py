@@ -5,9 +5,10 @@ monitor npp-deploy runs (npp_ros.deployment.monitor) against identification on a
     .venv/bin/python scripts/monitor_windows.py --run RUN_DIR --out results/monitor-windows [--seconds 30]
 
 Each robot drives SECONDS of motion under the run's certified policy alone (no excitation), from s0 ~ rho of its
-own stream, with noise on every state read (--noise, at least the set's); both monitors see the recorded states and commands only. The window
-identification flags a window when no robot of the set lies within its intervals (verdict "outside"), and the robot
-when two windows in a row are flagged. Writes monitor-windows.json and monitor-windows.md into --out.
+own stream, with noise on every state read (--noise, at least the set's); both monitors see the recorded states and
+commands only. The window identification flags a window when no robot of the set lies within its intervals (verdict
+"outside"), and the robot when two windows in a row are flagged. Writes monitor-windows.json and monitor-windows.md
+into --out.
 """
 
 from __future__ import annotations
