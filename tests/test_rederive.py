@@ -154,3 +154,20 @@ def test_an_agreement_is_remembered_on_this_machine_for_exactly_that_content(
     edited = altered_copy(run, tmp_path / "edited", _edit_row(run, 8, "policy_return", 123.0), resealed=True)
     with pytest.raises(GateRefusal, match="episode 8: policy_return"):
         load_deployment(edited, ACCEPT)
+
+
+def test_epsilon_changed_in_the_metadata_and_the_certificate_alike_is_refused(good: Path, tmp_path: Path) -> None:
+    """The edit the certificate's own replay cannot see (the run's epsilon and its certificate's changed together,
+    sealed again): derived again against the new epsilon, the run no longer gives the stored rows and certificate."""
+    with sqlite3.connect(good / "run.sqlite") as conn:
+        record = json.loads(conn.execute("SELECT value FROM meta WHERE key = 'certificate'").fetchone()[0])
+    record["epsilon"] = 1.0
+    both = (
+        ("UPDATE meta SET value = '1.0' WHERE key = 'epsilon'", ()),
+        ("UPDATE meta SET value = ? WHERE key = 'certificate'", (json.dumps(record),)),
+    )
+    edited = altered_copy(good, tmp_path / "eps", *both, resealed=True)
+    found = rederive(read_run(edited))
+    assert not found.agrees, found  # here the checks' outcomes agree, and the certificate issued again does not
+    with pytest.raises(GateRefusal, match="does not follow from its own seed"):
+        load_deployment(edited, ACCEPT)
