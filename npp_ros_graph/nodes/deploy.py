@@ -68,7 +68,7 @@ from npp_ros.deployment.state import (
 )
 from npp_ros.deployment.timing import Watchdog
 from npp_ros.identification.identified import check_identified_robot
-from npp_ros.identification.window import WINDOW_S, MotionWindow, WindowVerdict, judge
+from npp_ros.identification.window import MotionWindow, WindowVerdict, judge
 from npp_ros.run.read import read_run
 from npp_ros.tasks.uncertainty import UncertaintySet
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health, health_of_state
@@ -108,10 +108,12 @@ PARAMETERS = (
                "episode's s0 and robot drawn again, each check re-run, the certificate issued again) and refuse a run "
                "that differs; seconds to minutes, no expert call; false only for a run made by another npp_ros whose "
                "policy acts otherwise"),
-    Changeable("monitor_window", WINDOW_S, "a run on a set of robots: seconds of the robot's latest motion the set's "
-               "parameters are fitted to, about once a second in a worker process; two windows in a row with no robot "
-               "of the set inside the fit's 95% intervals are a model mismatch (on_model_mismatch); 0 = off", 0.0,
-               60.0),
+    Changeable("monitor_window", 0.0, "a run on a set of robots: seconds of the robot's latest motion the set's "
+               "parameters are fitted to, about once a second in a worker process (3 finds a gear of x0.6 or a delay "
+               "of 2 the transition check misses); two windows in a row with no robot of the set inside the fit's "
+               "95% intervals are a model mismatch (on_model_mismatch); 0 = off, the default: noise on the states "
+               "read biases the fit while a policy holds the robot still, and robots inside the set are then found "
+               "outside", 0.0, 60.0),
     Changeable("identified_robot", "", "this robot identified from its own motion (the JSON npp-identify --json "
                "writes of a recording of it): configure simulates the certified policy at the identified robot and "
                "refuses when the lower bound on its success there is below robot_min_success; empty = no check at "

@@ -603,7 +603,7 @@ def test_a_robot_outside_the_certified_set_is_found_by_the_monitor_and_stops_it_
     proc = launch("npp-deploy")
     client = ros_client("monitor_test")
     deploy = Deploy(client)
-    deploy.deploy(robots, fingerprint=None, state_timeout=2.0, on_model_mismatch="warn")
+    deploy.deploy(robots, fingerprint=None, state_timeout=2.0, on_model_mismatch="warn", monitor_window=3.0)
     health = deploy.health_where(lambda h: "leave the certified set" in h.doing, "the monitor's warning")
     assert health.level == WARN and "against the set's bound" in health.error, health
     assert "robot: the nominal model, inside the certified set" in str(health.values["policy"])
