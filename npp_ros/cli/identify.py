@@ -59,6 +59,13 @@ def parser(bag_topics: tuple[str, str] | None = None) -> argparse.ArgumentParser
     ap.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     ap.add_argument("--seconds", type=float, default=None, metavar="S", help="use S seconds (default: all)")
     ap.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="also write the result as JSON to FILE (npp-deploy's identified_robot reads it)",
+    )
     if bag_topics is not None:
         bag = ap.add_argument_group("a bag's topics")
         bag.add_argument("--joint-states-topic", default=bag_topics[0], help=f"default {bag_topics[0]}")
@@ -121,6 +128,9 @@ def main(
         text.append(move.summary())
         status = 0 if move.accepted else 1
     print(json.dumps(out, indent=1) if args.json else "\n".join(text))
+    if args.out is not None:
+        args.out.write_text(json.dumps(out, indent=1) + "\n")
+        say(f"wrote {args.out}")
     return status
 
 

@@ -33,7 +33,7 @@ def identified_region(path: Path, run: Run) -> tuple[list[Robot], str]:
         raise IdentifiedRobotError(f"cannot read the identified robot {path}: {exc}") from None
     record = record.get("identification", record) if isinstance(record, dict) else record
     if not isinstance(record, dict) or "region" not in record:
-        raise IdentifiedRobotError(f"{path} is no identification with a region (npp-identify --json writes one)")
+        raise IdentifiedRobotError(f"{path} is no identification with a region (npp-identify --out writes one)")
     if record.get("task") != run.task.name:
         raise IdentifiedRobotError(f"{path} identifies a {record.get('task')!r} robot; the run is {run.task.name!r}")
     robots = run.robots

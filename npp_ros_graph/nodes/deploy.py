@@ -114,7 +114,7 @@ PARAMETERS = (
                "95% intervals are a model mismatch (on_model_mismatch); 0 = off, the default: noise on the states "
                "read biases the fit while a policy holds the robot still, and robots inside the set are then found "
                "outside", 0.0, 60.0),
-    Changeable("identified_robot", "", "this robot identified from its own motion (the JSON npp-identify --json "
+    Changeable("identified_robot", "", "this robot identified from its own motion (the JSON npp-identify --out "
                "writes of a recording of it): configure simulates the certified policy at the identified robot and "
                "refuses when the lower bound on its success there is below robot_min_success; empty = no check at "
                "this robot (the set's certificate is an average over the set)"),
@@ -418,7 +418,7 @@ class DeployNode(LifecycleNode):
                 return ""
             self.get_logger().warning(
                 "the certificate on the set of robots is an average over the set and promises nothing for this one "
-                "robot: give identified_robot (npp-identify --json of its recorded motion) to check the policy at it"
+                "robot: give identified_robot (npp-identify --out of its recorded motion) to check the policy at it"
             )
             return "not checked at this robot (no identified_robot)"
         run = read_run(deployment.run_file)
