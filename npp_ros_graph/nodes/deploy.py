@@ -398,14 +398,15 @@ class DeployNode(LifecycleNode):
         names = ", ".join(p.name for p in params)
         return SetParametersResult(successful=False, reason=f"{names}: read at configure; clean up first")
 
-    def _rederive_progress(self) -> Callable[[int, int], None]:
-        """Logs the gate's re-derivation of the run every few seconds: a configure that takes a minute says why."""
+    def _progress(self, what: str) -> Callable[[int, int], None]:
+        """A ``progress(done, total)`` that logs ``what`` (formatted with done and total) every few seconds and at the
+        end: a configure that takes a minute says why."""
         last = [time.monotonic()]
 
         def report(done: int, total: int) -> None:
             if done == total or time.monotonic() - last[0] >= 5.0:
                 last[0] = time.monotonic()
-                self.get_logger().info(f"gate: deriving the run again from its seed, episode {done} of {total}")
+                self.get_logger().info(what.format(done=done, total=total))
 
         return report
 
@@ -422,13 +423,7 @@ class DeployNode(LifecycleNode):
             )
             return "not checked at this robot (no identified_robot)"
         run = read_run(deployment.run_file)
-        last = [time.monotonic()]
-
-        def report(done: int, total: int) -> None:
-            if done == total or time.monotonic() - last[0] >= 5.0:
-                last[0] = time.monotonic()
-                self.get_logger().info(f"robot check: point {done} of {total} of the identified region simulated")
-
+        report = self._progress("robot check: point {done} of {total} of the identified region simulated")
         move, words = check_identified_robot(
             run, Path(settings.identified_robot), n=settings.robot_check_starts,
             p=settings.robot_min_success or None, delta_g=settings.robot_check_delta, progress=report,
@@ -457,7 +452,9 @@ class DeployNode(LifecycleNode):
         except Exception as exc:  # whatever it is, configure fails with its reason, never silently
             return self._refuse("configure", f"{type(exc).__name__}: {exc}")
         try:
-            deployment = load_deployment(settings.run_dir, acceptance, progress=self._rederive_progress())
+            deployment = load_deployment(
+                settings.run_dir, acceptance, self._progress("gate: deriving the run again, episode {done} of {total}")
+            )
         except GateRefusal as exc:
             reason = str(exc)
             if source and "fingerprint" in reason:
