@@ -47,11 +47,14 @@ def made(folder: Path, settings: dict[str, Any], expert: dict[str, Any] | None =
 
 
 def seal_digest(run_file: Path) -> str:
-    """The file's seal over everything it holds, and its bytes: what a refused resume must leave as it was."""
+    """The file's seal over everything it holds, and a digest of its whole content (every table, the seal's among
+    them, as SQL): what a refused resume must leave as it was. Not its bytes: SQLite may move committed pages from
+    the write-ahead log into the file when any connection closes, which changes no content."""
     conn = sqlite3.connect(run_file)
     (run,) = conn.execute(f"SELECT sha256 FROM {SEAL_TABLE} WHERE part = 'run'").fetchone()
+    content = hashlib.sha256("\n".join(conn.iterdump()).encode()).hexdigest()
     conn.close()
-    return f"{run} {hashlib.sha256(run_file.read_bytes()).hexdigest()}"
+    return f"{run} {content}"
 
 
 @pytest.fixture(scope="module")
