@@ -113,6 +113,7 @@ def test_a_trusted_key_that_cannot_be_read_is_configures_refusal_not_a_stopped_n
     assert deploy.on_configure(None) == TransitionCallbackReturn.SUCCESS  # type: ignore[arg-type]
 
 
+@pytest.mark.long  # a run at H = 1000 and two configures that derive it again and roll it out: about 40 s
 def test_identified_robot_checks_the_policy_at_that_robot_before_it_moves(
     deploy: deploy_node.DeployNode, tmp_path: Path
 ) -> None:
