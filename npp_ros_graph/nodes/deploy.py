@@ -196,8 +196,8 @@ USAGE = f"""npp-deploy: one certified run's policy drives a robot over ros2_cont
 "npp_deploy").
 
 Managed: parameters are read at configure (change them while unconfigured); drive it with the standard
-lifecycle services (npp-deploy-ctl configure|activate|deactivate|
-cleanup|shutdown|stop|state, or `ros2 lifecycle set`). configure is the gate: it fails, with the reason, on
+lifecycle services (npp-deploy-ctl configure|activate|deactivate|cleanup|shutdown|stop|clear-mismatch|state,
+or `ros2 lifecycle set`). configure is the gate: it fails, with the reason, on
   - a run file that does not read (checksums of every trajectory, types of every stored value);
   - a run file whose seal does not match it (an edit after the run), or that has no seal (unless allow_unsealed);
   - with trusted_keys: a run not signed by one of them over its seal (the key that verifies is the signer);
