@@ -70,8 +70,10 @@ class StoredAnswers:
                 f"the run asks the expert a {index + 1}th time; the file stores {self.dataset.num_trajectories} answers"
             )
         answer = self.dataset.trajectory(index)
-        # An expert stores the state its plant reads back after the reset: equal to the asked one but in its last bits.
-        if not np.allclose(answer.states[0], np.asarray(initial_state, dtype=np.float64), rtol=1e-9, atol=1e-9):
+        # An expert stores the state its plant reads back after the reset, in the stored representation (an angle
+        # wrapped, the last bits of a float): the asked state is compared as the plant reads it back too.
+        asked = self.plant.reset(np.asarray(initial_state, dtype=np.float64))
+        if not np.allclose(answer.states[0], asked, rtol=1e-9, atol=1e-9):
             raise AnswerMismatch(
                 f"the run asks for trajectory {index} from {_state(initial_state)}; the stored one starts at "
                 f"{_state(answer.states[0])}"
