@@ -34,7 +34,7 @@ CORE = frozenset(CORE_PARTS)
 BELOW_RUN = frozenset({"npp_ros.policy", "npp_ros.certificate", "npp_ros.trajopt", "npp_ros.tasks"})
 DEPLOYMENT = "npp_ros.deployment"
 LEARNING_NODES = tuple(f"npp_ros_graph.nodes.{node}" for node in ("sim", "expert", "policy", "supervisor"))
-ROBOT_NODES = ("npp_ros_graph.nodes.deploy", "npp_ros_graph.nodes.robot")
+ROBOT_NODES = ("npp_ros_graph.nodes.deploy", "npp_ros_graph.nodes.robot", "npp_ros_graph.nodes.robot_run")
 NODE_PARTS = LEARNING_NODES + ROBOT_NODES
 TRANSPORT, RUNTIME, GRAPH = "npp_ros_graph.transport", "npp_ros_graph.runtime", "npp_ros_graph.graph"
 

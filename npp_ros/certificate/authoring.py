@@ -67,6 +67,52 @@ class MeasuredSuccess:
         return sentence
 
 
+@dataclass(frozen=True)
+class RobotClaim:
+    """What a run whose plant is a robot says of it in its certificate (npp_ros.run.on_robot).
+
+    ``robot``: the robot in words (its description's fingerprint, the model its expert planned on); ``starts``: where
+    its episodes started, in words; the counts are of the robot's own episodes: the checks counted, the expert plans
+    it ran, those a fault cut short (stored, not counted), its clock's seconds over all, and late commands.
+    """
+
+    robot: str
+    starts: str
+    checks: int
+    answers: int
+    faults: int
+    robot_time: float
+    late_commands: int
+
+    def sentence(self) -> str:
+        return (
+            f"The robot: {self.robot}. Every check is one of this robot's own episodes from its reset ({self.starts}), "
+            f"judged on the states it measured: {self.checks} checks and {self.answers} expert plans run on it, "
+            f"{self.robot_time:.1f} s of robot time; {self.faults} episodes a fault cut short are stored and not "
+            f"counted; {self.late_commands} commands arrived after their control period. Nothing is claimed for "
+            "another robot, or for this one after it changes."
+        )
+
+
+ON_ROBOT_DRAW = "s0~this robot's resets"  # what a claim on the robot itself is a probability over
+
+
+def on_robot_assumptions() -> tuple[str, ...]:
+    """What a success claim on the robot itself rests on: no model of the robot, no deterministic plant."""
+    return (
+        "each check is one episode of the robot itself from its reset, and success is judged on the states the robot "
+        "measured (its sensors as they read), not on a model",
+        "the robot's starts are independent draws from one distribution (its reset, asked for an s0 drawn from rho "
+        "with the run's seed and the episode's index; the measured start is what counts), independent of the run so "
+        "far: a reset that drifts with wear or with the last episode breaks this, and is NOT checked",
+        "the robot is the same robot at every episode (its description's fingerprint is checked at the run's start)",
+        "the claim is over the episodes no fault cut short: a cut episode is stored and marked, never counted, so a "
+        "fault that comes with failing (a limit tripped on a bad swing) is a failure the claim does not see",
+        "no Lipschitz constant, no expert value and no model of the robot are needed: the claim is about success "
+        "alone, and says nothing of optimality",
+    )
+
+
 def author_certificate(
     spec: CertificationSpec,
     basis: ValueBasis | None,
@@ -81,11 +127,13 @@ def author_certificate(
     success: MeasuredSuccess | None = None,
     robots: str = "",
     reference: str = "",
+    robot: RobotClaim | None = None,
 ) -> Certificate:
     """The certificate a run issues when ``status`` certifies, about the policy on its first trajectories;
     ``success``: what the run measured of the task's success criterion (None: the task states none); ``robots``:
     the set of robots each episode drew from, in words ("": the exact model); ``reference``: what V^E is then (the
-    expert planning on each robot, unless it says otherwise)."""
+    expert planning on each robot, unless it says otherwise); ``robot``: a run whose plant is the robot itself,
+    whose claim is over that robot's starts and rests on no model (success claims only)."""
     measured = success if success is not None else MeasuredSuccess(None)
     certify = spec.certify
     if certify == "success":
@@ -96,6 +144,17 @@ def author_certificate(
         value = basis.value
     else:
         value = "V*, the value function the expert's stored values describe"
+    statement = over_robots(
+        spec.statement(status.window, value, policy_trajectories, status.test, status.failures, status.log_mixture),
+        robots,
+        reference,
+    )
+    listed = assumptions(spec, basis) + robot_assumptions(spec, robots)
+    if robot is not None:
+        if certify != "success":
+            raise ValueError("a run on the robot itself certifies the success claim only")
+        statement = statement.replace("_(s0~rho)[", f"_({ON_ROBOT_DRAW})[") + " " + robot.sentence()
+        listed = assumption_list([*on_robot_assumptions(), *spec_rule_assumptions(spec)])
     return Certificate(
         task=task,
         spec=spec,
@@ -108,15 +167,9 @@ def author_certificate(
         test=status.test,
         delta_spent=status.test_delta,
         value=value,
-        statement=over_robots(
-            spec.statement(status.window, value, policy_trajectories, status.test, status.failures, status.log_mixture),
-            robots,
-            reference,
-        )
-        + " "
-        + measured.sentence(),
+        statement=statement + " " + measured.sentence(),
         proven=is_proven(spec, basis) and not (robots and spec.certify == "surrogate"),
-        assumptions=assumptions(spec, basis) + robot_assumptions(spec, robots),
+        assumptions=listed,
         failures=status.failures,
         mixture=math.exp(status.log_mixture) if status.log_mixture is not None else None,
     )
@@ -209,6 +262,12 @@ def assumptions(spec: CertificationSpec, basis: ValueBasis | None) -> tuple[str,
                  basis.theorem_34 if basis is not None and basis.theorem_34 else
                  "Theorem 3.4's condition was not checked for this plant",
                  "initial states are independent draws from rho"]  # fmt: skip
+    return assumption_list([*items, *spec_rule_assumptions(spec)])
+
+
+def spec_rule_assumptions(spec: CertificationSpec) -> list[str]:
+    """What the stopping rule adds to any claim's assumptions."""
+    items = []
     if spec.rule == "mixture":
         items.append(
             "the policy stayed frozen during its verification: the trajectories the verification asked for "
@@ -216,4 +275,4 @@ def assumptions(spec: CertificationSpec, basis: ValueBasis | None) -> tuple[str,
         )
     if spec.rule == "paper":
         items.append("the paper's one-shot test, though it is checked after every episode (not sequentially valid)")
-    return assumption_list(items)
+    return items

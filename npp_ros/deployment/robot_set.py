@@ -88,7 +88,7 @@ def _raw(model: Any) -> Any:
 def match_model(nominal: Any, robot: Any, robots: UncertaintySet) -> RobotMatch:
     """``robot`` (a compiled model) against the set ``robots`` of scales of ``nominal``; see the module's rules."""
     nominal, robot = _raw(nominal), _raw(robot)
-    structure = _structure_reasons(nominal, robot)
+    structure = structure_reasons(nominal, robot)
     if structure:
         return RobotMatch(Robot(), tuple(structure))
     ranges = {(s.parameter, name): s for s in robots.resolved(nominal).scales for name in s.names}
@@ -115,7 +115,10 @@ def match_model(nominal: Any, robot: Any, robots: UncertaintySet) -> RobotMatch:
     return RobotMatch(Robot(tuple(scales)), tuple(reasons))
 
 
-def _structure_reasons(nominal: Any, robot: Any) -> list[str]:
+def structure_reasons(nominal: Any, robot: Any) -> list[str]:
+    """Why ``robot``'s structure (bodies, joints, actuators, their order and sizes) is not ``nominal``'s; none when it
+    is. Compiled models, or their dm_control wrappers."""
+    nominal, robot = _raw(nominal), _raw(robot)
     mine, theirs = model_elements(robot), model_elements(nominal)
     reasons = [
         f"its {kind}s are {', '.join(mine[kind]) or 'none'}, the certified model's {', '.join(theirs[kind]) or 'none'}"

@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from npp_ros.certificate.authoring import MeasuredSuccess, author_certificate
+from npp_ros.certificate.authoring import MeasuredSuccess, RobotClaim, author_certificate
 from npp_ros.certificate.certifier import (
     SUCCESS_CHECK,
     Certificate,
@@ -109,6 +109,17 @@ class EpisodeInterrupted(RuntimeError):
     resumed run plays it again from the same s0 (a pause or a restart never decides a check)."""
 
 
+class EpisodeCut(RuntimeError):
+    """The plant cut the episode short (a robot's fault: its states stopped, its reset failed): the driver stored
+    and marked what it ran, nothing of it is a check, and the loop runs the episode again from a new start."""
+
+
+class RobotFacts(Protocol):
+    """What a run whose plant is a robot (npp_ros.run.on_robot) tells its certificate: the robot and its episodes."""
+
+    def claim(self) -> RobotClaim: ...
+
+
 class EpisodeDriver(Protocol):
     """Lets the current policy drive one episode from s0; returns its return, or None when the policy
     cannot drive at all (no data). A driver that loses a result asks for it again or runs the episode
@@ -153,6 +164,9 @@ class RunConfig:
     uncertainty: str = ""
     # Under uncertainty, the model the expert plans on: each episode's robot, or the nominal one (nominal_plan).
     expert_model: str = "robot"
+    # A run whose plant is a robot (npp_ros.run.on_robot.identity.RobotIdentity.record()): which robot, which model
+    # the expert plans on, where its starts come from; '' = a run on the task's model.
+    robot_run: str = ""
     # The expert's settings that decide its answers (records.EXPERT_SETTINGS), as its expert resolved them (the task's
     # defaults filled in; records.expert_settings); None where an option does not apply to that expert.
     expert_kind: str | None = None
@@ -224,6 +238,7 @@ class NPPLoop:
         success: SuccessCriterion | None = None,
         replay: Replay | None = None,
         robots: Callable[[int], Robot] | None = None,
+        robot_facts: RobotFacts | None = None,
     ) -> None:
         self.config = config
         self.spec = config.spec
@@ -254,6 +269,14 @@ class NPPLoop:
         if config.uncertainty and robots is None:
             raise ValueError("a run under model uncertainty needs its robot draw (npp_ros.run.setup.robot_fn)")
         self.robots = robots if config.uncertainty else None
+        if bool(config.robot_run) != (robot_facts is not None):
+            raise ValueError("a run on a robot needs its robot's facts for its certificate; only such a run has some")
+        if config.robot_run and certify != "success":
+            raise ValueError(
+                f"a run on a robot certifies the success claim only (certify=success), not {certify}: its checks are "
+                "the robot's own episodes, which give no expert value to compare with"
+            )
+        self.robot_facts = robot_facts
         self.certifier = certifier_for(self.spec)
         self.rows: list[EpisodeRow] = []
         self.certificate: Certificate | None = None
@@ -524,6 +547,7 @@ class NPPLoop:
             success=self.measured_success(),
             robots=describe_robots(self.config.uncertainty),
             reference=REFERENCE[self.config.expert_model],
+            robot=None if self.robot_facts is None else self.robot_facts.claim(),
         )
 
     def measured_success(self) -> MeasuredSuccess:
@@ -538,7 +562,11 @@ class NPPLoop:
 
     # ------------------------------------------------------------------ whole run
     def run(self, max_episodes: int) -> RunResult:
-        """Run until certified or until ``max_episodes`` episodes exist in total."""
+        """Run until certified or until ``max_episodes`` episodes exist in total; an episode the plant cut short
+        (EpisodeCut) is run again, and its driver decides when a plant that keeps cutting is gone."""
         while self.certificate is None and self.next_episode < max_episodes:
-            self.run_episode()
+            try:
+                self.run_episode()
+            except EpisodeCut:
+                continue
         return RunResult(len(self.rows), self.oracle_calls, len(self.policy_data), self.certificate, self.rows)

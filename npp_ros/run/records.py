@@ -9,7 +9,7 @@ from __future__ import annotations
 import csv
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from types import SimpleNamespace
 from typing import ClassVar
@@ -53,6 +53,7 @@ class RunMetadata(SimpleNamespace):
         "explore": 0.0,
         "uncertainty": "",
         "expert_model": "robot",
+        "robot_run": "",
     }
     # Absent from files made before run files recorded the expert's settings. What they were for such a file's
     # answers is not known: they are never compared, never written in later (a value written then would claim the
@@ -199,6 +200,44 @@ class EpisodeOutcome:
     robot: str = ""
 
 
+@dataclass(frozen=True)
+class RobotEpisode:
+    """One episode a robot ran for a run whose plant is the robot (npp_ros.run.on_robot), stored when it ended.
+
+    ``role`` is "check" (the policy's episode, which the run's check judges) or "answer" (an expert plan run on the
+    robot by its feedback law, which joins the data as what the robot did). ``fault`` says why the robot cut it short
+    (None: it ran to its end); a cut episode is kept and marked, never a check. ``rollout`` is the measured states,
+    the commands sent and the rewards on the measured states, as float64 rows [s, a, r] (empty for a failed reset).
+    """
+
+    id: int
+    episode: int
+    role: str
+    requested: tuple[float, ...] | None  # the start asked of the robot's reset (None: its own)
+    start: tuple[float, ...]  # the start as the robot measured it (empty when the reset failed)
+    steps: int
+    robot_time: float  # seconds of the robot's clock from its start to its last state
+    late_commands: int
+    fault: str | None
+    success: bool | None
+    policy_return: float | None
+    rollout: bytes = b""
+
+    ROLES: ClassVar[tuple[str, ...]] = ("check", "answer")
+
+    def arrays(self, state_dim: int, action_dim: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(states, actions, rewards) of the stored rollout."""
+        flat = np.frombuffer(self.rollout, dtype="<f8").reshape(-1, state_dim + action_dim + 1)
+        return flat[:, :state_dim].copy(), flat[:, state_dim:-1].copy(), flat[:, -1].copy()
+
+    @staticmethod
+    def pack(states: FloatArray, actions: FloatArray, rewards: FloatArray) -> bytes:
+        """A rollout as the bytes the run file stores (little-endian float64 rows)."""
+        rows = np.hstack([np.asarray(states), np.asarray(actions), np.asarray(rewards)[:, None]])
+        return np.ascontiguousarray(rows, dtype="<f8").tobytes()
+
+
+ROBOT_EPISODE_COLUMNS = tuple(f.name for f in fields(RobotEpisode))
 EPISODE_COLUMNS = tuple(EpisodeRow.__dataclass_fields__)
 SUCCESS_COLUMNS = ("expert_success", "policy_success")  # absent from files made before success was recorded
 LATER_COLUMNS = {"robot": "TEXT"}  # absent from files made before robots were drawn: added at the next write

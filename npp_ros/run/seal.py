@@ -4,9 +4,9 @@ Per-trajectory checksums detect damage to the data; they leave the metadata, the
 log open to an edit that the replay of the log cannot tell apart (epsilon changed in both the metadata and the
 certificate). The seal covers every stored value a gate or a resumed run reads: each meta key (the run's
 metadata and spec, its identity and its certificate), and each column of the trajectories, points and episodes
-tables. So that a refusal can name what no longer matches, the seal keeps one digest per part (``meta
-'epsilon'``, ``episodes.v_lb``, ``points.s_0``) in its own table, and ``run``, the digest over all of them,
-is the one that stands for the whole file (a signature signs it).
+tables (and robot_episodes, a run on a robot's own episodes). So that a refusal can name what no longer matches,
+the seal keeps one digest per part (``meta 'epsilon'``, ``episodes.v_lb``, ``points.s_0``) in its own table, and
+``run``, the digest over all of them, is the one that stands for the whole file (a signature signs it).
 
 A value is serialized canonically, by its SQLite type: NULL, an integer in decimal, a real as its 8 IEEE
 bytes (little-endian), text and blobs length-prefixed; a column's values in primary-key order. The points
@@ -34,8 +34,8 @@ from pathlib import Path
 SEAL_TABLE = "seal"
 RUN_PART = "run"  # the digest over every other part: the whole file's
 THROUGH_PART = "points:through"  # how many trajectories the points chains cover
-TABLES = ("meta", "trajectories", "points", "episodes")
-_ORDER = {"trajectories": "id", "episodes": "episode", "points": "trajectory, step"}
+TABLES = ("meta", "trajectories", "points", "episodes", "robot_episodes")
+_ORDER = {"trajectories": "id", "episodes": "episode", "points": "trajectory, step", "robot_episodes": "id"}
 _EMPTY = hashlib.sha256(b"").hexdigest()
 
 
@@ -79,12 +79,12 @@ def part_name(table: str, column: str) -> str:
 
 
 def _small_parts(conn: sqlite3.Connection, present: set[str]) -> dict[str, str]:
-    """Every meta key and every column of trajectories and episodes, hashed whole."""
+    """Every meta key and every column of trajectories, episodes and (a run on a robot) robot_episodes, hashed whole."""
     parts: dict[str, str] = {}
     if "meta" in present:
         for key, value in conn.execute("SELECT key, value FROM meta ORDER BY key"):
             parts[part_name("meta", str(key))] = _digest((key, value))
-    for table in ("trajectories", "episodes"):
+    for table in ("trajectories", "episodes", "robot_episodes"):
         if table not in present:
             continue
         for column in _columns(conn, table):

@@ -76,7 +76,16 @@ from typing import Any
 import numpy as np
 
 from npp_ros.policy.dataset import Dataset, DatasetError, FloatArray, Trajectory
-from npp_ros.run.records import EPISODE_COLUMNS, LATER_COLUMNS, SUCCESS_COLUMNS, EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.records import (
+    EPISODE_COLUMNS,
+    LATER_COLUMNS,
+    ROBOT_EPISODE_COLUMNS,
+    SUCCESS_COLUMNS,
+    EpisodeRow,
+    RobotEpisode,
+    RunFileError,
+    RunMetadata,
+)
 from npp_ros.run.seal import SealCheck, check_seal, write_seal
 
 RUN_FILE = "run.sqlite"  # a run folder's run file: every writer and reader names it by this
@@ -464,6 +473,35 @@ class RunStore:
                 (policy_return, _encode(policy_success), episode),
             )
 
+    def record_robot_episode(self, episode: RobotEpisode) -> None:
+        """A robot's episode, the moment it ended (npp_ros.run.on_robot): a check kept before its row is stored, so a
+        run stopped in between takes that same check up again instead of running the robot anew; a fault, marked."""
+        if episode.role not in RobotEpisode.ROLES:
+            raise ValueError(f"a robot episode is one of {', '.join(RobotEpisode.ROLES)}, got {episode.role!r}")
+        self._writable()
+        with _transaction(self._conn, self.path):
+            self._conn.execute(ROBOT_EPISODES_SCHEMA)
+            expected = self._conn.execute("SELECT COUNT(*) FROM robot_episodes").fetchone()[0]
+            if episode.id != expected:
+                raise RunFileError(f"robot episode {episode.id} out of order: the file holds {expected}")
+            values = [_encode(getattr(episode, name)) for name in ROBOT_EPISODE_COLUMNS]
+            marks = ", ".join("?" * len(values))
+            self._conn.execute(f"INSERT INTO robot_episodes VALUES ({marks})", values)
+
+    def robot_episodes(self) -> list[RobotEpisode]:
+        """Every episode a robot ran for this run, in order (none for a run on a model)."""
+        if not self._conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'robot_episodes'").fetchone():
+            return []
+        out = []
+        for raw in self._conn.execute(f"SELECT {', '.join(ROBOT_EPISODE_COLUMNS)} FROM robot_episodes ORDER BY id"):
+            item = dict(zip(ROBOT_EPISODE_COLUMNS, raw, strict=True))
+            for key in ("requested", "start"):
+                item[key] = None if item[key] is None else tuple(json.loads(item[key]))
+            item["success"] = None if item["success"] is None else bool(item["success"])
+            item["rollout"] = bytes(item["rollout"])
+            out.append(RobotEpisode(**item))
+        return out
+
     def set_certificate(self, certificate: Mapping[str, Any]) -> None:
         self._writable()
         with _transaction(self._conn, self.path):
@@ -583,6 +621,13 @@ class RunStore:
             except DatasetError as exc:
                 raise RunFileError(f"{self.path} holds an invalid trajectory: {exc}") from exc
         return dataset
+
+
+ROBOT_EPISODES_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS robot_episodes (id INTEGER PRIMARY KEY, episode INTEGER NOT NULL, role TEXT NOT NULL, "
+    "requested TEXT, start TEXT NOT NULL, steps INTEGER NOT NULL, robot_time REAL NOT NULL, "
+    "late_commands INTEGER NOT NULL, fault TEXT, success INTEGER, policy_return REAL, rollout BLOB NOT NULL)"
+)
 
 
 def _encode(value: Any) -> Any:

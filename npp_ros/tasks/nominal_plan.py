@@ -80,6 +80,14 @@ def tracked_on_robot(
     robot either way. The robot's physical parameters apply, not its delay or noise, as for a privileged expert's
     answer. The stored gains are the plan's.
     """
+    physical = Robot(robot.scales)  # no delay, no noise: what an expert's answer is run on
+    run = rollout(plant, plan_law(plan, space), initial_state, tracked_steps(plan, window), physical)
+    return tracked_answer(plan, run.states, run.actions, run.rewards, window=window)
+
+
+def plan_law(plan: Trajectory, space: ControlSpace) -> Callable[[FloatArray], FloatArray]:
+    """The plan's own feedback law, one call per step: step t applies clamp(a_t + K_t (s - s_t)), K = 0 where the
+    plan has no gains; past the plan's end it holds its last row."""
     steps = len(plan)
     gains = plan.gains if plan.gains is not None else np.zeros((steps, plan.actions.shape[1], plan.states.shape[1]))
     clock = itertools.count()
@@ -89,12 +97,24 @@ def tracked_on_robot(
         correction = gains[t] @ space.difference(state[None, :], plan.states[t][None, :])[0]
         return space.clamp(plan.actions[t] + correction)
 
-    physical = Robot(robot.scales)  # no delay, no noise: what an expert's answer is run on
-    run = rollout(plant, law, initial_state, 2 * steps - 1 if window else steps, physical)
-    values = window_values(run.rewards, steps) if window else return_to_go(run.rewards)
-    return Trajectory(
-        run.states[:steps].copy(), run.actions[:steps].copy(), values, expert_return=float(values[0]), gains=plan.gains
-    )
+    return law
+
+
+def tracked_steps(plan: Trajectory, window: bool) -> int:
+    """How long a tracked plan runs: 2T - 1 steps for window values (each of the T stored points gets its window),
+    else the plan's T."""
+    return 2 * len(plan) - 1 if window else len(plan)
+
+
+def tracked_answer(
+    plan: Trajectory, states: FloatArray, actions: FloatArray, rewards: FloatArray, *, window: bool
+) -> Trajectory:
+    """The answer a tracked plan gives: the plan's first T points of what was run, its values from the rewards
+    earned there, the plan's gains."""
+    steps = len(plan)
+    values = window_values(rewards, steps) if window else return_to_go(rewards)
+    return Trajectory(states[:steps].copy(), actions[:steps].copy(), values, expert_return=float(values[0]),
+                      gains=plan.gains)  # fmt: skip
 
 
 def nominal_plan_returns(
