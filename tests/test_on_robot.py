@@ -10,13 +10,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from deploy_runs import altered_copy
 
+from npp_ros.deployment.gate import Acceptance, GateRefusal, load_deployment
 from npp_ros.run.loop import NPPLoop
 from npp_ros.run.on_robot.identity import RobotIdentity
 from npp_ros.run.on_robot.link import RobotGone
 from npp_ros.run.on_robot.setup import build_robot_loop
 from npp_ros.run.on_robot.simulated import SimulatedRobot
-from npp_ros.run.records import RunFileError
+from npp_ros.run.read import read_run
+from npp_ros.run.records import RobotEpisode, RunFileError
+from npp_ros.run.rederive import rederive
 from npp_ros.run.request import RunRequest, resolve_run
 from npp_ros.run.setup import build_loop
 from npp_ros.run.store import RunStore
@@ -128,18 +132,62 @@ def test_a_stop_between_the_robots_episode_and_its_row_takes_that_episode_up_aga
     assert len(checks) == 1  # judged once, on the robot's one episode
 
 
-def test_the_certificate_names_the_robot_and_rests_on_no_model(tmp_path: Path) -> None:
-    loop = robot_loop(simulated(Robot((("damping", "joint_0", 1.3),), 0, 0.0, 0), reset_spread=1e-3, seed=1),
-                      tmp_path / "run.sqlite", CERTIFYING_HORIZON)  # fmt: skip
-    result = loop.run(200)
+HIDDEN = Robot((("damping", "joint_0", 1.3),), 0, 1e-4, 7)  # what the run is not told: a damper, a noisy sensor
+
+
+@pytest.fixture(scope="module")
+def certified_on_robot(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A run certified on a simulated robot unlike the model, its resets off by up to 1e-3 per entry."""
+    folder = tmp_path_factory.mktemp("on-robot")
+    loop = robot_loop(simulated(HIDDEN, reset_spread=1e-3, seed=1), folder / "run.sqlite", CERTIFYING_HORIZON)
+    try:
+        result = loop.run(200)
+    finally:
+        loop.store.close()  # type: ignore[union-attr]
     assert result.certified, "the lqr robot run did not certify in 200 episodes"
-    cert = loop.certificate
-    assert cert is not None and cert.proven
+    return folder
+
+
+def test_the_certificate_names_the_robot_and_rests_on_no_model(certified_on_robot: Path) -> None:
+    run = read_run(certified_on_robot)
+    cert = run.certificate
+    assert cert is not None and cert.proven and run.on_robot
     assert "P_(s0~this robot's resets)[" in cert.statement
     assert "model fingerprint" in cert.statement and "episodes a fault cut short" in cert.statement
     words = " ".join(cert.assumptions)
     assert "deterministic" not in words and "robot itself" in words and "drifts" in words
     assert "damping" not in cert.statement  # the robot's hidden parameters are nobody's but the robot's
+    checks = [k for k in run.robot_episodes if k.role == "check"]
+    assert len(checks) == cert.episodes - 1  # every episode but the first (no policy yet) was the robot's own
+    assert all(row.initial_state == k.start for row, k in zip(run.episodes[1:], checks, strict=True))
+
+
+def test_a_run_on_a_robot_is_played_back_by_the_gate_and_an_edit_sealed_again_is_refused(
+    certified_on_robot: Path, tmp_path: Path
+) -> None:
+    run = read_run(certified_on_robot)
+    found = rederive(run)
+    assert found.agrees, found.differences
+    fingerprint = RobotIdentity.from_record(run.metadata.robot_run).fingerprint
+    deployment = load_deployment(certified_on_robot, Acceptance(model_fingerprint=fingerprint))
+    assert deployment.derived.startswith("derived again")
+    with pytest.raises(GateRefusal, match="certified on the robot itself"):
+        load_deployment(certified_on_robot, Acceptance(model_fingerprint="f" * 64, rederive=False))
+    check = next(k for k in run.robot_episodes if k.role == "check" and k.success)
+    states, actions, rewards = check.arrays(4, 1)
+    actions[10, 0] += 0.25  # a command the policy did not give
+    edits = {
+        "a check's success": (("UPDATE robot_episodes SET success = 0 WHERE id = ?", (check.id,)), "success"),
+        "a command": (("UPDATE robot_episodes SET rollout = ? WHERE id = ?",
+                       (RobotEpisode.pack(states, actions, rewards), check.id)), "the policy commands"),
+        "a start": (("UPDATE episodes SET initial_state = ? WHERE episode = ?", ("[0.1, 0.1, 0.0, 0.0]", 3)),
+                    "episode 3"),
+    }  # fmt: skip
+    for k, (edit, named) in enumerate(edits.values()):
+        folder = altered_copy(certified_on_robot, tmp_path / f"edit{k}", edit, resealed=True)
+        with pytest.raises(GateRefusal, match="does not follow from its own seed") as refusal:
+            load_deployment(folder, Acceptance(model_fingerprint=fingerprint))
+        assert named in str(refusal.value), (named, str(refusal.value))
 
 
 def test_a_run_on_a_robot_resumes_only_on_that_robot(tmp_path: Path) -> None:

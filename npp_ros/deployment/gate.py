@@ -41,6 +41,7 @@ from npp_ros.deployment.robot_set import gate_reasons
 from npp_ros.deployment.signing import signature_reasons
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.run.on_robot.identity import RobotIdentity
 from npp_ros.run.read import Run, read_run
 from npp_ros.run.records import RunFileError, RunMetadata
 from npp_ros.run.rederive import AgreedRuns, rederive
@@ -284,8 +285,20 @@ def _inconsistencies(run: Run, certificate: Certificate) -> list[str]:
 
 
 def _fingerprint_reasons(metadata: RunMetadata, acceptance: Acceptance) -> list[str]:
-    certified = str(getattr(metadata, "plant_fingerprint", "") or "")
+    """Whether the robot is the one the run's data are of: the certified plant's model, or for a run on a robot
+    itself, that robot (the fingerprint of the description it published when the run began), and no other."""
     robot = acceptance.model_fingerprint.strip()
+    robot_run = str(getattr(metadata, "robot_run", "") or "")
+    if robot_run:
+        certified = RobotIdentity.from_record(robot_run).fingerprint
+        if robot != certified:
+            given = f"{robot[:12]}..." if robot else "not given"
+            return [
+                f"the run was certified on the robot itself, whose model fingerprint is {certified[:12]}...; this "
+                f"robot's is {given}: its certificate is of that one robot only"
+            ]
+        return []
+    certified = str(getattr(metadata, "plant_fingerprint", "") or "")
     if not certified:
         return ["the run records no model fingerprint: which plant its data came from is unknown"]
     if not robot:

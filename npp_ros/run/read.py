@@ -23,7 +23,7 @@ from npp_ros.certificate.certifier import Certificate, CertificationSpec
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset
 from npp_ros.run.per_robot.success_map import SuccessMap, model_bodies, run_success_map
-from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata
+from npp_ros.run.records import EpisodeRow, RobotEpisode, RunFileError, RunMetadata
 from npp_ros.run.seal import SealCheck, check_file
 from npp_ros.run.setup import policy_for, spec_of
 from npp_ros.run.store import RUN_FILE, RunStore
@@ -56,11 +56,17 @@ class Run:
     certificate: Certificate | None
     claimed: dict[str, object]
     seal: SealCheck  # intact (or unsealed, from before seals): a broken seal is a RunFileError
+    robot_episodes: tuple[RobotEpisode, ...] = ()  # a run on a robot: every episode it ran (npp_ros.run.on_robot)
 
     @property
     def folder(self) -> Path:
         """The run folder (it holds the run file, its signature and the node logs)."""
         return self.file.parent
+
+    @property
+    def on_robot(self) -> bool:
+        """Whether the run's plant was a robot itself (its checks the robot's own episodes), not a model."""
+        return bool(getattr(self.metadata, "robot_run", ""))
 
     @property
     def robots(self) -> UncertaintySet | None:
@@ -118,6 +124,7 @@ def read_run(folder: str | Path) -> Run:
             try:
                 record = store.certificate()
                 rows = store.episodes()
+                robot_episodes = tuple(store.robot_episodes())
             except (sqlite3.DatabaseError, json.JSONDecodeError) as exc:
                 raise RunFileError(f"{run_file} cannot be read: {exc}") from exc
             dataset = store.load_dataset()
@@ -128,12 +135,12 @@ def read_run(folder: str | Path) -> Run:
     except ValueError as exc:  # CertificationSpec's refusal of recorded values
         raise RunFileError(f"{run_file} records no valid specification: {exc}") from None
     if record is None:
-        return Run(run_file, metadata, task, spec, dataset, rows, None, {}, seal)
+        return Run(run_file, metadata, task, spec, dataset, rows, None, {}, seal, robot_episodes)
     if not isinstance(record, Mapping):
         raise RunFileError(f"{run_file}'s certificate is {type(record).__name__}, not a record")
     claimed = {name: record.get(name, RunMetadata.BEFORE_RECORDED.get(name)) for name in spec.record()}
     certificate = certificate_of(record, spec, run_file)
-    return Run(run_file, metadata, task, spec, dataset, rows, certificate, claimed, seal)
+    return Run(run_file, metadata, task, spec, dataset, rows, certificate, claimed, seal, robot_episodes)
 
 
 def _unsealed_by(run_file: Path, seal: SealCheck) -> str:

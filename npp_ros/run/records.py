@@ -204,10 +204,12 @@ class EpisodeOutcome:
 class RobotEpisode:
     """One episode a robot ran for a run whose plant is the robot (npp_ros.run.on_robot), stored when it ended.
 
-    ``role`` is "check" (the policy's episode, which the run's check judges) or "answer" (an expert plan run on the
-    robot by its feedback law, which joins the data as what the robot did). ``fault`` says why the robot cut it short
-    (None: it ran to its end); a cut episode is kept and marked, never a check. ``rollout`` is the measured states,
-    the commands sent and the rewards on the measured states, as float64 rows [s, a, r] (empty for a failed reset).
+    ``role`` is "check" (the policy's episode, which the run's check judges), "answer" (an expert plan run on the
+    robot by its feedback law, which joins the data as what the robot did) or "start" (a reset whose episode no
+    policy could drive, the run having no data yet: its measured start is the episode's s0, and nothing ran).
+    ``fault`` says why the robot cut it short (None: it ran to its end); a cut episode is kept and marked, never a
+    check. ``rollout`` is the measured states, the commands sent and the rewards on the measured states, as float64
+    rows [s, a, r] (empty for a failed reset).
     """
 
     id: int
@@ -216,6 +218,7 @@ class RobotEpisode:
     requested: tuple[float, ...] | None  # the start asked of the robot's reset (None: its own)
     start: tuple[float, ...]  # the start as the robot measured it (empty when the reset failed)
     steps: int
+    started_at: float  # the robot's clock at its measured start (seconds)
     robot_time: float  # seconds of the robot's clock from its start to its last state
     late_commands: int
     fault: str | None
@@ -223,7 +226,7 @@ class RobotEpisode:
     policy_return: float | None
     rollout: bytes = b""
 
-    ROLES: ClassVar[tuple[str, ...]] = ("check", "answer")
+    ROLES: ClassVar[tuple[str, ...]] = ("check", "answer", "start")
 
     def arrays(self, state_dim: int, action_dim: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(states, actions, rewards) of the stored rollout."""

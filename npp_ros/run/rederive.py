@@ -34,9 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
-from npp_ros.run.loop import RunConfig
+from npp_ros.run.loop import EpisodeCut, RunConfig
+from npp_ros.run.on_robot.episodes import RobotEpisodes
+from npp_ros.run.on_robot.identity import RobotIdentity
+from npp_ros.run.on_robot.recorded import RecordedRobot, RecordMismatch
+from npp_ros.run.on_robot.setup import build_robot_loop
 from npp_ros.run.read import Run
 from npp_ros.run.records import EpisodeRow
+from npp_ros.run.request import ResolvedRun, RunRequest
 from npp_ros.run.setup import build_loop
 from npp_ros.tasks.registry import Plant
 from npp_ros.tasks.rollout import episode_return
@@ -176,7 +181,10 @@ def expert_options(config: RunConfig) -> ExpertOptions:
 def rederive(run: Run, progress: Callable[[int, int], None] | None = None) -> Rederivation:
     """Run Algorithm 1 again over the run's stored answers and compare every episode and the certificate.
 
-    ``progress(done, total)`` is called after each episode. Stops at the first difference, which it names."""
+    ``progress(done, total)`` is called after each episode. Stops at the first difference, which it names. A run on
+    a robot is played back from the robot's stored episodes instead (:func:`rederive_on_robot`)."""
+    if run.on_robot:
+        return rederive_on_robot(run, progress)
     started = time.perf_counter()
     config = config_of(run)
     expert = run.task.make_expert(config.seed, config.horizon, expert_options(config))
@@ -200,6 +208,54 @@ def rederive(run: Run, progress: Callable[[int, int], None] | None = None) -> Re
             total,
             started,
         )
+    stored_record = None if run.certificate is None else run.certificate.record()
+    derived_record = None if loop.certificate is None else loop.certificate.record()
+    if stored_record != derived_record:
+        return _found(f"the certificate: {_record_difference(stored_record, derived_record)}", total, started)
+    return Rederivation((), total, time.perf_counter() - started)
+
+
+def rederive_on_robot(run: Run, progress: Callable[[int, int], None] | None = None) -> Rederivation:
+    """A run on a robot played back through its own loop (npp_ros.run.on_robot.recorded): every command recomputed
+    from the policy of its time at the state the robot measured, every answer checked against the robot episode it
+    came from, every row, every robot episode and the certificate compared. The robot's physics are not re-derived."""
+    started = time.perf_counter()
+    config = config_of(run)
+    identity = RobotIdentity.from_record(config.robot_run)
+    expert = run.task.make_expert(config.seed, config.horizon, expert_options(config))
+    plant = run.task.make_plant(config.seed)
+    link = RecordedRobot(list(run.robot_episodes), config.state_dim, config.action_dim, float(plant.dt))
+    resolved = ResolvedRun(RunRequest(task=config.task), ExpertOptions(), expert, config.spec.epsilon,
+                           config.spec.lipschitz, replace(config, robot_run=""))  # fmt: skip
+    try:
+        loop = build_robot_loop(resolved, link, identity, answers=run.dataset)
+    except ValueError as exc:
+        return _found(f"the run cannot be played back: {exc}", 0, started)
+    total = len(run.episodes)
+    done = 0
+    while done < total:
+        stored = run.episodes[done]
+        try:
+            derived = loop.run_episode()
+        except EpisodeCut:
+            continue
+        except RecordMismatch as exc:
+            return _found(f"episode {stored.episode}: {exc}", done, started)
+        difference = first_difference(stored, derived)
+        if difference:
+            return _found(f"episode {stored.episode}: {difference}", done, started)
+        done += 1
+        if progress is not None:
+            progress(done, total)
+    derived_kept = loop.robot_facts.kept if isinstance(loop.robot_facts, RobotEpisodes) else []
+    if len(derived_kept) != len(run.robot_episodes):
+        return _found(f"the run's loop ran the robot {len(derived_kept)} times; the file stores "
+                      f"{len(run.robot_episodes)} robot episodes", total, started)  # fmt: skip
+    for said, found in zip(run.robot_episodes, derived_kept, strict=True):
+        for item in fields(said):
+            if not _same(getattr(said, item.name), getattr(found, item.name)):
+                return _found(f"robot episode {said.id}: {item.name} is {_shown(getattr(said, item.name))} in the "
+                              f"file, {_shown(getattr(found, item.name))} played back", total, started)  # fmt: skip
     stored_record = None if run.certificate is None else run.certificate.record()
     derived_record = None if loop.certificate is None else loop.certificate.record()
     if stored_record != derived_record:

@@ -625,7 +625,7 @@ class RunStore:
 
 ROBOT_EPISODES_SCHEMA = (
     "CREATE TABLE IF NOT EXISTS robot_episodes (id INTEGER PRIMARY KEY, episode INTEGER NOT NULL, role TEXT NOT NULL, "
-    "requested TEXT, start TEXT NOT NULL, steps INTEGER NOT NULL, robot_time REAL NOT NULL, "
+    "requested TEXT, start TEXT NOT NULL, steps INTEGER NOT NULL, started_at REAL NOT NULL, robot_time REAL NOT NULL, "
     "late_commands INTEGER NOT NULL, fault TEXT, success INTEGER, policy_return REAL, rollout BLOB NOT NULL)"
 )
 

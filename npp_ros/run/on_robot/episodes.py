@@ -110,6 +110,7 @@ class RobotEpisodes:
             requested=None if requested is None else state_tuple(requested),
             start=() if start is None else state_tuple(start.state),
             steps=steps,
+            started_at=0.0 if start is None else start.time,
             robot_time=0.0 if start is None else max(end_time - start.time, 0.0),
             late_commands=late,
             fault=fault,
@@ -228,14 +229,24 @@ class RobotEpisodes:
         late_before: int,
         fault: str | None,
     ) -> RobotEpisode:
-        rewards = [self._reward(x, u) for x, u in zip(states, actions, strict=True)]  # after the robot has stopped
+        rewards = [self.reward(x, u) for x, u in zip(states, actions, strict=True)]  # after the robot has stopped
         late = self.link.late_commands - late_before
         return self._record(episode, role, requested, start, states, actions, rewards, last.time, late, fault)
 
-    def _reward(self, state: FloatArray, command: FloatArray) -> float:
+    def reward(self, state: FloatArray, command: FloatArray) -> float:
         """The task's reward of a measured state and the command sent, as the model gives it."""
         self.model.reset(state)
         return float(self.model.step(command))
+
+    def close_start(self) -> None:
+        """Before an answer: a start the policy did not drive from (no data yet) is kept as such, steps 0."""
+        started = self._started
+        if started is None:
+            return
+        self._started = None
+        self.answering = started.episode
+        self._record(started.episode, "start", started.requested, started.start, [], [], [], started.start.time, 0,
+                     None)  # fmt: skip
 
     def rollout(self, initial_state: FloatArray, policy: NonparametricPolicy, robot: Robot | None = None) -> Rollout:
         """The episode the robot just ran: what the loop's success check judges (never a re-run on a model)."""

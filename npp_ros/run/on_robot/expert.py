@@ -36,6 +36,7 @@ class RobotPlanOracle:
 
     def trajectory(self, initial_state: FloatArray) -> Trajectory:
         episodes = self.episodes
+        episodes.close_start()
         episode = episodes.answering
         while True:
             start = episodes.reset(episode, initial_state, "answer")

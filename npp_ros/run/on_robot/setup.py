@@ -3,15 +3,18 @@ robot's episodes and the expert's plans run on the robot."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from npp_ros.run.loop import NPPLoop, Observer, RunConfig
+from npp_ros.policy.dataset import Dataset
+from npp_ros.run.loop import NPPLoop, Observer, Oracle, RunConfig
 from npp_ros.run.on_robot.episodes import DEFAULT_MAX_FAULTS, RobotEpisodes
 from npp_ros.run.on_robot.expert import RobotPlanOracle
 from npp_ros.run.on_robot.identity import RobotIdentity
 from npp_ros.run.on_robot.link import RobotLink
+from npp_ros.run.on_robot.recorded import RecordedRobot, StoredRobotAnswers
 from npp_ros.run.request import ResolvedRun
 from npp_ros.run.setup import initial_state_fn, task_control_space, value_basis
 from npp_ros.run.store import RunStore
@@ -45,11 +48,17 @@ def build_robot_loop(
     observers: Sequence[Observer] = (),
     max_faults: int = DEFAULT_MAX_FAULTS,
     log: Callable[[str], None] = lambda text: None,
+    answers: Dataset | None = None,
 ) -> NPPLoop:
-    """Algorithm 1 with the robot as the plant: each check one of its episodes, each answer a plan it ran."""
+    """Algorithm 1 with the robot as the plant: each check one of its episodes, each answer a plan it ran.
+
+    ``answers``: the run's stored answers, with ``link`` its stored robot episodes (recorded.RecordedRobot): the run
+    played back from its file, as a gate derives it again (no store, no expert asked, no fault ends it)."""
     config = robot_run_config(resolved, identity)
     task = get_task(config.task)
     store = None if store_path is None else RunStore.open_or_create(store_path, config.metadata())
+    if answers is not None:
+        max_faults = sys.maxsize
     draw = initial_state_fn(config.task, config.seed)
     episodes = RobotEpisodes(
         link,
@@ -64,9 +73,13 @@ def build_robot_loop(
     )
     space = task_control_space(config.task, config.seed)
     expert = resolved.expert
-    oracle = RobotPlanOracle(
-        expert, episodes, space, planning=identity.planning_robot, window=stores_window_values(expert)
-    )
+    window = stores_window_values(expert)
+    oracle: Oracle
+    if answers is not None:
+        assert isinstance(link, RecordedRobot), "a played-back run's link is its stored robot episodes"
+        oracle = StoredRobotAnswers(link, episodes, answers, window=window)
+    else:
+        oracle = RobotPlanOracle(expert, episodes, space, planning=identity.planning_robot, window=window)
     return NPPLoop(
         config,
         oracle,
