@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 LEARN = [sys.executable, "-m", "npp_ros.cli.learn"]
 
 
@@ -18,6 +20,7 @@ def test_help_explains_the_options() -> None:
     assert "not a bound on these tasks" in out  # the paper's L is named for what it is
 
 
+@pytest.mark.long
 def test_runs_to_a_certificate_and_leaves_a_run_folder(tmp_path: Path) -> None:
     run = subprocess.run([*LEARN, "--run-dir", str(tmp_path), "--evaluate", "3"], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr

@@ -202,6 +202,7 @@ def test_expert_stop_reaches_the_optimizer_experts_and_no_other() -> None:
         assert all(expert_options(a, settings).answer_identity()["stop"] == stops[a.task.split("#")[0]] for a in arms)
 
 
+@pytest.mark.long
 def test_sound_modes_are_arms_and_every_certificate_is_checked_on_held_out_states(tmp_path: Path) -> None:
     run = run_experiment(
         tmp_path, 60, "--lipschitz", "analytic", "--experts", "optimal", "--certify", "rollout", "oracle",

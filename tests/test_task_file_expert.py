@@ -125,6 +125,7 @@ def without_energy_term(path: Path) -> Path:
     return path
 
 
+@pytest.mark.long
 def test_the_energy_term_swings_the_acrobot_up_where_the_same_windows_without_it_do_not(acrobot_dir: Path) -> None:
     """The example's receding windows, one plan and two polishing iterations, from the s0 of episode 3 at
     H = 700 (7 s): with its energy term the answer holds both links up over the last second; the same

@@ -81,6 +81,7 @@ def noise(run_dir: Path, out: Path) -> dict[str, list[str]]:
     return {name: lines for name, lines in found.items() if lines}
 
 
+@pytest.mark.long
 def test_ctrl_c_a_certified_run_and_a_refusal_leave_clean_logs(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "run"
     with domain_id() as domain:

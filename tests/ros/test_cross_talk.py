@@ -156,6 +156,7 @@ def expected_return(data: Any, spec: CertificationSpec, row: Any, plant: LQRPlan
     return rollout(plant, policy.act, np.asarray(row.initial_state), HORIZON).total_return
 
 
+@pytest.mark.long
 def test_nothing_from_outside_the_run_enters_it(
     launch: Launcher, ros_client: Callable[..., RosClient], tmp_path: Path
 ) -> None:

@@ -95,6 +95,7 @@ def browser() -> Iterator[Browser]:
         b.close()
 
 
+@pytest.mark.long
 def test_the_page_follows_a_run_to_its_certificate(launch: Any, dashboards: list[Dashboard], browser: Browser,
                                                    tmp_path: Path) -> None:  # fmt: skip
     live = Dashboard(tmp_path / "dashboard.log")

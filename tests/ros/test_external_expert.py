@@ -31,6 +31,7 @@ HORIZON = 300
 EPSILON = 200.0  # certified after some 130 episodes (366 at the default 50): the expert's answers are the point
 
 
+@pytest.mark.long
 def test_the_supervisor_certifies_a_run_served_by_an_external_expert(
     launch: Launcher, ros_client: Callable[..., RosClient], tmp_path: Path
 ) -> None:

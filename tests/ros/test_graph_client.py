@@ -19,6 +19,7 @@ from npp_ros_graph.transport.seal import KEY_ENV
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "tutorials" / "graph-client.md"
 
 
+@pytest.mark.long
 def test_the_graph_client_tutorial_runs_as_written(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], ros_domain: int
 ) -> None:

@@ -138,6 +138,7 @@ def tool_children(parent: int) -> dict[str, int]:
 
 
 # ----------------------------------------------------------------------------- 2. a node that refuses
+@pytest.mark.long
 def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp_path: Path, ros_domain: int) -> None:
     """npp-run checks the run's settings before any node starts; what only a node can judge (here, whether the
     task's expert computes an analytic L) is refused by that node, which npp-run names with its reason and log."""
@@ -177,6 +178,7 @@ def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp
 
 
 # ----------------------------------------------------------------------------- 3. a second npp-run
+@pytest.mark.long
 def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_domain: int) -> None:
     run_dir, out = tmp_path / "run", tmp_path / "first.out"
     first_started = time.monotonic()

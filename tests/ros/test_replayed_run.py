@@ -53,6 +53,7 @@ def episodes(run_file: Path) -> int:
         return 0
 
 
+@pytest.mark.long
 def test_a_replayed_run_enters_nothing_of_a_second_run_with_the_same_key(
     launch: Launcher, ros_client: Callable[..., RosClient], tmp_path: Path
 ) -> None:

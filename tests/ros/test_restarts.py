@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from npp_interfaces.msg import Certificate, GapReport
 from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
@@ -32,6 +33,7 @@ def test_unreachable_expert_is_reported_and_the_supervisor_exits(launch, tmp_pat
         assert store.num_trajectories() == 0 and store.episodes() == []
 
 
+@pytest.mark.long
 def test_killing_policy_then_supervisor_loses_no_expert_data(launch, ros_client, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     supervisor_params = {"run_dir": str(run_dir), "max_episodes": 400, "rollout_timeout": 30.0, **ROLLOUT_FREE}

@@ -1,7 +1,8 @@
 """npp-robot's reset service and its clock, as separate processes over DDS: a reset puts the plant at the asked state
 and answers it as measured, the robot holds it until the next command, which it applies at once; a bad state is
 refused with its reason and changes nothing; stamps follow the robot's clock (dt apart, faster than the wall clock
-with time_scale, never back across resets; a held start repeats its measurement's stamp); the robot it runs is not told through its parameters.
+with time_scale, never back across resets; a held start repeats its measurement's stamp); the robot it runs is not
+told through its parameters.
 
 Three robots live for the module: real time at time_scale 1 on the default topics; time_scale 5 with an action
 delay and state noise under /fast; lockstep under /step. No test fails because the machine is busy: stamps are

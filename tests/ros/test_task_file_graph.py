@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import pytest
 from expert_checks import TIMEOUT, request, wait_until_modelling
 from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
@@ -25,6 +26,7 @@ REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / "examples" / "two_link_arm"
 
 
+@pytest.mark.long
 def test_npp_run_certifies_the_example_arm_from_its_task_file(tmp_path: Path, ros_domain: int) -> None:
     """The README's command at a short horizon: 50 steps, epsilon 8 (of at most 55 per episode)."""
     run_dir = tmp_path / "arm"

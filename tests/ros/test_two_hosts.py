@@ -205,6 +205,7 @@ def ros_args(**params: str) -> list[str]:
     return ["--ros-args", *[arg for name, value in params.items() for arg in ("-p", f"{name}:={value}")]]
 
 
+@pytest.mark.long
 def test_expert_on_another_host_serves_the_run_to_its_certificate(
     two_hosts: TwoHosts, ros_domain: int, tmp_path: Path
 ) -> None:

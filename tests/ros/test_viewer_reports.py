@@ -69,6 +69,7 @@ def dashboard_state(log: Path) -> dict[str, Any]:
         return dict(json.loads(response.read()))
 
 
+@pytest.mark.long
 def test_a_replayed_certificate_is_not_shown_as_the_live_runs(tmp_path: Path, ros_domain: int) -> None:
     keyless = {k: v for k, v in os.environ.items() if k != KEY_ENV}
     with domain_id() as domain:
