@@ -5,6 +5,7 @@ model; the run refuses what it cannot be."""
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 
@@ -218,3 +219,31 @@ def test_what_a_run_on_a_robot_cannot_be_is_refused_before_the_robot_moves() -> 
         RobotIdentity(fingerprint="")
     with pytest.raises(ValueError, match="starts must be one of"):
         RobotIdentity(fingerprint="ab", starts="anywhere")  # type: ignore[arg-type]
+
+
+def test_a_run_on_a_robot_may_start_from_another_runs_data_which_are_data_never_checks(tmp_path: Path) -> None:
+    """Started from a run certified on the model: its trajectories are the robot run's first data (stored, named in
+    the record and the certificate, never counted as the run's expert calls or checks), and the first episode is
+    already a check of the policy over them; the run resumes, and the gate plays it back."""
+    model = build_loop(resolved(CERTIFYING_HORIZON).config, resolved(CERTIFYING_HORIZON).expert,
+                       store_path=tmp_path / "model" / "run.sqlite")  # fmt: skip
+    model.run(200)
+    model.store.close()  # type: ignore[union-attr]
+    assert model.certificate is not None
+    path = tmp_path / "robot" / "run.sqlite"
+    start = {"prior_run": tmp_path / "model"}
+    loop = build_robot_loop(resolved(CERTIFYING_HORIZON), simulated(HIDDEN), identity(), store_path=path, **start)
+    first = loop.run_episode()
+    assert first.policy_success is not None and loop.oracle_calls == int(first.oracle_called)
+    loop.store.close()  # type: ignore[union-attr]
+    again = build_robot_loop(resolved(CERTIFYING_HORIZON), simulated(HIDDEN), identity(), store_path=path, **start)
+    assert again.run(200).certified
+    again.store.close()  # type: ignore[union-attr]
+    run = read_run(path.parent)
+    said = json.loads(run.metadata.prior)
+    assert said["trajectories"] == model.certificate.policy_trajectories and said["certified"]
+    assert f"began with {said['trajectories']} trajectories of the certified run model" in run.certificate.statement  # type: ignore[union-attr]
+    assert run.dataset.num_trajectories == said["trajectories"] + sum(r.trajectories_stored for r in run.episodes)
+    assert rederive(run).agrees
+    with pytest.raises(RunFileError, match="prior"):  # resumed without its start is another run
+        build_robot_loop(resolved(CERTIFYING_HORIZON), simulated(HIDDEN), identity(), store_path=path)

@@ -83,14 +83,16 @@ class RobotClaim:
     faults: int
     robot_time: float
     late_commands: int
+    prior: str = ""  # the trajectories it started with from another run, in words ("": none)
 
     def sentence(self) -> str:
+        started = f" The policy's data began with {self.prior}; those are data, never checks." if self.prior else ""
         return (
             f"The robot: {self.robot}. Every check is one of this robot's own episodes from its reset ({self.starts}), "
             f"judged on the states it measured: {self.checks} checks and {self.answers} expert plans run on it, "
             f"{self.robot_time:.1f} s of robot time; {self.faults} episodes a fault cut short are stored and not "
             f"counted; {self.late_commands} commands arrived after their control period. Nothing is claimed for "
-            "another robot, or for this one after it changes."
+            "another robot, or for this one after it changes." + started
         )
 
 

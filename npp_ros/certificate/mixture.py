@@ -208,9 +208,12 @@ class MixtureCertifier:
         )
 
 
-def certifier_for(spec: CertificationSpec) -> Certifier | MixtureCertifier:
-    """The certifier of the spec's stopping rule."""
-    return MixtureCertifier(spec) if spec.rule == "mixture" else Certifier(spec)
+def certifier_for(spec: CertificationSpec, *, with_policy: bool = False) -> Certifier | MixtureCertifier:
+    """The certifier of the spec's stopping rule; ``with_policy``: the run starts with data (another run's), so its
+    first check is already a test of a policy (the first test, spending delta_1), not the check no policy can pass."""
+    if spec.rule == "mixture":
+        return MixtureCertifier(spec)
+    return Certifier(spec, tests=1 if with_policy else 0)
 
 
 # ---------------------------------------------------------------------- the rules, simulated

@@ -35,6 +35,7 @@ the replay), the oracle's answer (a privileged expert, planning on theta) and th
 
 from __future__ import annotations
 
+import json
 import math
 import time
 import warnings
@@ -167,6 +168,9 @@ class RunConfig:
     # A run whose plant is a robot (npp_ros.run.on_robot.identity.RobotIdentity.record()): which robot, which model
     # the expert plans on, where its starts come from; '' = a run on the task's model.
     robot_run: str = ""
+    # Trajectories the run starts with, from another run (on_robot.setup.prior_record: its folder, seal digest and
+    # count); '' = none. They are the file's first trajectories, asked by no episode of this run.
+    prior: str = ""
     # The expert's settings that decide its answers (records.EXPERT_SETTINGS), as its expert resolved them (the task's
     # defaults filled in; records.expert_settings); None where an option does not apply to that expert.
     expert_kind: str | None = None
@@ -239,6 +243,7 @@ class NPPLoop:
         replay: Replay | None = None,
         robots: Callable[[int], Robot] | None = None,
         robot_facts: RobotFacts | None = None,
+        prior: Dataset | None = None,
     ) -> None:
         self.config = config
         self.spec = config.spec
@@ -277,13 +282,16 @@ class NPPLoop:
                 "the robot's own episodes, which give no expert value to compare with"
             )
         self.robot_facts = robot_facts
-        self.certifier = certifier_for(self.spec)
+        self.prior_count = int(json.loads(config.prior)["trajectories"]) if config.prior else 0
+        self.certifier = certifier_for(self.spec, with_policy=self.prior_count > 0)
         self.rows: list[EpisodeRow] = []
         self.certificate: Certificate | None = None
         self.dataset = Dataset(config.state_dim, config.action_dim)  # every stored trajectory, in order
         self.policy_data = self.dataset  # the prefix the policy acts on (shorter only while checks hold data back)
         if store is not None:
             self._resume(store)
+        if self.prior_count and not self.rows and self.dataset.num_trajectories == 0:  # a new run, with its start
+            self._start_from(prior, store)
         self.policy = self._new_policy()
 
     # ------------------------------------------------------------------ state
@@ -293,7 +301,8 @@ class NPPLoop:
 
     @property
     def oracle_calls(self) -> int:
-        return self.dataset.num_trajectories
+        """Expert answers this run asked for (the trajectories it started with are not its calls)."""
+        return self.dataset.num_trajectories - self.prior_count
 
     @property
     def held_back(self) -> int:
@@ -307,12 +316,12 @@ class NPPLoop:
         """Trajectories stored among the first ``episodes`` episodes but not yet part of the policy
         then (held while its test ran); replays the rule's decisions."""
         rows = self.rows[:episodes]
-        return sum(row.trajectories_stored for row in rows) - self._replay(rows)[1]
+        return self.prior_count + sum(row.trajectories_stored for row in rows) - self._replay(rows)[1]
 
     def _replay(self, rows: Sequence[EpisodeRow]) -> tuple[Certifier | MixtureCertifier, int]:
         """A fresh certifier fed ``rows``, and how many stored trajectories the policy held after them."""
-        certifier = certifier_for(self.spec)
-        stored = joined = 0
+        certifier = certifier_for(self.spec, with_policy=self.prior_count > 0)
+        stored = joined = self.prior_count
         for row in rows:
             stored += row.trajectories_stored
             if not certifier.observe(row.checked_gap, not self._passed(row)).frozen:
@@ -335,8 +344,10 @@ class NPPLoop:
         for expected, row in enumerate(self.rows):
             if row.episode != expected:
                 raise RunFileError(f"{store.path} is damaged: episode {expected} is missing from its log")
+        if not self.rows and self.dataset.num_trajectories == 0:
+            return  # a new file: nothing to take up
         self.certifier, joined = self._replay(self.rows)
-        called = sum(row.trajectories_stored for row in self.rows)
+        called = self.prior_count + sum(row.trajectories_stored for row in self.rows)
         if called != self.dataset.num_trajectories:
             raise RunFileError(
                 f"{store.path} is inconsistent: its episodes asked the oracle for {called} trajectories, "
@@ -347,6 +358,16 @@ class NPPLoop:
             self.certificate = Certificate.from_record(stored, self.spec)
         else:
             self._set_policy_prefix(joined)
+
+    def _start_from(self, prior: Dataset | None, store: RunStore | None) -> None:
+        """A new run that starts with another run's trajectories (config.prior): stored first, asked by no episode."""
+        if prior is None or prior.num_trajectories != self.prior_count:
+            raise ValueError(f"the run starts with {self.prior_count} trajectories of another run: give them")
+        for index in range(prior.num_trajectories):
+            item = prior.trajectory(index)
+            if store is not None:
+                store.record_prior(index, item)
+            self.dataset.append(item)
 
     def _new_policy(self) -> NonparametricPolicy:
         return make_policy(self.policy_data, self.spec, self.control)

@@ -54,6 +54,7 @@ class RunMetadata(SimpleNamespace):
         "uncertainty": "",
         "expert_model": "robot",
         "robot_run": "",
+        "prior": "",
     }
     # Absent from files made before run files recorded the expert's settings. What they were for such a file's
     # answers is not known: they are never compared, never written in later (a value written then would claim the

@@ -473,6 +473,15 @@ class RunStore:
                 (policy_return, _encode(policy_success), episode),
             )
 
+    def record_prior(self, index: int, trajectory: Trajectory) -> None:
+        """A trajectory the run starts with, from another run (RunConfig.prior): stored before any episode, under no
+        episode of this run."""
+        self._writable()
+        if self._conn.execute("SELECT COUNT(*) FROM episodes").fetchone()[0]:
+            raise RunFileError(f"{self.path}: a run's first trajectories come before its episodes")
+        with _transaction(self._conn, self.path):
+            self._insert_trajectory(index, None, trajectory)
+
     def record_robot_episode(self, episode: RobotEpisode) -> None:
         """A robot's episode, the moment it ended (npp_ros.run.on_robot): a check kept before its row is stored, so a
         run stopped in between takes that same check up again instead of running the robot anew; a fault, marked."""

@@ -70,6 +70,7 @@ class RobotEpisodes:
         self._faults_in_a_row = 0
         self._last: tuple[int, Rollout] | None = None
         self.answering = 0  # the episode whose check ran last: an expert's plan run after it is stored under it
+        self.prior = ""  # the trajectories the run started with from another run, in words (setup says)
 
     # ------------------------------------------------------------------ records
     def _pending(self, episode: int) -> RobotEpisode | None:
@@ -265,4 +266,5 @@ class RobotEpisodes:
             faults=sum(kept.fault is not None for kept in self.kept),
             robot_time=sum(kept.robot_time for kept in self.kept),
             late_commands=sum(kept.late_commands for kept in self.kept),
+            prior=self.prior,
         )

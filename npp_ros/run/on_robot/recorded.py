@@ -99,9 +99,11 @@ class StoredRobotAnswers:
     """The oracle of a run on a robot played back: the stored answers in order, each checked to be what its stored
     robot episode gives (its states and commands, its values from the rewards of the measured states)."""
 
-    def __init__(self, robot: RecordedRobot, episodes: RobotEpisodes, dataset: Dataset, *, window: bool) -> None:
+    def __init__(
+        self, robot: RecordedRobot, episodes: RobotEpisodes, dataset: Dataset, *, window: bool, first: int = 0
+    ) -> None:
         self.robot, self.episodes, self.dataset, self.window = robot, episodes, dataset, window
-        self.given = 0
+        self.given = first  # the run's first trajectories came from another run, not from the robot
 
     def trajectory(self, initial_state: FloatArray) -> Trajectory:
         self.episodes.close_start()

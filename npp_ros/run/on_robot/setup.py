@@ -3,6 +3,7 @@ robot's episodes and the expert's plans run on the robot."""
 
 from __future__ import annotations
 
+import json
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -15,11 +16,29 @@ from npp_ros.run.on_robot.expert import RobotPlanOracle
 from npp_ros.run.on_robot.identity import RobotIdentity
 from npp_ros.run.on_robot.link import RobotLink
 from npp_ros.run.on_robot.recorded import RecordedRobot, StoredRobotAnswers
+from npp_ros.run.read import read_run
 from npp_ros.run.request import ResolvedRun
 from npp_ros.run.setup import initial_state_fn, task_control_space, value_basis
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.nominal_plan import stores_window_values
 from npp_ros.tasks.registry import get_task
+
+
+def prior_record(folder: Path, config: RunConfig) -> tuple[str, Dataset]:
+    """What a run on a robot starts with from another run of its task (a run on its set of robots, say): that run's
+    certified policy's trajectories (all of them when it has no certificate), and the record naming them (its folder's
+    name, its seal digest, their count). A ValueError for a run of another task or shape."""
+    run = read_run(folder)
+    if run.task.name != config.task or int(run.metadata.seed) != config.seed:
+        raise ValueError(f"{folder} is a run of {run.task.name} seed {run.metadata.seed}, not {config.task} seed "
+                         f"{config.seed}")  # fmt: skip
+    count = run.dataset.num_trajectories if run.certificate is None else run.certificate.policy_trajectories
+    if count == 0:
+        raise ValueError(f"{folder} holds no trajectories to start from")
+    data = run.dataset if count == run.dataset.num_trajectories else run.dataset.prefix(count)
+    record = {"run": Path(folder).resolve().name, "seal": run.seal.digest, "trajectories": count,
+              "certified": run.certificate is not None}  # fmt: skip
+    return json.dumps(record, sort_keys=True), data
 
 
 def robot_run_config(resolved: ResolvedRun, identity: RobotIdentity) -> RunConfig:
@@ -49,12 +68,21 @@ def build_robot_loop(
     max_faults: int = DEFAULT_MAX_FAULTS,
     log: Callable[[str], None] = lambda text: None,
     answers: Dataset | None = None,
+    prior_run: Path | None = None,
 ) -> NPPLoop:
     """Algorithm 1 with the robot as the plant: each check one of its episodes, each answer a plan it ran.
 
     ``answers``: the run's stored answers, with ``link`` its stored robot episodes (recorded.RecordedRobot): the run
-    played back from its file, as a gate derives it again (no store, no expert asked, no fault ends it)."""
+    played back from its file, as a gate derives it again (no store, no expert asked, no fault ends it).
+    ``prior_run``: a run folder whose trajectories the run starts with (prior_record); the record says which."""
     config = robot_run_config(resolved, identity)
+    prior = None
+    if prior_run is not None:
+        record, prior = prior_record(prior_run, config)
+        config = replace(config, prior=record)
+    elif answers is not None and resolved.config.prior:  # played back: its first trajectories are the stored ones
+        config = replace(config, prior=resolved.config.prior)
+        prior = answers.prefix(int(json.loads(config.prior)["trajectories"]))
     task = get_task(config.task)
     store = None if store_path is None else RunStore.open_or_create(store_path, config.metadata())
     if answers is not None:
@@ -71,13 +99,21 @@ def build_robot_loop(
         max_faults=max_faults,
         log=log,
     )
+    if config.prior:
+        said = json.loads(config.prior)
+        kind = "certified " if said.get("certified") else ""
+        episodes.prior = (
+            f"{said['trajectories']} trajectories of the {kind}run {said['run']} (seal {said['seal'][:12]}...)"
+        )
     space = task_control_space(config.task, config.seed)
     expert = resolved.expert
     window = stores_window_values(expert)
     oracle: Oracle
     if answers is not None:
         assert isinstance(link, RecordedRobot), "a played-back run's link is its stored robot episodes"
-        oracle = StoredRobotAnswers(link, episodes, answers, window=window)
+        oracle = StoredRobotAnswers(
+            link, episodes, answers, window=window, first=0 if prior is None else prior.num_trajectories
+        )
     else:
         oracle = RobotPlanOracle(expert, episodes, space, planning=identity.planning_robot, window=window)
     return NPPLoop(
@@ -92,4 +128,5 @@ def build_robot_loop(
         success=task.success,
         replay=episodes,
         robot_facts=episodes,
+        prior=prior,
     )

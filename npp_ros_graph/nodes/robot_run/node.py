@@ -61,6 +61,8 @@ PARAMETERS = (
     Param("starts", "rho", STARTS_HELP, choices=STARTS),
     Param("identified_robot", "", "the model the expert plans on: an identification of this robot (npp-identify "
           "--out FILE); empty = the task's nominal model"),
+    Param("start_from", "", "a run folder of the task (a run on its set of robots, say) whose certified policy's "
+          "trajectories the run starts with: data, never checks; empty = none"),
     Param("state_timeout", 0.5, "seconds without a joint state before the episode is cut short (a fault)", 1e-3),
     Param("reset_timeout", 30.0, "seconds the robot's reset may take", 1e-3),
     Param("description_timeout", 30.0, "seconds to wait for the robot's description before refusing", 1e-3),
@@ -82,6 +84,7 @@ class RobotRunSettings:
     command_joints: str
     starts: str
     identified_robot: str
+    start_from: str
     state_timeout: float
     reset_timeout: float
     description_timeout: float
@@ -204,7 +207,7 @@ class RobotRunNode(Node):
             warnings.simplefilter("always", UnrecordedSettings)
             self.loop = loop = build_robot_loop(
                 resolved, link, identity, store_path=run_dir / RUN_FILE, observers=[status],
-                max_faults=s.max_faults, log=log.warning,
+                max_faults=s.max_faults, log=log.warning, prior_run=Path(s.start_from) if s.start_from else None,
             )  # fmt: skip
         for notice in notices:
             log.warning(str(notice.message))
