@@ -18,6 +18,7 @@ from npp_ros.cli import learn
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run import setup
 from npp_ros.run.records import SuccessCounts
+from npp_ros.run.request import success_lipschitz_choice
 from npp_ros.run.setup import build_config, build_loop
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.lqr import LQR_2_1, LQRExpert
@@ -222,3 +223,13 @@ def test_a_certificate_from_before_success_was_measured_reads_as_before() -> Non
     old = {**cert.record(), "statement": cert.claim}
     again = Certificate.from_record(old, cert.spec)
     assert again.success == "" and "  success " not in again.summary() and again.claim == cert.claim
+
+
+def test_a_success_claim_needs_no_l_from_the_user() -> None:
+    """The claim rests on no L: a task with no L of its own acts with one measured on the run's first answers
+    ('data', a choice) instead of refusing; a task with its own default keeps it."""
+    cartpole = get_task("cartpole_swingup")
+    with pytest.raises(ValueError, match="no analytic, paper or own L"):
+        cartpole.default_lipschitz_choice()
+    assert success_lipschitz_choice(cartpole) == "data"
+    assert success_lipschitz_choice(get_task("lqr_2_1")) == "analytic"

@@ -119,7 +119,12 @@ def main(argv: list[str] | None = None) -> int:
     args.horizon = request.horizon
 
     label = task_label(args.task)  # a task file's name key; its path and hash stay in the run file and summary.json
-    print(f"npp-learn: {label} seed {args.seed}, epsilon {epsilon:g}, {lipschitz.describe()}", file=sys.stderr)
+    if config.spec.certify == "success":  # the claim bounds no gap and rests on no L: the policy's L is a choice
+        spec = config.spec
+        claim = f"success claim, p {spec.p:g}, delta {spec.delta:g}; the policy acts with {lipschitz.describe()}"
+    else:
+        claim = f"epsilon {epsilon:g}, {lipschitz.describe()}"
+    print(f"npp-learn: {label} seed {args.seed}, {claim}", file=sys.stderr)
     if loop.rows:
         print(f"npp-learn: resuming {run_dir / 'run.sqlite'} at episode {loop.next_episode}", file=sys.stderr)
     started = time.perf_counter()

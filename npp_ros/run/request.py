@@ -33,7 +33,7 @@ from npp_ros.run.explore import EXPLORE_HELP, check_radius
 from npp_ros.run.loop import RunConfig
 from npp_ros.run.setup import build_config, check_uncertainty, resolve_lipschitz
 from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODEL_HELP, EXPERT_MODELS, check_expert_model
-from npp_ros.tasks.registry import Expert, ExpertOptions, by_task, check_horizon, get_task
+from npp_ros.tasks.registry import Expert, ExpertOptions, Task, by_task, check_horizon, get_task
 from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
 from npp_ros.trajopt.expert import STOP_HELP, STOP_MODES, TIME_BUDGET_HELP, VALUE_MODES, check_stop
 from npp_ros.trajopt.ilqr import check_time_budget
@@ -225,6 +225,15 @@ class ResolvedRun:
     config: RunConfig
 
 
+def success_lipschitz_choice(task: Task) -> str | float:
+    """The L a success claim's policy acts with when the request names none: the task's default where it has one,
+    else 'data' (from the run's first answers). The claim rests on no L, so no task refuses one for want of it."""
+    try:
+        return task.default_lipschitz_choice()
+    except ValueError:
+        return "data"
+
+
 def resolve_run(
     request: RunRequest,
     *,
@@ -251,6 +260,8 @@ def resolve_run(
     options = request.expert_options(kind=kind, control_weight=control_weight, threads=threads)
     expert = definition.make_expert(request.seed, request.horizon, options)
     choice = request.lipschitz.value if isinstance(request.lipschitz, LipschitzConstant) else request.lipschitz
+    if choice is None and certify == "success":
+        choice = success_lipschitz_choice(definition)
     lipschitz = resolve_lipschitz(
         request.task, choice, expert, seed=request.seed, horizon=request.horizon, run_file=run_file
     )
