@@ -30,7 +30,7 @@ SHELL_BLOCKS = ("bash", "sh", "shell", "console")
 NODE_PACKAGE = "npp_ros_graph.nodes"
 PLACEHOLDERS = {"my_task": "lqr_2_1"}  # own-task.md's task is the one its reader adds: its flags are tried on another
 OUTPUT_OPTIONS = ("--out", "--run-dir", "-o", "--logs")  # what a command writes (a runs/ path there is made by it)
-OUTPUT_PARAMETERS = {"npp-supervisor": ("run_dir",), "npp-robot-run": ("run_dir",)}  # they open or start the run file there
+OUTPUT_PARAMETERS = {"npp-supervisor": ("run_dir",), "npp-robot-run": ("run_dir",)}  # they make the run file there
 CONTROL = ("&", "&&", ";", "|", "||")
 
 
