@@ -6,9 +6,9 @@ parameters given to it, not to the run), npp-robot-run certifying on it, each it
 Six measurements, each with its run folders under runs/robot-run/ (not in git):
 
 - inside: a robot inside the pendulum's set where its set-certified policy is weak (damping x 0.55, a command one
-  period late), real time at --time-scale; the certificate, robot episodes, robot time, expert calls, faults and
-  late commands; then an independent check of the certified policy on that robot (its physics in process, --held-out
-  starts from a stream no run draws from), with a one-sided Clopper-Pearson bound.
+  period late), in lockstep (or real time at --time-scale); the certificate, robot episodes, robot time, expert
+  calls, faults and late commands; then an independent check of the certified policy on that robot (its physics in
+  process, --held-out starts from a stream no run draws from), with a one-sided Clopper-Pearson bound.
 - set: the policy a run on the whole set certified (--set-run, made by npp-learn --task pendulum_swingup --seed 0
   --uncertainty 1 --certify success --rule mixture --evaluate 0 --run-dir runs/per-robot/pendulum-u1-s0), on the same
   starts of the same robot.
@@ -166,13 +166,19 @@ def held_out(policy_dir: Path, robot: Robot, starts: int) -> dict[str, Any]:
     return {"starts": starts, "successes": met, "lower_bound_90": round(clopper_pearson_lower(met, starts, 0.1), 4)}
 
 
+def pace_params(time_scale: float) -> dict[str, Any]:
+    """The robot's pace: lockstep (time_scale 0: it steps when a command answers its state, so none is late), else
+    real time at time_scale."""
+    return {"lockstep": True} if time_scale == 0 else {"time_scale": time_scale}
+
+
 def inside(out: Path, time_scale: float, starts: int, start_from: Path | None = None) -> dict[str, Any]:
     name = "inside" if start_from is None else "inside-from-set"
     run_dir = fresh(out / name)
     procs = Processes(out / f"{name}-logs")
     more = {} if start_from is None else {"start_from": str(start_from)}
     try:
-        procs.start("npp-robot", robot_params(INSIDE, time_scale=time_scale), "robot")
+        procs.start("npp-robot", robot_params(INSIDE, **pace_params(time_scale)), "robot")
         started = time.monotonic()
         runner = procs.start("npp-robot-run", run_params(run_dir, max_episodes=1000, **more), "robot-run")
         wait(runner, run_dir / RUN_FILE, name)
@@ -201,7 +207,7 @@ def corner(out: Path, time_scale: float, episodes: int) -> dict[str, Any]:
     run_dir = fresh(out / "corner")
     procs = Processes(out / "corner-logs")
     try:
-        procs.start("npp-robot", robot_params(CORNER, time_scale=time_scale), "robot")
+        procs.start("npp-robot", robot_params(CORNER, **pace_params(time_scale)), "robot")
         runner = procs.start("npp-robot-run", run_params(run_dir, max_episodes=episodes), "robot-run")
         wait(runner, run_dir / RUN_FILE, "corner")
     finally:
@@ -274,6 +280,10 @@ def pace(out: Path, scales: Sequence[float], episodes: int) -> list[dict[str, An
     return rows
 
 
+def pace_words(time_scale: float) -> str:
+    return "lockstep" if time_scale == 0 else f"x{time_scale:g} real time"
+
+
 def report(found: dict[str, Any]) -> str:
     inside_run = found["inside"]
     lines = [
@@ -286,7 +296,7 @@ def report(found: dict[str, Any]) -> str:
         "|---|---|",
     ]
     lines.append(
-        f"| inside (damping x0.55, delay 1, x{inside_run['time_scale']:g} real time) | certified "
+        f"| inside (damping x0.55, delay 1, {pace_words(inside_run['time_scale'])}) | certified "
         f"{inside_run['certified']} after {inside_run['episodes']} episodes, {inside_run['expert_calls']} expert "
         f"calls, {inside_run['robot_time_s']} s robot time, {inside_run['wall_s']} s wall, "
         f"{len(inside_run['faults'])} faults, {inside_run['late_commands']} late commands |"
@@ -335,7 +345,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("results/robot-run"), help="where the figures go")
     parser.add_argument("--runs", type=Path, default=Path("runs/robot-run"), help="where the run folders go")
-    parser.add_argument("--time-scale", type=float, default=10.0, help="the robot's speed against real time")
+    parser.add_argument(
+        "--time-scale",
+        type=float,
+        default=0.0,
+        help="the robot's speed against real time in the inside, from_set and corner runs (0: lockstep)",
+    )
     parser.add_argument("--held-out", type=int, default=200, help="fresh starts for the held-out checks")
     parser.add_argument(
         "--set-run",
