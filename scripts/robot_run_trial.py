@@ -368,17 +368,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "robot-run.json"
     found: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
-    found["arguments"] = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+    arguments = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
     steps = {
         "inside": lambda: inside(args.runs, args.time_scale, args.held_out),
         "set": lambda: set_policy(args.set_run, args.held_out),
+        "from_set": lambda: inside(args.runs, args.time_scale, args.held_out, args.set_run),
         "corner": lambda: corner(args.runs, args.time_scale, args.corner_episodes),
         "disturbed": lambda: disturbed(args.runs, args.disturbed_episodes),
         "pace": lambda: pace(args.runs, args.scales, args.pace_episodes),
     }
+    if "out" in found.get("arguments", {}):  # a file from when one invocation's arguments stood for all
+        found["arguments"] = {name: found["arguments"] for name in steps if name in found}
     for name in args.only or steps:
         say(f"{name} ...")
         found[name] = steps[name]()
+        found.setdefault("arguments", {})[name] = arguments  # what made each measurement
         path.write_text(json.dumps(found, indent=2) + "\n")
     if all(name in found for name in steps):
         (args.out / "robot-run.md").write_text(report(found))
