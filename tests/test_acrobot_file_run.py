@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 import npp_ros
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "acrobot" / "task.toml"
@@ -14,6 +16,7 @@ HORIZON = 100  # 1 s: both success criteria judge the whole episode
 EPISODES = 2
 
 
+@pytest.mark.long
 def test_the_acrobot_file_runs_algorithm_1_as_the_built_in_acrobot_does(tmp_path: Path) -> None:
     decisions = {}
     for name, task in (("built-in", "acrobot_swingup"), ("file", str(EXAMPLE))):

@@ -73,6 +73,7 @@ def test_help_explains_the_options() -> None:
         assert option in out
 
 
+@pytest.mark.long
 def test_writes_figures_and_tables(reduced_run: Path) -> None:
     for arm in ("lqr_2_1-optimal-Lpaper", "lqr_2_1-optimal-Lanalytic", "lqr_2_1-detuned-Lanalytic"):
         for fig in ("fig4", "fig5"):

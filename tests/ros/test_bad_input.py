@@ -349,6 +349,7 @@ BAD_SUPERVISOR_PARAMS = st.one_of(
 )
 
 
+@pytest.mark.long
 @settings(FUZZ, max_examples=8)
 @given(sim=BAD_SIM_PARAMS, expert=BAD_EXPERT_PARAMS, supervisor=BAD_SUPERVISOR_PARAMS)
 def test_bad_parameters_refuse_to_start_with_the_reason(

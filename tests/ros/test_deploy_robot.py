@@ -646,6 +646,7 @@ def test_npp_trial_outside_refuses_a_robot_inside_the_set_and_a_run_on_the_exact
         assert done.returncode == 2 and says in done.stderr, done.stderr
 
 
+@pytest.mark.long
 def test_npp_trial_tries_a_run_on_a_set_on_a_robot_outside_it(runs, tmp_path: Path) -> None:
     """npp-trial --outside gear=3 on a run certified on a set: the gate refuses the robot's true description naming
     the gear, its value and the range; past the gate on the nominal description the monitor warns on /diagnostics

@@ -260,6 +260,7 @@ def test_monitor_refuses_unknown_topics_naming_the_known_ones() -> None:
 
 
 # ----------------------------------------------------------------------------- 6. a stopped node is named
+@pytest.mark.long
 def test_a_stopped_node_is_named_within_seconds(tmp_path: Path, ros_domain: int) -> None:
     run_dir, out = tmp_path / "run", tmp_path / "npp-run.out"
     with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), log=out)) as run:

@@ -169,6 +169,7 @@ def recorded_run(ros_domain: int, tmp_path_factory: pytest.TempPathFactory) -> P
     return run_dir
 
 
+@pytest.mark.long
 def test_the_bag_holds_every_gap_report_as_the_run_file_stores_it(recorded_run: Path) -> None:
     bag = recorded_run / "bag"
     counts: Counter[str] = Counter()

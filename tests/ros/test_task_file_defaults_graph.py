@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from npp_ros.run.setup import resolve_lipschitz
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import ExpertOptions, get_task
@@ -25,6 +27,7 @@ def npp_run(task_file: Path, run_dir: Path, *extra: str) -> subprocess.Completed
     return subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=REPO)
 
 
+@pytest.mark.long
 def test_npp_run_fixes_l_from_data_as_npp_learn_does(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "arm"
     run = npp_run(EXAMPLE / "task.toml", run_dir, "--lipschitz", "data", "--epsilon", "5")

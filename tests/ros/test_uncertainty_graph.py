@@ -35,6 +35,7 @@ ITERATIONS = 5
 @pytest.mark.parametrize(
     ("certify", "expert_model"), [("oracle", "robot"), ("success", "robot"), ("oracle", "nominal")]
 )
+@pytest.mark.long
 def test_a_run_under_uncertainty_gives_the_in_process_robots_returns_and_checks(
     tmp_path: Path, certify: str, expert_model: str
 ) -> None:
