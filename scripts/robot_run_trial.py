@@ -135,9 +135,11 @@ def summary(run_dir: Path) -> dict[str, Any]:
     run = read_run(run_dir)
     kept = run.robot_episodes
     cert = run.certificate
+    prior = json.loads(run.metadata.prior)["trajectories"] if run.metadata.prior else 0
     return {
         "episodes": len(run.episodes),
-        "expert_calls": run.dataset.num_trajectories,
+        "expert_calls": run.dataset.num_trajectories - prior,  # the run's own: not the trajectories it started with
+        "started_with": prior,
         "certified": cert is not None,
         "policy_trajectories": None if cert is None else cert.policy_trajectories,
         "robot_episodes": len(kept),
@@ -148,6 +150,7 @@ def summary(run_dir: Path) -> dict[str, Any]:
         "late_commands": sum(k.late_commands for k in kept),
         "steps": sum(k.steps for k in kept),
         "check_successes": sum(bool(k.success) for k in kept if k.role == "check"),
+        "expert_successes": sum(bool(row.expert_success) for row in run.episodes),  # its plans, run on the robot
         "statement": None if cert is None else cert.statement,
     }
 
@@ -310,8 +313,9 @@ def report(found: dict[str, Any]) -> str:
     if "from_set" in found:
         f = found["from_set"]
         lines.append(
-            f"| the same robot, starting from the set run's data | certified {f['certified']} after {f['episodes']} "
-            f"episodes, {f['expert_calls']} expert calls, {f['robot_time_s']} s robot time"
+            f"| the same robot, starting from the set run's {f['started_with']} trajectories | certified "
+            f"{f['certified']} after {f['episodes']} episodes, {f['expert_calls']} expert calls, "
+            f"{f['robot_time_s']} s robot time"
             + (f"; its policy {f['held_out']['successes']} of {f['held_out']['starts']}" if "held_out" in f else "")
             + " |"
         )
@@ -377,8 +381,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         "disturbed": lambda: disturbed(args.runs, args.disturbed_episodes),
         "pace": lambda: pace(args.runs, args.scales, args.pace_episodes),
     }
-    if "out" in found.get("arguments", {}):  # a file from when one invocation's arguments stood for all
-        found["arguments"] = {name: found["arguments"] for name in steps if name in found}
     for name in args.only or steps:
         say(f"{name} ...")
         found[name] = steps[name]()

@@ -5,7 +5,9 @@ it (a Condition, never a poll). A step publishes the command (std_msgs/Float64Mu
 order) and waits for the first state the robot stamps after the last one; the robot's clock is its stamps, so a
 robot run faster than real time reads the same. A state more than a period after the last means the command
 missed its period (the robot held the one before): a late command, counted. No state within ``state_timeout``
-seconds is a fault; the safe command (zero) goes out at the end of every episode, cut short or not.
+seconds is a fault; the safe command (zero) goes out at the end of every episode, cut short or not. A robot that
+moves within SETTLE_S of its reset, before any command of the episode, was moved by a command from before it: that
+reset is a fault too, and the robot is reset again.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ from npp_ros.run.on_robot.link import Reading, RobotFault
 from npp_ros.tasks.task import Plant
 from npp_ros_graph.runtime.deadlines import call_with_deadline
 from npp_ros_graph.transport.convert import float64_array
+
+SETTLE_S = 0.05  # after a reset, how long the robot must hold its start before the first command
 
 
 def stamp_seconds(msg: JointState) -> float:
@@ -112,6 +116,12 @@ class RosRobotLink:
             raise RobotFault(f"the reset reported a start of {len(response.state)} values, not a finite state")
         self._stamp = float(response.stamp.sec) + 1e-9 * float(response.stamp.nanosec)
         self._held = True  # the robot repeats this measurement, with its stamp, until the first command
+        # A command still in flight from before the reset (a robot that paused, a controller's last word) would move
+        # the robot before the episode's first command; the states then say so, and the reset is not a start.
+        moved = self.states.after(self._stamp, SETTLE_S, self.stop)
+        self._interrupted()
+        if moved is not None:
+            raise RobotFault("the robot moved after its reset before the episode's first command (a command in flight)")
         return Reading(stored_state(self.plant, np.array(response.state, dtype=np.float64)), self._stamp)
 
     def step(self, command: FloatArray) -> Reading:
