@@ -28,6 +28,11 @@ expert's answer from s0 on its stored states, the policy's rollout on the states
 :class:`Replay` gives (the in-process driver's own rollout, or in the graph the same rollout re-run on a local
 copy of the deterministic plant). Nothing of this decides a check; the certificate states the counts.
 
+A run whose plant is a robot itself (npp_ros.run.on_robot) plugs the robot in as its starts, its driver and its replay,
+and its facts into the certificate; a driver there may cut an episode short (EpisodeCut: a robot's fault), which is
+then no check, and the episode runs again. A run may start with another run's trajectories (``prior``): its first
+data, never its expert calls, and its first check is already the first test of a policy.
+
 Under model uncertainty (npp_ros.tasks.uncertainty) each episode also draws its robot theta from the run's seed and
 the episode's index (``robots``), and everything the episode checks runs on it: the policy's rollout (the driver and
 the replay), the oracle's answer (a privileged expert, planning on theta) and the explorer's. The row records it.
@@ -363,10 +368,10 @@ class NPPLoop:
         """A new run that starts with another run's trajectories (config.prior): stored first, asked by no episode."""
         if prior is None or prior.num_trajectories != self.prior_count:
             raise ValueError(f"the run starts with {self.prior_count} trajectories of another run: give them")
-        for index in range(prior.num_trajectories):
-            item = prior.trajectory(index)
-            if store is not None:
-                store.record_prior(index, item)
+        trajectories = [prior.trajectory(index) for index in range(prior.num_trajectories)]
+        if store is not None:
+            store.record_prior(trajectories)
+        for item in trajectories:
             self.dataset.append(item)
 
     def _new_policy(self) -> NonparametricPolicy:

@@ -473,14 +473,15 @@ class RunStore:
                 (policy_return, _encode(policy_success), episode),
             )
 
-    def record_prior(self, index: int, trajectory: Trajectory) -> None:
-        """A trajectory the run starts with, from another run (RunConfig.prior): stored before any episode, under no
-        episode of this run."""
+    def record_prior(self, trajectories: Sequence[Trajectory]) -> None:
+        """The trajectories the run starts with, from another run (RunConfig.prior), in one transaction: stored before
+        any episode, under no episode of this run (a stop in between leaves all of them or none)."""
         self._writable()
-        if self._conn.execute("SELECT COUNT(*) FROM episodes").fetchone()[0]:
-            raise RunFileError(f"{self.path}: a run's first trajectories come before its episodes")
+        if self._conn.execute("SELECT COUNT(*) FROM episodes").fetchone()[0] or self.num_trajectories():
+            raise RunFileError(f"{self.path}: a run's first trajectories come before anything else it stores")
         with _transaction(self._conn, self.path):
-            self._insert_trajectory(index, None, trajectory)
+            for index, trajectory in enumerate(trajectories):
+                self._insert_trajectory(index, None, trajectory)
 
     def record_robot_episode(self, episode: RobotEpisode) -> None:
         """A robot's episode, the moment it ended (npp_ros.run.on_robot): a check kept before its row is stored, so a
