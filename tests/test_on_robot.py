@@ -46,7 +46,8 @@ def identity() -> RobotIdentity:
 
 
 def robot_loop(link: SimulatedRobot, path: Path | None, horizon: int = HORIZON, **how: object) -> NPPLoop:
-    return build_robot_loop(resolved(horizon), link, identity(), store_path=path, **how)  # type: ignore[arg-type]
+    run = resolved(horizon)
+    return build_robot_loop(run.config, run.expert, link, identity(), store_path=path, **how)  # type: ignore[arg-type]
 
 
 def test_an_exact_robot_gives_the_run_on_the_model_check_for_check(tmp_path: Path) -> None:
@@ -198,7 +199,7 @@ def test_a_run_on_a_robot_resumes_only_on_that_robot(tmp_path: Path) -> None:
     loop.store.close()  # type: ignore[union-attr]
     other = RobotIdentity(fingerprint="0" * 64)
     with pytest.raises(RunFileError, match="robot_run"):
-        build_robot_loop(resolved(), simulated(), other, store_path=path)
+        build_robot_loop(resolved().config, resolved().expert, simulated(), other, store_path=path)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         with pytest.raises(RunFileError, match="robot_run"):
@@ -213,7 +214,7 @@ def test_what_a_run_on_a_robot_cannot_be_is_refused_before_the_robot_moves() -> 
     ):
         request = RunRequest(task=TASK, seed=0, horizon=HORIZON, **({"certify": "success"} | given))  # type: ignore[arg-type]
         with pytest.raises(ValueError, match=reason):
-            build_robot_loop(resolve_run(request), link, identity())
+            build_robot_loop(resolve_run(request).config, resolve_run(request).expert, link, identity())
     assert link.resets == 0
     with pytest.raises(ValueError, match="fingerprint"):
         RobotIdentity(fingerprint="")
@@ -232,11 +233,11 @@ def test_a_run_on_a_robot_may_start_from_another_runs_data_which_are_data_never_
     assert model.certificate is not None
     path = tmp_path / "robot" / "run.sqlite"
     start = {"prior_run": tmp_path / "model"}
-    loop = build_robot_loop(resolved(CERTIFYING_HORIZON), simulated(HIDDEN), identity(), store_path=path, **start)
+    loop = robot_loop(simulated(HIDDEN), path, CERTIFYING_HORIZON, **start)
     first = loop.run_episode()
     assert first.policy_success is not None and loop.oracle_calls == int(first.oracle_called)
     loop.store.close()  # type: ignore[union-attr]
-    again = build_robot_loop(resolved(CERTIFYING_HORIZON), simulated(HIDDEN), identity(), store_path=path, **start)
+    again = robot_loop(simulated(HIDDEN), path, CERTIFYING_HORIZON, **start)
     assert again.run(200).certified
     again.store.close()  # type: ignore[union-attr]
     run = read_run(path.parent)
@@ -246,4 +247,4 @@ def test_a_run_on_a_robot_may_start_from_another_runs_data_which_are_data_never_
     assert run.dataset.num_trajectories == said["trajectories"] + sum(r.trajectories_stored for r in run.episodes)
     assert rederive(run).agrees
     with pytest.raises(RunFileError, match="prior"):  # resumed without its start is another run
-        build_robot_loop(resolved(CERTIFYING_HORIZON), simulated(HIDDEN), identity(), store_path=path)
+        robot_loop(simulated(HIDDEN), path, CERTIFYING_HORIZON)

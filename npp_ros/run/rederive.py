@@ -34,14 +34,13 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
-from npp_ros.run.loop import EpisodeCut, RunConfig
+from npp_ros.run.loop import EpisodeCut, NPPLoop, RunConfig
 from npp_ros.run.on_robot.episodes import RobotEpisodes
 from npp_ros.run.on_robot.identity import RobotIdentity
 from npp_ros.run.on_robot.recorded import RecordedRobot, RecordMismatch
 from npp_ros.run.on_robot.setup import build_robot_loop
 from npp_ros.run.read import Run
 from npp_ros.run.records import EpisodeRow
-from npp_ros.run.request import ResolvedRun, RunRequest
 from npp_ros.run.setup import build_loop
 from npp_ros.tasks.registry import Plant
 from npp_ros.tasks.rollout import episode_return
@@ -208,11 +207,7 @@ def rederive(run: Run, progress: Callable[[int, int], None] | None = None) -> Re
             total,
             started,
         )
-    stored_record = None if run.certificate is None else run.certificate.record()
-    derived_record = None if loop.certificate is None else loop.certificate.record()
-    if stored_record != derived_record:
-        return _found(f"the certificate: {_record_difference(stored_record, derived_record)}", total, started)
-    return Rederivation((), total, time.perf_counter() - started)
+    return _certificate_found(run, loop, total, started)
 
 
 def rederive_on_robot(run: Run, progress: Callable[[int, int], None] | None = None) -> Rederivation:
@@ -225,10 +220,8 @@ def rederive_on_robot(run: Run, progress: Callable[[int, int], None] | None = No
     expert = run.task.make_expert(config.seed, config.horizon, expert_options(config))
     plant = run.task.make_plant(config.seed)
     link = RecordedRobot(list(run.robot_episodes), config.state_dim, config.action_dim, float(plant.dt))
-    resolved = ResolvedRun(RunRequest(task=config.task), ExpertOptions(), expert, config.spec.epsilon,
-                           config.spec.lipschitz, replace(config, robot_run=""))  # fmt: skip
     try:
-        loop = build_robot_loop(resolved, link, identity, answers=run.dataset)
+        loop = build_robot_loop(config, expert, link, identity, answers=run.dataset)
     except ValueError as exc:
         return _found(f"the run cannot be played back: {exc}", 0, started)
     total = len(run.episodes)
@@ -256,11 +249,16 @@ def rederive_on_robot(run: Run, progress: Callable[[int, int], None] | None = No
             if not _same(getattr(said, item.name), getattr(found, item.name)):
                 return _found(f"robot episode {said.id}: {item.name} is {_shown(getattr(said, item.name))} in the "
                               f"file, {_shown(getattr(found, item.name))} played back", total, started)  # fmt: skip
+    return _certificate_found(run, loop, total, started)
+
+
+def _certificate_found(run: Run, loop: NPPLoop, episodes: int, started: float) -> Rederivation:
+    """The end of a re-derivation whose rows agreed: the stored certificate against the one derived again."""
     stored_record = None if run.certificate is None else run.certificate.record()
     derived_record = None if loop.certificate is None else loop.certificate.record()
     if stored_record != derived_record:
-        return _found(f"the certificate: {_record_difference(stored_record, derived_record)}", total, started)
-    return Rederivation((), total, time.perf_counter() - started)
+        return _found(f"the certificate: {_record_difference(stored_record, derived_record)}", episodes, started)
+    return Rederivation((), episodes, time.perf_counter() - started)
 
 
 def first_difference(stored: EpisodeRow, derived: EpisodeRow) -> str:

@@ -61,6 +61,7 @@ class RobotEpisodes:
         store: RunStore | None = None,
         max_faults: int = DEFAULT_MAX_FAULTS,
         log: Callable[[str], None] = lambda text: None,
+        prior: str = "",
     ) -> None:
         self.link, self.model, self.horizon, self.identity = link, model, int(horizon), identity
         self.requested, self.success, self.store = requested, success, store
@@ -68,9 +69,9 @@ class RobotEpisodes:
         self.kept: list[RobotEpisode] = [] if store is None else store.robot_episodes()
         self._started: _Started | None = None
         self._faults_in_a_row = 0
-        self._last: tuple[int, Rollout] | None = None
+        self._last: Rollout | None = None  # the episode the robot ran last, which the loop's check judges
         self.answering = 0  # the episode whose check ran last: an expert's plan run after it is stored under it
-        self.prior = ""  # the trajectories the run started with from another run, in words (setup says)
+        self.prior = prior  # the trajectories the run started with from another run, in words
 
     # ------------------------------------------------------------------ records
     def _pending(self, episode: int) -> RobotEpisode | None:
@@ -163,7 +164,7 @@ class RobotEpisodes:
         pending = self._pending(episode)
         if pending is not None:
             states, actions, rewards = pending.arrays(self.model.state_dim, self.model.action_dim)
-            self._last = (episode, Rollout(states, actions, rewards))
+            self._last = Rollout(states, actions, rewards)
             self.log(f"episode {episode}: the robot's episode kept before the stop is taken up again")
             assert pending.policy_return is not None
             return float(pending.policy_return)
@@ -176,7 +177,7 @@ class RobotEpisodes:
         if item.fault is not None:
             raise EpisodeCut(f"episode {episode}: {item.fault}")
         states, actions, rewards = item.arrays(self.model.state_dim, self.model.action_dim)
-        self._last = (episode, Rollout(states, actions, rewards))
+        self._last = Rollout(states, actions, rewards)
         assert item.policy_return is not None
         return float(item.policy_return)
 
@@ -196,6 +197,7 @@ class RobotEpisodes:
         late_before = self.link.late_commands
         reading = start
         fault = None
+        stopped: EpisodeInterrupted | None = None
         try:
             for _ in range(steps):
                 x = np.asarray(reading.state, dtype=np.float64)
@@ -206,12 +208,12 @@ class RobotEpisodes:
         except RobotFault as exc:
             fault = str(exc)
         except EpisodeInterrupted as exc:  # the run stops: what the robot ran is kept and marked, then the stop goes on
-            self.link.hold()
-            self._store_run(episode, role, requested, start, states, actions, reading, late_before, f"stopped: {exc}")
-            raise
+            stopped, fault = exc, f"stopped: {exc}"
         finally:
-            self.link.hold()
+            self.link.hold()  # the safe command first, before anything is computed or stored
         item = self._store_run(episode, role, requested, start, states, actions, reading, late_before, fault)
+        if stopped is not None:
+            raise stopped
         if fault is not None:
             self._fault(episode, role, fault)
         else:
@@ -253,7 +255,7 @@ class RobotEpisodes:
         """The episode the robot just ran: what the loop's success check judges (never a re-run on a model)."""
         if self._last is None:
             raise RuntimeError("no robot episode has run yet")
-        return self._last[1]
+        return self._last
 
     # ------------------------------------------------------------------ the certificate's words
     def claim(self) -> RobotClaim:

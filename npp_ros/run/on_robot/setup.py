@@ -17,11 +17,10 @@ from npp_ros.run.on_robot.identity import RobotIdentity
 from npp_ros.run.on_robot.link import RobotLink
 from npp_ros.run.on_robot.recorded import RecordedRobot, StoredRobotAnswers
 from npp_ros.run.read import read_run
-from npp_ros.run.request import ResolvedRun
 from npp_ros.run.setup import initial_state_fn, task_control_space, value_basis
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.nominal_plan import stores_window_values
-from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.registry import Expert, get_task
 
 
 def prior_record(folder: Path, config: RunConfig) -> tuple[str, Dataset]:
@@ -41,9 +40,17 @@ def prior_record(folder: Path, config: RunConfig) -> tuple[str, Dataset]:
     return json.dumps(record, sort_keys=True), data
 
 
-def robot_run_config(resolved: ResolvedRun, identity: RobotIdentity) -> RunConfig:
-    """The resolved run's config made a run on ``identity``'s robot; a ValueError for what such a run cannot be."""
-    config = resolved.config
+def prior_words(record: str) -> str:
+    """A prior record (prior_record) as the certificate names it; '' for none."""
+    if not record:
+        return ""
+    said = json.loads(record)
+    kind = "certified " if said.get("certified") else ""
+    return f"{said['trajectories']} trajectories of the {kind}run {said['run']} (seal {said['seal'][:12]}...)"
+
+
+def robot_run_config(config: RunConfig, identity: RobotIdentity) -> RunConfig:
+    """A run's config made a run on ``identity``'s robot; a ValueError for what such a run cannot be."""
     if config.spec.certify != "success":
         raise ValueError(
             f"a run on a robot certifies the success claim only (certify success), not {config.spec.certify}: its "
@@ -59,7 +66,8 @@ def robot_run_config(resolved: ResolvedRun, identity: RobotIdentity) -> RunConfi
 
 
 def build_robot_loop(
-    resolved: ResolvedRun,
+    config: RunConfig,
+    expert: Expert,
     link: RobotLink,
     identity: RobotIdentity,
     *,
@@ -70,18 +78,18 @@ def build_robot_loop(
     answers: Dataset | None = None,
     prior_run: Path | None = None,
 ) -> NPPLoop:
-    """Algorithm 1 with the robot as the plant: each check one of its episodes, each answer a plan it ran.
+    """Algorithm 1 with the robot as the plant: each check one of its episodes, each answer a plan it ran. ``config``
+    and ``expert`` are a resolved request's (npp_ros.run.request.resolve_run), or a stored run's.
 
     ``answers``: the run's stored answers, with ``link`` its stored robot episodes (recorded.RecordedRobot): the run
     played back from its file, as a gate derives it again (no store, no expert asked, no fault ends it).
     ``prior_run``: a run folder whose trajectories the run starts with (prior_record); the record says which."""
-    config = robot_run_config(resolved, identity)
+    config = robot_run_config(config, identity)
     prior = None
     if prior_run is not None:
         record, prior = prior_record(prior_run, config)
         config = replace(config, prior=record)
-    elif answers is not None and resolved.config.prior:  # played back: its first trajectories are the stored ones
-        config = replace(config, prior=resolved.config.prior)
+    elif answers is not None and config.prior:  # played back: its first trajectories are the stored ones
         prior = answers.prefix(int(json.loads(config.prior)["trajectories"]))
     task = get_task(config.task)
     store = None if store_path is None else RunStore.open_or_create(store_path, config.metadata())
@@ -98,15 +106,9 @@ def build_robot_loop(
         store=store,
         max_faults=max_faults,
         log=log,
+        prior=prior_words(config.prior),
     )
-    if config.prior:
-        said = json.loads(config.prior)
-        kind = "certified " if said.get("certified") else ""
-        episodes.prior = (
-            f"{said['trajectories']} trajectories of the {kind}run {said['run']} (seal {said['seal'][:12]}...)"
-        )
     space = task_control_space(config.task, config.seed)
-    expert = resolved.expert
     window = stores_window_values(expert)
     oracle: Oracle
     if answers is not None:

@@ -206,7 +206,7 @@ class RobotRunNode(Node):
         with warnings.catch_warnings(record=True) as notices:
             warnings.simplefilter("always", UnrecordedSettings)
             self.loop = loop = build_robot_loop(
-                resolved, link, identity, store_path=run_dir / RUN_FILE, observers=[status],
+                resolved.config, resolved.expert, link, identity, store_path=run_dir / RUN_FILE, observers=[status],
                 max_faults=s.max_faults, log=log.warning, prior_run=Path(s.start_from) if s.start_from else None,
             )  # fmt: skip
         for notice in notices:
