@@ -13,9 +13,10 @@ from __future__ import annotations
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.run.on_robot.episodes import RobotEpisodes
+from npp_ros.run.setup import PrivilegedExpert
 from npp_ros.tasks.nominal_plan import plan_law, tracked_answer, tracked_steps
 from npp_ros.tasks.task import Expert
-from npp_ros.tasks.uncertainty import Robot, as_robot
+from npp_ros.tasks.uncertainty import Robot
 
 
 class RobotPlanOracle:
@@ -31,7 +32,7 @@ class RobotPlanOracle:
         planning: Robot | None,
         window: bool,
     ) -> None:
-        self.expert, self.episodes, self.space = expert, episodes, space
+        self.expert, self.episodes, self.space = PrivilegedExpert(expert), episodes, space
         self.planning, self.window = planning, window
 
     def trajectory(self, initial_state: FloatArray) -> Trajectory:
@@ -40,8 +41,7 @@ class RobotPlanOracle:
         episode = episodes.answering
         while True:
             start = episodes.reset(episode, initial_state, "answer")
-            with as_robot(self.expert.plant, self.planning):  # type: ignore[attr-defined]
-                plan = self.expert.trajectory(start.state)
+            plan = self.expert.trajectory(start.state, robot=self.planning)
             law = plan_law(plan, self.space)
             item = episodes.run_law(episode, "answer", initial_state, start, law, tracked_steps(plan, self.window))
             if item.fault is None:
