@@ -32,7 +32,7 @@ describes every key. In short::
     max_iterations = 30            # a request ends by convergence or this cap: the same answer on any machine
     stop = "iterations"            # or "time": iLQR within time_budget, fewer iterations on a loaded machine
     time_budget = 60.0             # s per request: under "iterations" a guard against a runaway request
-    warm_start = "zero"
+    warm_start = "zero"            # or "gravity": the torques that hold the start at rest
     planner = "ilqr"               # or "receding", "sampling": windows first (npp_ros.trajopt.receding: window,
                                    # commit, window_iterations, restarts; samples, knots, noise, sample_rounds)
 
@@ -126,8 +126,39 @@ class FilePlant(SuitePlant):
         self.steps = 0
 
 
+class GravityHold:
+    """The torques that hold the arm still where it is: each actuated joint's gravity torque at the state's
+    position (MuJoCo's inverse dynamics at zero velocity and acceleration), over the actuator's gear, clamped.
+
+    A warm start for an arm under gravity: iLQR from u = 0 begins at the arm falling, far from any reach. It is
+    computed from the model, so it holds whatever the model's masses are; the policy and the expert's answers
+    carry the whole torque (nothing compensates gravity under them).
+    """
+
+    def __init__(self, model: object, low: FloatArray, high: FloatArray) -> None:
+        import mujoco
+
+        self._mujoco = mujoco
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self.low, self.high = low, high
+        self.dofs = np.array([int(model.jnt_dofadr[j]) for j in model.actuator_trnid[:, 0]])
+        self.gear = np.asarray(model.actuator_gear[:, 0], dtype=np.float64)
+        self._out = np.zeros(model.nv)
+
+    def __call__(self, x: FloatArray) -> FloatArray:
+        mj, m, d = self._mujoco, self.model, self.data
+        d.qpos[:] = x[: m.nq]
+        d.qvel[:] = 0.0
+        mj.mj_kinematics(m, d)
+        mj.mj_comPos(m, d)
+        mj.mj_rne(m, d, 0, self._out)
+        return np.clip(self._out[self.dofs] / self.gear, self.low, self.high)
+
+
 class FileExpert(PlanningExpert):
-    """The iLQR expert on the file's model, its smooth cost from the file's terms, warm-started at u = 0.
+    """The iLQR expert on the file's model, its smooth cost from the file's terms, warm-started at u = 0 or, with
+    ``[expert] warm_start = "gravity"``, at the torques that hold the start (:class:`GravityHold`).
 
     ``[expert] planner`` (npp_ros.trajopt.receding) plans each request by receding-horizon windows
     before the iLQR over the whole horizon; a plan that misses the file's ``[success]`` is made again
@@ -146,11 +177,13 @@ class FileExpert(PlanningExpert):
     ) -> None:
         plant = FilePlant(definition, seed)
         zero = np.zeros(plant.action_dim)
+        hold = GravityHold(plant.physics.model.ptr, plant.action_low, plant.action_high)
+        warm_start = hold if definition.expert.get("warm_start") == "gravity" else (lambda _x: zero)
         success = definition.success
         super().__init__(
             plant,
             TermCost(definition.cost_terms, plant.physics.model.ptr, definition.expert),
-            lambda _x: zero,
+            warm_start,
             definition.represent,
             settings=definition.expert.get("planner", PlannerSettings()),
             seed=seed,

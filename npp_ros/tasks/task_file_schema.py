@@ -40,7 +40,7 @@ TOP_KEYS = {"name", "model", "control_timestep", "horizon", "epsilon", "lipschit
             "state", "rho", "reward", "expert", "success", "uncertainty"}  # fmt: skip
 EXPERT_KEYS = {"max_iterations", "time_budget", "stop", "values", "warm_start", "control_weight", "velocity_weight",
                "terms", *PLANNER_KEYS}  # fmt: skip
-WARM_STARTS = ("zero",)
+WARM_STARTS = ("zero", "gravity")  # u = 0, or the torques that hold the start at rest (task_file.GravityHold)
 DEFAULT_CERTIFY = "oracle"  # the check of every task with an iLQR expert (OptimizerTask)
 # iLQR iterations per request of a task file's expert. Measured on examples/two_link_arm under the earlier 5 s budget
 # (npp-bench --only experts --expert-tasks examples/two_link_arm/task.toml, 10 requests at H = 1000, load 0.9-3.7):
@@ -200,8 +200,11 @@ def _read_expert(
     options["values"] = expert.get("values", DEFAULT_VALUES)
     if options["values"] not in VALUE_MODES:
         raise reader.fail("expert.values", f"must be one of {', '.join(VALUE_MODES)}, got {expert['values']!r}")
-    if expert.get("warm_start", DEFAULT_WARM_START) not in WARM_STARTS:
-        raise reader.fail("expert.warm_start", f"must be one of {', '.join(WARM_STARTS)}")
+    options["warm_start"] = expert.get("warm_start", DEFAULT_WARM_START)
+    if options["warm_start"] not in WARM_STARTS:
+        raise reader.fail(
+            "expert.warm_start", f"must be one of {', '.join(WARM_STARTS)}, got {options['warm_start']!r}"
+        )
     for key, default in (("control_weight", DEFAULT_CONTROL_WEIGHT), ("velocity_weight", DEFAULT_VELOCITY_WEIGHT)):
         options[key] = reader.non_negative(expert.get(key, default), f"expert.{key}")
     options["planner"] = _read_planner(reader, expert)

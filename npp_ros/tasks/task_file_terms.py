@@ -31,7 +31,11 @@ SIGMOIDS = ("gaussian", "hyperbolic", "long_tail", "reciprocal", "cosine", "line
 BOUNDED_SIGMOIDS = ("linear", "quadratic", "cosine")  # reach 0 at the margin: any value_at_margin will do
 COMBINES = ("sum", "product")
 REWARD_KEYS = {"combine", "terms", "function"}
-TERM_KEYS = {*QUANTITIES, *COST_QUANTITIES, "axis", "bounds", "margin", "sigmoid", "value_at_margin", "weight", "floor"}
+TERM_KEYS = {*QUANTITIES, *COST_QUANTITIES, "axis", "bounds", "margin", "sigmoid", "value_at_margin", "weight", "floor",
+             "hessian"}  # fmt: skip
+# How the expert's cost takes a distance's curvature (npp_ros.tasks.task_file_cost.TermCost): "distance", the
+# Gauss-Newton Hessian of the scalar distance (rank one), or "offset", that of the offset vector (rank three).
+DISTANCE_HESSIANS = ("distance", "offset")
 AXES = ("x", "y", "z")
 DEFAULT_COMBINE = "product"
 # dm_control's tolerance defaults
@@ -58,6 +62,7 @@ class Term:
     label: str
     floor: float = DEFAULT_FLOOR
     offset: float = 0.0  # subtracted from the quantity: an energy term's reference, the energy of its pose at rest
+    hessian: str = "distance"  # a distance term in the expert's cost: one of DISTANCE_HESSIANS
 
     @property
     def on_control(self) -> bool:
@@ -76,12 +81,14 @@ def read_terms(
     return tuple(
         _read_energy_term(reader, entry, f"{key}[{k}]", model, ids["joint"])
         if cost and isinstance(entry, dict) and "energy" in entry
-        else _read_term(reader, entry, f"{key}[{k}]", ids, weighted)
+        else _read_term(reader, entry, f"{key}[{k}]", ids, weighted, cost)
         for k, entry in enumerate(entries)
     )
 
 
-def _read_term(reader: Reader, entry: Any, where: str, ids: dict[str, dict[str, int]], weighted: bool) -> Term:
+def _read_term(
+    reader: Reader, entry: Any, where: str, ids: dict[str, dict[str, int]], weighted: bool, cost: bool = False
+) -> Term:
     entry = reader.table(entry, where)
     reader.unknown_keys(entry, TERM_KEYS, f"{where}.")
     if "energy" in entry:
@@ -102,9 +109,15 @@ def _read_term(reader: Reader, entry: Any, where: str, ids: dict[str, dict[str, 
     floor = reader.non_negative(entry.get("floor", DEFAULT_FLOOR), f"{where}.floor")
     if floor >= 1:
         raise reader.fail(f"{where}.floor", f"must lie in [0, 1), got {floor!r}")
+    hessian = entry.get("hessian", DISTANCE_HESSIANS[0])
+    if "hessian" in entry:
+        if not cost or quantity != "site_distance":
+            raise reader.fail(f"{where}.hessian", "applies to a site_distance term of [[expert.terms]] only")
+        if hessian not in DISTANCE_HESSIANS:
+            raise reader.fail(f"{where}.hessian", f"must be one of {', '.join(DISTANCE_HESSIANS)}, got {hessian!r}")
     target = tuple(ids[kind][name] for name in wanted)
     label = f"{quantity} {'-'.join(wanted)}"
-    return Term(quantity, target, axis, bounds, margin, sigmoid, at_margin, weight, label, floor)
+    return Term(quantity, target, axis, bounds, margin, sigmoid, at_margin, weight, label, floor, hessian=hessian)
 
 
 ENERGY_KEYS = {"energy", "bounds", "margin", "weight"}
