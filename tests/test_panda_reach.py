@@ -140,7 +140,5 @@ def test_the_shipped_model_names_its_source_and_licence() -> None:
     """robosuite's Panda as published, its visual meshes left out (they change no physics), its MIT licence."""
     licence = (EXAMPLE / "panda" / "LICENSE").read_text()
     assert licence.startswith("MIT License")
-    assert sorted(p.name for p in (EXAMPLE / "panda" / "meshes").iterdir()) == sorted(
-        f"link{i}.stl" for i in range(8)
-    )
+    assert sorted(p.name for p in (EXAMPLE / "panda" / "meshes").iterdir()) == sorted(f"link{i}.stl" for i in range(8))
     assert sum(p.stat().st_size for p in (EXAMPLE / "panda").rglob("*")) < 1_500_000
