@@ -37,9 +37,9 @@ describes every key. In short::
                                    # commit, window_iterations, restarts; samples, knots, noise, sample_rounds)
 
     [success]                      # optional: when an episode did the task (npp_ros.tasks.task_file_success)
-    distance = ["fingertip", "target"]   # or joint = NAME, or site = NAME with axis = "x", "y" or "z"
+    distance = ["fingertip", "target"]   # or joint = NAME, site = NAME with axis = "x", "y" or "z", or speed = SITE
     within = [0.0, 0.02]
-    last_seconds = 0.5
+    last_seconds = 0.5             # several bands: one [[success]] table each, all must hold
 
 Quantities: ``joint_position``, ``joint_velocity`` (a joint), ``site_position`` (a site, with
 ``axis`` x, y or z), ``site_distance`` (two sites), ``control`` (an actuator). The reward is
@@ -50,7 +50,9 @@ The expert optimises a smooth surrogate of the reward (npp_ros.tasks.task_file_c
 costs 0.5 w ((q - clip(q, bounds)) / margin)^2, zero exactly where its tolerance is 1; the values it
 stores are the true rewards replayed on the plant, as for every iLQR expert. ``[[expert.terms]]``
 replaces the reward's terms as that cost, and may add ``energy = { joint = position, ... }``: the
-mechanical energy less that pose's at rest, which an underactuated swing-up must pump.
+mechanical energy less that pose's at rest, which an underactuated swing-up must pump; a distance
+term there may take ``hessian = "offset"`` (the Gauss-Newton Hessian of the offset vector, not of the
+scalar distance: npp_ros.tasks.task_file_cost.TermCost).
 
 Agreement: the task's name is the file's absolute path and its content's SHA-256
 (``/abs/task.toml#sha256=...``); the sim publishes that name, and the expert and the supervisor
