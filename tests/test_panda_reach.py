@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import FilePlant, GravityHold, TaskFileError
+from npp_ros.tasks.task_file import FilePlant, GravityHold, TaskFileError, target_origin
 from npp_ros.tasks.task_file_cost import TermCost
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "panda_reach"
@@ -142,3 +142,52 @@ def test_the_shipped_model_names_its_source_and_licence() -> None:
     assert licence.startswith("MIT License")
     assert sorted(p.name for p in (EXAMPLE / "panda" / "meshes").iterdir()) == sorted(f"link{i}.stl" for i in range(8))
     assert sum(p.stat().st_size for p in (EXAMPLE / "panda").rglob("*")) < 1_500_000
+
+
+def test_the_target_is_declared_and_said_in_the_stored_state() -> None:
+    task = get_task(str(EXAMPLE / "task.toml"))
+    assert task.make_plant(0).target_joints == ("target_x", "target_y", "target_z")
+    assert task.stored_state.endswith("target_x, target_y, target_z the target, at rest")
+    assert task.definition is not None and target_origin(task.definition).tolist() == [0.0, 0.0, 0.0]
+
+
+def scene_copy(task_dir: Path, old: str, new: str) -> None:
+    """The example's scene, edited, beside the task file (its meshes by a link to the example's)."""
+    (task_dir / "panda").symlink_to(EXAMPLE / "panda")
+    text = (EXAMPLE / "scene.xml").read_text()
+    assert old in text, old
+    (task_dir / "scene.xml").write_text(text.replace(old, new, 1))
+    edited(task_dir, f'model = "{EXAMPLE / "scene.xml"}"', 'model = "scene.xml"')
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "expected"),
+    [
+        ('target = ["target_x", "target_y", "target_z"]', 'target = ["target_x", "target_y"]', "must name three"),
+        ('target = ["target_x", "target_y", "target_z"]', 'target = ["joint1", "target_y", "target_z"]',
+         "joint 'joint1' is not a slide"),
+        ('target = ["target_x", "target_y", "target_z"]', 'target = ["target_y", "target_x", "target_z"]',
+         "slides along [0.0, 1.0, 0.0], not the world's x axis"),
+        ("target_x = { position = [0.35, 0.6] }", "target_x = { position = [0.35, 0.6], velocity = [0.0, 0.1] }",
+         "rho.target_x.velocity: a target coordinate starts at rest"),
+    ],
+)  # fmt: skip
+def test_a_bad_target_is_refused_by_name(panda_dir: Path, old: str, new: str, expected: str) -> None:
+    with pytest.raises(TaskFileError, match=expected.replace("[", r"\[").replace("]", r"\]")):
+        get_task(edited(panda_dir, old, new))
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "expected"),
+    [
+        ('<body name="target" gravcomp="1">', '<body name="target">', 'must set gravcomp="1"'),
+        ('contype="0" conaffinity="0" rgba="1 0 0 0.5"', 'rgba="1 0 0 0.5"', "has a geom that collides"),
+        ('<joint name="target_x" type="slide" axis="1 0 0"/>',
+         '<joint name="target_x" type="slide" axis="1 0 0" stiffness="10" springref="0.3"/>',
+         "random torques moved the target by up to"),
+    ],
+)  # fmt: skip
+def test_a_target_something_moves_is_refused(panda_dir: Path, old: str, new: str, expected: str) -> None:
+    scene_copy(panda_dir, old, new)
+    with pytest.raises(TaskFileError, match=expected):
+        get_task(str(panda_dir / "task.toml"))

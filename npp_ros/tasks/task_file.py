@@ -15,6 +15,7 @@ describes every key. In short::
     joints = ["shoulder", "elbow"] # every joint of the model (hinge or slide), in the model's order
     wrap = ["shoulder"]            # hinge angles stored wrapped to (-pi, pi]
     invariant = []                 # joints whose position changes neither dynamics nor reward (checked at load)
+    target = []                    # or the x, y, z slide joints of a point no torque moves (a reach's target)
 
     [rho]                          # s0 uniform in these ranges; joints not named start at 0, at rest
     shoulder = { position = [-3.14, 3.14], velocity = [0.0, 0.0] }
@@ -110,6 +111,7 @@ class FilePlant(SuitePlant):
         self.represent = definition.represent  # type: ignore[method-assign]  # the file's wrapping, per instance
         self.angles = tuple(definition.wrapped)
         self.invariant = tuple(definition.invariant)  # the policy's distance ignores them (npp_ros.policy.feedback)
+        self.target_joints = tuple(definition.target_joints)  # a robot has none: a deployment reads them as a point
         self.seed = int(seed)
         self.physics = dm_mujoco.Physics.from_xml_path(str(definition.model_path))
         self._task = definition.reward
@@ -270,6 +272,41 @@ def load_task_file(name: str) -> FileTask:
     return _task(path, digest, content)
 
 
+def target_origin(definition: TaskDefinition) -> FloatArray:
+    """Where the target is when its three joints are at 0: its body's position in the world. A point p in the
+    world is the target joints' position p - origin."""
+    plant = FilePlant(definition)
+    model = plant.physics.model
+    joint = model.joint(definition.target_joints[0])
+    return np.array(model.body_pos[int(joint.bodyid[0])], dtype=np.float64)
+
+
+TARGET_STEPS = 20  # control steps of random torques a declared target is checked on at load
+
+
+def check_target(definition: TaskDefinition) -> None:
+    """Refuse a ``[state] target`` that a torque moves: from s0 ~ rho, random torques for TARGET_STEPS steps
+    must leave the target's positions exactly where they were and its velocities exactly 0."""
+    if not definition.target_joints:
+        return
+    plant = FilePlant(definition)
+    rng = np.random.default_rng(0)
+    low = np.where(np.isfinite(plant.action_low), plant.action_low, -1.0)
+    high = np.where(np.isfinite(plant.action_high), plant.action_high, 1.0)
+    entries = [definition.joint_names.index(name) for name in definition.target_joints]
+    entries += [plant.positions + i for i in entries]
+    s0 = definition.sample_initial_state(rng)
+    plant.reset(s0)
+    for _ in range(TARGET_STEPS):
+        plant.step(rng.uniform(low, high))
+    moved = plant.raw_state()[entries] - s0[entries]
+    if np.any(moved != 0.0):
+        raise TaskFileError(
+            f"task file {definition.path}: state.target: random torques moved the target by up to "
+            f"{float(np.max(np.abs(moved))):.3g} in {TARGET_STEPS} steps: nothing may act on it"
+        )
+
+
 INVARIANCE_SAMPLES = 8  # (state, action) pairs a declared invariance is checked on at load
 INVARIANCE_TOLERANCE = 1e-6  # a next state or reward may differ by this (relative to 1 + its size): rounding
 
@@ -324,6 +361,7 @@ def check_invariance(definition: TaskDefinition) -> None:
 def _task(path: Path, digest: str, content: bytes) -> FileTask:
     definition = parse(path, content)
     check_invariance(definition)
+    check_target(definition)
     return FileTask(
         name=definition.name,
         state_dim=definition.state_dim,

@@ -16,7 +16,8 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.suite_plant import substeps_per_control_step
 from npp_ros.tasks.task_file_reader import Reader
 
-STATE_KEYS = {"joints", "wrap", "invariant"}
+STATE_KEYS = {"joints", "wrap", "invariant", "target"}
+TARGET_AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))  # target_x, _y, _z: the world's axes, in order
 RHO_KEYS = {"position", "velocity"}
 
 
@@ -95,10 +96,10 @@ def read_timestep(reader: Reader, doc: dict[str, Any], model: Any) -> float:
 
 def read_state(
     reader: Reader, doc: dict[str, Any], model: Any
-) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]:
-    """``[state]``: the model's joints, every one in its order, the qpos indices stored wrapped, and those of the
+) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...], tuple[str, ...]]:
+    """``[state]``: the model's joints, every one in its order, the qpos indices stored wrapped, those of the
     joints declared invariant (their position changes neither dynamics nor reward; checked on the model at load,
-    npp_ros.tasks.task_file.check_invariance)."""
+    npp_ros.tasks.task_file.check_invariance), and the target's joints (:func:`read_target`)."""
     import mujoco
 
     joints = model_ids(model, "joint")
@@ -128,7 +129,52 @@ def read_state(
         invariant.append(int(model.jnt_qposadr[joints[name]]))
     if len(invariant) == len(model_joints):
         raise reader.fail("state.invariant", "every joint is declared invariant: the policy would compare no position")
-    return tuple(model_joints), tuple(wrapped), tuple(sorted(invariant))
+    target = read_target(reader, state, model, joints)
+    for name in target:
+        if int(model.jnt_qposadr[joints[name]]) in (*wrapped, *invariant):
+            raise reader.fail(
+                "state.target", f"joint {name!r} is a target coordinate: it neither wraps nor is invariant"
+            )
+    return tuple(model_joints), tuple(wrapped), tuple(sorted(invariant)), target
+
+
+def read_target(reader: Reader, state: dict[str, Any], model: Any, joints: dict[str, int]) -> tuple[str, ...]:
+    """``state.target``: three slide joints, along the world's x, y and z in that order, of one body of the world
+    that nothing touches and gravity does not pull (``gravcomp="1"``, no collision): a point the task is about
+    (a reach's target), part of the state, that no torque moves (checked by stepping at load,
+    npp_ros.tasks.task_file.check_target). A robot has no such joints: a deployment reads the point from a topic."""
+    import mujoco
+
+    if "target" not in state:
+        return ()
+    names = reader.names(state["target"], "state.target")
+    if len(names) != 3:
+        raise reader.fail("state.target", f"must name three slide joints (x, y, z), got {names!r}")
+    bodies = set()
+    for name, axis, letter in zip(names, TARGET_AXES, "xyz", strict=True):
+        _known_joint(reader, "state.target", name, joints)
+        j = joints[name]
+        if int(model.jnt_type[j]) != int(mujoco.mjtJoint.mjJNT_SLIDE):
+            raise reader.fail("state.target", f"joint {name!r} is not a slide: a target coordinate is a position")
+        if not np.allclose(model.jnt_axis[j], axis):
+            along = model.jnt_axis[j].tolist()
+            raise reader.fail("state.target", f"joint {name!r} slides along {along}, not the world's {letter} axis")
+        bodies.add(int(model.jnt_bodyid[j]))
+    if len(bodies) != 1:
+        raise reader.fail("state.target", "the three joints must move one body")
+    body = bodies.pop()
+    body_name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    if int(model.body_parentid[body]) != 0 or not np.allclose(model.body_quat[body], (1, 0, 0, 0)):
+        raise reader.fail("state.target", f"body {body_name!r} must be a child of the world, not rotated")
+    if int(model.body_jntnum[body]) != 3:
+        raise reader.fail("state.target", f"body {body_name!r} must have exactly the three target joints")
+    if not np.isclose(model.body_gravcomp[body], 1.0) and np.any(model.opt.gravity):
+        raise reader.fail("state.target", f'body {body_name!r} must set gravcomp="1": gravity would pull the target')
+    for g in range(model.ngeom):
+        if int(model.geom_bodyid[g]) == body and (model.geom_contype[g] or model.geom_conaffinity[g]):
+            raise reader.fail("state.target", f'body {body_name!r} has a geom that collides: give it contype="0" '
+                              'conaffinity="0" (the arm must pass through its target)')  # fmt: skip
+    return tuple(names)
 
 
 def _known_joint(reader: Reader, key: str, name: str, joints: dict[str, int]) -> None:

@@ -75,6 +75,7 @@ class TaskDefinition:
     success: SuccessCriterion | None = None  # [success]: when an episode did the task (None: the file states none)
     uncertainty: UncertaintySet = EXACT  # [uncertainty]: what of the robot is uncertain (the exact model: nothing)
     invariant: tuple[int, ...] = ()  # [state] invariant: qpos indices whose value changes neither dynamics nor reward
+    target_joints: tuple[str, ...] = ()  # [state] target: the x, y, z slide joints of a point no torque moves
 
     @property
     def name(self) -> str:
@@ -91,7 +92,8 @@ class TaskDefinition:
     def stored_state(self) -> str:
         angles = [self.joint_names[i] for i in self.wrapped]
         wrapped = f" ({', '.join(angles)} wrapped to (-pi, pi])" if angles else ""
-        return f"qpos then qvel of {', '.join(self.joint_names)}{wrapped}"
+        target = f"; {', '.join(self.target_joints)} the target, at rest" if self.target_joints else ""
+        return f"qpos then qvel of {', '.join(self.joint_names)}{wrapped}{target}"
 
     def represent(self, raw: ArrayLike) -> FloatArray:
         x = np.array(raw, dtype=np.float64, copy=True)
@@ -121,9 +123,16 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
     model_path, model = load_model(reader, doc, path)
     dt = read_timestep(reader, doc, model)
     horizon, epsilon, lipschitz, certify, policy = _run_defaults(reader, doc)
-    joint_names, wrapped, invariant = read_state(reader, doc, model)
+    joint_names, wrapped, invariant, target = read_state(reader, doc, model)
     actuator_names, actuated = read_actuators(reader, doc, model)
+    driven = sorted(set(actuated) & set(target))
+    if driven:
+        raise reader.fail("state.target", f"joint {driven[0]!r} is driven by an actuator: nothing may move a target")
     low, high = read_rho(reader, doc, model)
+    for name in target:
+        at = len(joint_names) + joint_names.index(name)  # qvel index = nq + index (hinge and slide joints only)
+        if low[at] != 0.0 or high[at] != 0.0:
+            raise reader.fail(f"rho.{name}.velocity", "a target coordinate starts at rest, and stays so: give none")
     reward = read_reward(reader, doc, model)
     options, cost_terms = _read_expert(reader, doc, model, reward)
     success = read_success(reader, doc, model, model_path, dt)
@@ -134,7 +143,7 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
         model_path=model_path, dt=dt, horizon=horizon, epsilon=epsilon, lipschitz=lipschitz, certify=certify,
         policy=policy, joint_names=joint_names, actuator_names=actuator_names, actuated_joint_names=actuated,
         wrapped=wrapped, rho_low=low, rho_high=high, reward=reward, cost_terms=cost_terms, expert=options,
-        success=success, uncertainty=uncertainty, invariant=invariant,
+        success=success, uncertainty=uncertainty, invariant=invariant, target_joints=target,
     )  # fmt: skip
 
 
