@@ -11,8 +11,11 @@ import numpy as np
 import pytest
 
 from npp_ros.bench.measure import UPRIGHT_DEGREES, Progress, machine_info, time_expert
-from npp_ros.bench.report import expert_label
+from npp_ros.bench.queries import BOUNDS, LARGE_LIPSCHITZ
+from npp_ros.bench.report import expert_label, with_queries
 from npp_ros.cli.bench import main
+from npp_ros.run.api import learn
+from npp_ros.run.read import read_run
 from npp_ros.tasks.registry import get_task
 from npp_ros.trajopt.batch_steps import default_threads
 from npp_ros.trajopt.expert import DEFAULT_GUARD_S
@@ -52,8 +55,10 @@ def test_help_names_the_outputs(capsys) -> None:
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert "--quick" in out and "bench.json" in out and "results/bench" in out
-    assert "--only {experts,throughput}" in out and "--expert-requests" in out and "pendulum_swingup" in out
+    assert "--only {experts,throughput,queries}" in out and "--expert-requests" in out and "pendulum_swingup" in out
     assert "--throughput-workers" in out and "--throughput-tasks" in out
+    assert "--query-task" in out and "--query-sizes" in out and "--query-run" in out and "--query-lipschitz" in out
+    assert "panda_reach" in out and "p99" in out
 
 
 def test_only_experts_reports_each_request_and_keeps_the_rest_of_the_file(tmp_path: Path, capsys) -> None:
@@ -169,3 +174,89 @@ def test_each_expert_is_timed_at_its_tasks_own_horizon_unless_one_is_given(tmp_p
         table = (out / "bench.md").read_text()
         assert f"| two_link_arm-task | {wanted} | 1 |" in table
         assert 'window values; planner = "ilqr" (no plan: one iLQR from the warm start))' in table  # the file's planner
+
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def test_only_queries_times_each_query_on_the_arms_state_and_keeps_the_rest_of_the_file(tmp_path: Path, capsys) -> None:
+    """The Panda's 20-entry state at 1,000 points (the index's brute-force tail) and 3,000 (one tree): one-call
+    percentiles in order, every bound exact, the earlier file's rows kept; no speed is asserted."""
+    (tmp_path / "bench.json").write_text(json.dumps({
+        "command": "npp-bench", "date": "then", "machine": machine_info(), "load_average_end": None,
+        "targets": [{"case": "kept row", "metric": "ratio", "value": 1.0, "target": "<= 2x", "met": True}],
+    }))  # fmt: skip
+    argv = ["--only", "queries", "--quick", "--query-task", str(EXAMPLES / "panda_reach" / "task.toml"),
+            "--query-sizes", "3000", "1000", "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 0
+    result = json.loads((tmp_path / "bench.json").read_text())
+    section = result["queries"]
+    assert result["command"] == "npp-bench" and section["command"] == "npp-bench " + " ".join(argv)
+    assert (section["task"], section["state_dim"], section["moving_entries"]) == ("panda_reach-task", 20, 17)
+    assert section["control_period_s"] == pytest.approx(0.01) and section["run"] is None
+    points = section["points"]
+    assert points["run_points"] == 0 and points["horizon"] == 150
+    assert points["rollout_points"] == 150 * points["rollouts"] >= 3000
+    assert section["lipschitz"]["source"] == "data" and section["lipschitz"]["value"] > 0
+    queries = section["queries"]
+    calls = queries["single"] * queries["repeats"]
+    assert section["exact"] is True
+    assert [size["points"] for size in section["sizes"]] == [1000, 3000]
+    for size in section["sizes"]:
+        assert set(size["trees"]) == {"pykdtree", "ckdtree"}
+        assert [(e["label"], e["value"]) for e in size["lipschitz"]] == [
+            ("policy", section["lipschitz"]["value"]), ("large", LARGE_LIPSCHITZ)
+        ]  # fmt: skip
+        timed = [size["trees"][tree]["single"] for tree in size["trees"]]
+        for entry in size["lipschitz"]:
+            exact = entry["exact"]
+            assert exact["exact"] is True and exact["queries"] == queries["checked"] > 0
+            assert exact["lower_same_index"] == exact["upper_same_index"] == exact["queries"]
+            assert exact["lower_same_value"] == exact["upper_same_value"] == exact["queries"]
+            assert 0 < entry["kept_lower"] <= size["points"] and 0 < entry["kept_upper"] <= size["points"]
+            assert set(entry["single"]) == set(entry["batch"]) == set(entry["ratios"]) == set(BOUNDS)
+            timed += list(entry["single"].values())
+            for bound in BOUNDS:
+                batch = entry["batch"][bound]
+                assert batch["min_us"] <= batch["median_us"] <= batch["max_us"]
+                assert set(entry["ratios"][bound]) == {"batch", "single_p50", "single_p99"}
+        for t in timed:
+            assert t["calls"] == calls and 0 < t["p50_us"] <= t["p90_us"] <= t["p99_us"] <= t["max_us"]
+            assert 0 < t["cpu_p50_us"] <= t["cpu_p99_us"]
+        large = size["lipschitz"][1]  # L = 1e10: V_lb is the nearest point's value
+        assert large["same_point_as_1nn"] >= 0.9 * queries["checked"]
+    assert [row["case"] for row in result["targets"]] == [
+        "kept row",
+        f"Query cost panda_reach-task, 1,000 points, L {section['lipschitz']['value']:.4g}",
+        f"Query cost panda_reach-task, 3,000 points, L {section['lipschitz']['value']:.4g}",
+    ]
+    with_queries(result, section)  # a second measurement replaces the first one's rows
+    assert len(result["targets"]) == 3
+    table = (tmp_path / "bench.md").read_text()
+    assert "## Query cost at an arm's scale (panda_reach-task, 20-entry state, 17 of them moving)" in table
+    assert "kept row" in table and "| 3,000 | 1e+10 | V_lb |" in table and "| 1,000 | - | pykdtree 1-NN |" in table
+    assert "Exact at every size and L: **True**" in table
+    assert "### One query per call" in capsys.readouterr().out
+
+
+def test_only_queries_puts_a_runs_data_first_at_its_l_and_horizon(tmp_path: Path) -> None:
+    """--query-run: the run's expert points are the first points, its L is the one measured, its horizon the
+    rollouts'; a run of another task is refused."""
+    arm = str(EXAMPLES / "two_link_arm" / "task.toml")
+    learn(arm, 0, run_dir=tmp_path / "run", horizon=30, max_episodes=2)
+    run = read_run(tmp_path / "run")
+    out = tmp_path / "bench"
+    argv = ["--only", "queries", "--quick", "--query-task", arm, "--query-run", str(tmp_path / "run"),
+            "--query-sizes", "500", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    section = json.loads((out / "bench.json").read_text())["queries"]
+    points = section["points"]
+    assert section["run"] == "run" and points["run_points"] == len(run.dataset) > 0
+    assert points["run_trajectories"] == run.dataset.num_trajectories and points["horizon"] == 30
+    assert points["run_points"] + points["rollout_points"] >= 500
+    assert section["lipschitz"]["value"] == run.metadata.lipschitz and section["exact"] is True
+    assert f"{points['run_points']:,d} points of run run" in (out / "bench.md").read_text()
+    panda = str(EXAMPLES / "panda_reach" / "task.toml")
+    refused = ["--only", "queries", "--quick", "--query-task", panda, "--query-run", str(tmp_path / "run"),
+               "--out", str(tmp_path / "refused")]  # fmt: skip
+    assert main(refused) == 2 and not (tmp_path / "refused" / "bench.json").exists()

@@ -126,7 +126,8 @@ def markdown(result: dict[str, Any]) -> str:
     if "cases" not in result:  # only `--only experts` or `--only throughput` has written to this folder
         experts = expert_markdown(result["experts"]) if result.get("experts") else []
         throughput = throughput_markdown(result["expert_throughput"]) if result.get("expert_throughput") else []
-        return "\n".join([*lines, "", *experts, *throughput])
+        queries = query_markdown(result["queries"]) if result.get("queries") else []
+        return "\n".join([*lines, "", *experts, *throughput, *queries])
     lines += ["", "## Index vs 1-NN trees (same points, same queries)", ""]
     lines += [
         "| case | points | L | mode | V_lb | V_ub | pykdtree 1-NN | cKDTree 1-NN | V_lb / 1-NN | both / 1-NN |",
@@ -218,6 +219,8 @@ def markdown(result: dict[str, Any]) -> str:
         lines += expert_markdown(result["experts"])
     if result.get("expert_throughput"):
         lines += throughput_markdown(result["expert_throughput"])
+    if result.get("queries"):
+        lines += query_markdown(result["queries"])
     return "\n".join(lines) + "\n"
 
 
@@ -266,3 +269,118 @@ def throughput_markdown(section: dict[str, Any]) -> list[str]:
         "",
     ]
     return lines
+
+
+# ----------------------------------------------------------------------------- query cost at an arm's scale
+QUERY_CASE = "Query cost"  # the first words of this part's target rows
+
+
+def with_queries(result: dict[str, Any], section: dict[str, Any]) -> None:
+    """Puts a query-cost measurement into a bench result, its target rows replacing any earlier ones.
+
+    One row per size: V_lb's one-call p99 at the run's L against the task's control period, the time a control
+    loop has for its whole step.
+    """
+    result["queries"] = section
+    rows = [row for row in result.get("targets", []) if not row["case"].startswith(QUERY_CASE)]
+    period_ms = 1e3 * section["control_period_s"]
+    for size in section["sizes"]:
+        entry = size["lipschitz"][0]
+        p99_ms = entry["single"]["lower"]["p99_us"] / 1e3
+        rows.append({"case": f"{QUERY_CASE} {section['task']}, {size['points']:,d} points, L {entry['value']:.4g}",
+                     "metric": "V_lb one query, p99 (ms)", "value": p99_ms, "unit": " ms",
+                     "target": f"<= {period_ms:g} ms (the control period)", "met": p99_ms <= period_ms})  # fmt: skip
+    result["targets"] = rows
+
+
+def query_markdown(section: dict[str, Any]) -> list[str]:
+    """The query-cost part of bench.md: where the points came from, one-call percentiles, batches, builds."""
+    src, lip, q = section["points"], section["lipschitz"], section["queries"]
+    lines = [f"## Query cost at an arm's scale ({section['task']}, {section['state_dim']}-entry state, "
+             f"{section['moving_entries']} of them moving)", ""]  # fmt: skip
+    lines += [f"Command: `{section['command']}`, {section['date']}; load average at start "
+              f"{section['load_average_start']}, at end {section['load_average_end']}.", ""]  # fmt: skip
+    run = ""
+    if section.get("run"):
+        run = f"{src['run_points']:,d} points of run {section['run']} ({src['run_trajectories']} expert answers), then "
+    lines += [
+        f"Points: {run}{src['rollout_points']:,d} states of {src['rollouts']:,d} rollouts of {src['horizon']} steps "
+        f"from s0 ~ rho under {src['controller']}; values: {src['values']}. Generated in {src['seconds']:.0f} s "
+        f"({src['steps_per_s']:.0f} plant steps/s, one core). Each size is the first N points.",
+        "",
+        f"Queries: every {q['stride']}th state of fresh rollouts (another seed's stream), each entry moved by "
+        f"{q['jitter']:g} x the data's spread: {q['single']} timed one call at a time, {q['repeats']} times each "
+        f"({q['single'] * q['repeats']:,d} calls per method), {q['batch']} in one batch ({q['repeats']} repeats), "
+        f"{q['checked']} checked against brute force (V_lb and V_ub: same value bit for bit, same index).",
+        "",
+        f"L: {lip['value']:.4g} ({lip['source']}: {lip['detail']}), and {section['large_lipschitz']:g}, where "
+        "distance outweighs any value difference and V_lb is (nearly) the nearest point's value. "
+        f"Exact at every size and L: **{section['exact']}**.",
+        "",
+        "### One query per call (microseconds; what a control loop waits for)",
+        "",
+        "| points | L | query | p50 | p90 | p99 | max | CPU p50 | CPU p99 | p50 / pykdtree | p99 / pykdtree |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for size in section["sizes"]:
+        n = f"{size['points']:,d}"
+        for entry in size["lipschitz"]:
+            for bound in ("lower", "upper", "both"):
+                t, r = entry["single"][bound], entry["ratios"][bound]
+                label = {"lower": "V_lb", "upper": "V_ub", "both": "V_lb + V_ub"}[bound]
+                lines.append(f"| {n} | {entry['value']:.4g} | {label} | {_latency_cells(t)} | "
+                             f"{r['single_p50']:.2f}x | {r['single_p99']:.2f}x |")  # fmt: skip
+        for tree, tree_label in (("pykdtree", "pykdtree 1-NN"), ("ckdtree", "cKDTree 1-NN")):
+            if tree in size["trees"]:
+                lines.append(f"| {n} | - | {tree_label} | {_latency_cells(size['trees'][tree]['single'])} | - | - |")
+    lines += [
+        "",
+        "p50 / p90 / p99 / max: wall time of one call (`perf_counter_ns` around it); CPU: this thread's CPU time of "
+        "the same calls, which leaves out the time another process held the core: where wall p99 is far above CPU "
+        "p99, the tail is the machine's load, not the search.",
+        "",
+        "### Batched (microseconds per query, median over repeats ± the half-range)",
+        "",
+        "| points | L | V_lb | V_ub | V_lb + V_ub | pykdtree 1-NN | cKDTree 1-NN | V_lb / pykdtree | both / pykdtree |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for size in section["sizes"]:
+        trees = size["trees"]
+        py = fmt_us(trees["pykdtree"]["batch"]) if "pykdtree" in trees else "-"
+        for entry in size["lipschitz"]:
+            b, r = entry["batch"], entry["ratios"]
+            lines.append(
+                f"| {size['points']:,d} | {entry['value']:.4g} | {fmt_us(b['lower'])} | {fmt_us(b['upper'])} | "
+                f"{fmt_us(b['both'])} | {py} | {fmt_us(trees['ckdtree']['batch'])} | {r['lower']['batch']:.2f}x | "
+                f"{r['both']['batch']:.2f}x |"
+            )
+    lines += [
+        "",
+        "### Build (seconds), what the index keeps, exactness",
+        "",
+        "| points | L | index build | pykdtree | cKDTree | kept for V_lb | kept for V_ub | V_lb picks the 1-NN point "
+        "| exact (queries checked) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for size in section["sizes"]:
+        trees, n = size["trees"], size["points"]
+        py = f"{trees['pykdtree']['build_s']:.2f}" if "pykdtree" in trees else "-"
+        for entry in size["lipschitz"]:
+            e = entry["exact"]
+            lines.append(
+                f"| {n:,d} | {entry['value']:.4g} | {entry['build_s']:.2f} | {py} | {trees['ckdtree']['build_s']:.2f} "
+                f"| {entry['kept_lower']:,d} ({100 * entry['kept_lower'] / n:.1f}%) | {entry['kept_upper']:,d} "
+                f"({100 * entry['kept_upper'] / n:.1f}%) | {entry['same_point_as_1nn']}/{e['queries']} | "
+                f"{e['exact']} ({e['queries']}) |"
+            )
+    lines += [
+        "",
+        "Index build: the policy's own index (compression on) over the N points at once, both bounds' trees. "
+        "V_lb picks the 1-NN point: checked queries whose V_lb maximiser is the point pykdtree calls nearest.",
+        "",
+    ]
+    return lines
+
+
+def _latency_cells(t: dict[str, Any]) -> str:
+    return " | ".join(f"{t[key]:.1f}" for key in ("p50_us", "p90_us", "p99_us", "max_us", "cpu_p50_us", "cpu_p99_us"))

@@ -14,6 +14,10 @@ Measures side by side, on real LQR expert trajectories (``LQRExpert.trajectory``
   default, any task with ``--expert-tasks``, task files included): seconds per H-step trajectory from
   s0 ~ rho with each task's default expert options and time budget, where the time goes, and the share
   of answers that met the task's success criterion, so that a user checks an expert before a long run;
+* optionally the query cost at a 7-joint arm's scale (``--only queries``): V_lb, V_ub and both over 10^4 .. 10^6
+  points of a task file's state (the Panda reaching task's 20 entries; a run's expert data first, then rollouts
+  on the task's plant), one query per call as percentiles (p50 .. max) and in batches, beside pykdtree and
+  cKDTree 1-NN, build times, and exactness against brute force at every size;
 * optionally the experts' throughput (``--throughput``; ``--only throughput`` runs that part alone):
   requests per second through the expert pool at 1, 2 and m workers on the same s0, the speed-ups,
   the optimizer's stop reasons (answers the time budget cut named), and whether every worker count
@@ -56,11 +60,22 @@ from npp_ros.bench.measure import (
     targets,
     tie_case,
 )
+from npp_ros.bench.queries import (
+    DEFAULT_QUERY_SIZES,
+    DEFAULT_QUERY_TASK,
+    LARGE_LIPSCHITZ,
+    QUICK_QUERY_POINTS,
+    ROLLOUT_NOISE,
+    query_section,
+    query_steps,
+)
 from npp_ros.bench.report import (
     expert_markdown,
     markdown,
+    query_markdown,
     throughput_markdown,
     with_experts,
+    with_queries,
     with_ros,
     write_report,
 )
@@ -81,8 +96,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             "H-step trajectory (median, quartiles, range) from s0 ~ rho with each task's default options and time "
             "budget (a task file's [expert] keys), where the time goes, and how many answers met the task's success "
             "criterion (check an expert before a long run: a certificate is relative to it); --only experts "
-            "measures just that (minutes), keeping the rest of OUT's bench.json and bench.md. Writes bench.md and "
-            "bench.json."
+            "measures just that (minutes), keeping the rest of OUT's bench.json and bench.md. --only queries: the "
+            "query cost at a 7-joint arm's scale (--query-task, --query-sizes, --query-run), one query per call as "
+            "p50/p90/p99/max and batched (--single, --queries, --check, --repeats as for the LQR cases), beside "
+            "pykdtree and cKDTree, exactness checked at every size, also keeping the rest of OUT's files. Writes "
+            "bench.md and bench.json."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -104,7 +122,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--only",
-        choices=["experts", "throughput"],
+        choices=["experts", "throughput", "queries"],
         default=None,
         help="run only this part; its section and target rows go into OUT/bench.json and bench.md, replacing an "
         "earlier run's, and the rest of those files is kept",
@@ -155,7 +173,47 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         metavar="M",
         help="the largest pool measured, beside 1 and 2 workers (default: one per usable core)",
     )
+    parser.add_argument(
+        "--query-task",
+        default=DEFAULT_QUERY_TASK,
+        metavar="TASK",
+        help="--only queries: the task whose state the points and queries are, its rollouts driven by the torques "
+        f"that hold a MuJoCo plant against gravity plus noise: {TASK_HELP}",
+    )
+    parser.add_argument(
+        "--query-sizes",
+        nargs="+",
+        type=positive_int,
+        default=list(DEFAULT_QUERY_SIZES),
+        metavar="N",
+        help="--only queries: stored points at which to measure (each the first N points of the largest set)",
+    )
+    parser.add_argument(
+        "--query-run",
+        type=Path,
+        default=None,
+        metavar="RUN_DIR",
+        help="--only queries: a run folder (run.sqlite) of --query-task whose stored expert data come first, whose "
+        "L is measured and whose horizon the rollouts have; without, every point is a rollout's, of the task's "
+        "own horizon",
+    )
+    parser.add_argument(
+        "--query-lipschitz",
+        type=float,
+        default=None,
+        metavar="L",
+        help="--only queries: the policy's L (besides L = "
+        f"{LARGE_LIPSCHITZ:g}, where V_lb is close to 1-NN); default: the run's, else 2 x the steepest slope of "
+        "the first 3 rollouts' return-to-go (the 'data' rule on them)",
+    )
     args = parser.parse_args(argv)
+    if args.only == "queries":
+        try:
+            task_name(args.query_task)  # refused here with its one-line reason; the name as given is recorded
+        except argparse.ArgumentTypeError as exc:
+            parser.error(f"--query-task: {exc}")
+        if args.query_lipschitz is not None and not args.query_lipschitz > 0:
+            parser.error("--query-lipschitz must be > 0")
     if args.expert_requests < 1 or (args.expert_horizon is not None and args.expert_horizon < 2):
         parser.error("--expert-requests must be >= 1 and --expert-horizon >= 2")
     if args.quick:
@@ -164,6 +222,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         args.brute_budget = 2e5
         args.expert_requests, args.expert_horizon = min(args.expert_requests, 2), min(args.expert_horizon or 200, 200)
         args.throughput_requests = min(args.throughput_requests, 4)
+        args.query_sizes = sorted({min(n, QUICK_QUERY_POINTS) for n in args.query_sizes})
     return args
 
 
@@ -219,6 +278,35 @@ def throughput_only(args: argparse.Namespace, command: str) -> int:
     return 0
 
 
+def queries_only(args: argparse.Namespace, command: str) -> int:
+    """``--only queries``: the query-cost section into OUT's bench files, the rest of them kept."""
+    run = None
+    if args.query_run is not None:
+        from npp_ros.run.read import read_run
+        from npp_ros.run.records import RunFileError
+        from npp_ros.tasks.registry import get_task
+
+        try:
+            run = read_run(args.query_run)
+        except RunFileError as exc:
+            sys.stderr.write(f"npp-bench: --query-run: {exc}\n")
+            return 2
+        if run.task.name != get_task(args.query_task).name:
+            sys.stderr.write(f"npp-bench: --query-run {args.query_run} is a run of {run.task.name}, not of "
+                             f"--query-task {args.query_task}\n")  # fmt: skip
+            return 2
+    progress = Progress(query_steps(args) + 1)
+    progress.note(f"rollouts under gravity-holding torques + {ROLLOUT_NOISE:g} x half-range noise")
+    path = args.out / "bench.json"
+    result = json.loads(path.read_text()) if path.exists() else header(args, command)
+    with_queries(result, query_section(args, run, progress, command))
+    result.setdefault("load_average_end", result["queries"]["load_average_end"])
+    write(result, args.out)
+    progress.step(f"wrote the query cost into {path} and {args.out / 'bench.md'}; exact: {result['queries']['exact']}")
+    sys.stdout.write("\n".join(query_markdown(result["queries"])))
+    return 0 if result["queries"]["exact"] else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -227,6 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         return experts_only(args, command)
     if args.only == "throughput":
         return throughput_only(args, command)
+    if args.only == "queries":
+        return queries_only(args, command)
     n = args.trajectories * 1000
     sizes = [s for s in (10_000, 100_000, 1_000_000) if s <= n] or [n]
     tasks = [("lqr_6_2", "analytic"), ("lqr_2_1", "analytic"), ("lqr_2_1", "paper")]
