@@ -22,14 +22,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from deploy_nodes import KEEP_ALL, START_TIMEOUT_S, Deploy, count
 from deploy_runs import EPSILON, FINGERPRINT, HORIZON, SEED, TASK, bad_folders, make_run, with_robots
-from diagnostic_msgs.msg import DiagnosticArray
-from lifecycle_msgs.srv import ChangeState, GetState
-from rcl_interfaces.srv import SetParameters
-from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, String
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from npp_ros.deployment.robot_model import model_mjcf
@@ -39,16 +35,11 @@ from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.uncertainty import Robot
-from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, ERROR, OK, WARN, Health, health_of
+from npp_ros_graph.runtime.diagnostics import ERROR, OK, WARN
 from npp_ros_graph.transport.convert import float64_array, stamp
-from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, LATCHED_QOS
+from npp_ros_graph.transport.topics import CONTROL_QOS, JOINT_STATES, LATCHED_QOS
 
-START_TIMEOUT_S = 120.0  # processes importing rclpy and MuJoCo on a shared, busy machine
-STATUS_TIMEOUT_S = 60.0  # for a status that must come: generous, so that a busy machine only makes it slower
 ROBOT_DESCRIPTION = "/robot_description"
-# The test's own subscriptions keep everything: a lockstep loop outpaces a test spinning between checks,
-# and a shallow reader history would drop states (the robot and npp-deploy themselves use CONTROL_QOS).
-KEEP_ALL = QoSProfile(depth=100_000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 
 
 @pytest.fixture(scope="module")
@@ -69,88 +60,6 @@ def certified_policy(run: Path) -> NonparametricPolicy:
 
 def s0_text(state: np.ndarray) -> str:
     return ",".join(repr(float(x)) for x in state)
-
-
-class Deploy:
-    """A test's handle on one npp-deploy process: its lifecycle, its parameters, its diagnostics, the commands."""
-
-    def __init__(self, client: Any, node: str = "/npp_deploy", command_topic: str = FORWARD_COMMANDS) -> None:
-        self.client, self.node = client, node
-        self.change = client.client(ChangeState, f"{node}/change_state", START_TIMEOUT_S)
-        self.get = client.client(GetState, f"{node}/get_state")
-        self.params = client.client(SetParameters, f"{node}/set_parameters")
-        self.stopper = client.client(Trigger, f"{node}/stop")
-        self.clearer = client.client(Trigger, f"{node}/clear_model_mismatch")
-        self.statuses: list[Any] = []
-        self.commands: list[tuple[float, list[float]]] = []
-        client.node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS_QOS)
-        self.command_sub = client.node.create_subscription(Float64MultiArray, command_topic, self._on_command, KEEP_ALL)
-
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        self.statuses += [status for status in msg.status if status.name == self.node]
-
-    def _on_command(self, msg: Float64MultiArray) -> None:
-        self.commands.append((time.monotonic(), list(msg.data)))
-
-    def set(self, **values: Any) -> None:
-        request = SetParameters.Request(
-            parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]
-        )
-        answer = self.client.call(self.params, request)
-        assert all(result.successful for result in answer.results), [r.reason for r in answer.results]
-
-    def transition(self, label: str) -> bool:
-        request = ChangeState.Request()
-        request.transition.label = label
-        return bool(self.client.call(self.change, request, timeout=120.0, attempt_timeout=120.0).success)
-
-    def state(self) -> str:
-        return str(self.client.call(self.get, GetState.Request()).current_state.label)
-
-    def health_where(
-        self, holds: Callable[[Health], bool], label: str, since: int | None = None, timeout: float = STATUS_TIMEOUT_S
-    ) -> Health:
-        """The first status published after the first ``since`` ones (default: those already here) for which
-        ``holds`` is true: the status that reflects what a test checks, not one published just before it."""
-        index = len(self.statuses) if since is None else since
-        last: Health | None = None
-
-        def seen() -> bool:
-            nonlocal index, last
-            while index < len(self.statuses):
-                last, index = health_of(self.statuses[index]), index + 1
-                if holds(last):
-                    return True
-            return False
-
-        try:
-            self.client.wait_for(seen, timeout, f"a status of {self.node} where {label}")
-        except TimeoutError as exc:
-            raise AssertionError(f"{exc}; the last status: {last}") from None
-        assert last is not None
-        return last
-
-    def health(self) -> Health:
-        """The node's next status, whatever it says."""
-        return self.health_where(lambda _: True, "any")
-
-    def has_description(self) -> Health:
-        return self.health_where(lambda h: "characters from" in str(h.values.get("robot description")),
-                                 "the robot's description was received", since=0)  # fmt: skip
-
-    def deploy(self, run: Path, fingerprint: str | None = FINGERPRINT, **params: Any) -> None:
-        """Configure and activate; ``fingerprint`` None: the one the robot's description gives."""
-        if fingerprint is None:
-            self.has_description()
-        self.set(run_dir=str(run), robot_model_fingerprint=fingerprint or "", **params)
-        assert self.transition("configure"), self.health().doing
-        # The command publisher exists from configure on: see it before the first command goes out.
-        self.client.wait_for(lambda: self.command_sub.get_publisher_count() > 0, 30.0, "npp-deploy's commands")
-        assert self.transition("activate")
-
-
-def count(health: Health, name: str) -> int:
-    return int(str(health.values.get(name, -1)))
 
 
 def test_the_gate_refuses_each_bad_folder_with_its_reason_and_a_valid_one_activates(runs, launch, ros_client) -> None:
