@@ -1,5 +1,5 @@
-"""Run folders for npp-deploy's tests: real short-horizon lqr_2_1 runs made with the core loop, and copies of
-them altered the ways the gate must catch."""
+"""Run folders for npp-deploy's tests: real short-horizon lqr_2_1 runs made with the core loop, copies of them
+altered the ways the gate must catch, and a run of a reach whose state holds a target (tests/fixtures/point_reach)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import shutil
 import sqlite3
 from pathlib import Path
 
-from npp_ros.certificate.certifier import StoppingRule
+from npp_ros.certificate.certifier import SUCCESS_EPSILON, StoppingRule
 from npp_ros.policy.feedback import PolicyKind
 from npp_ros.run.seal import write_seal
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
@@ -17,6 +17,7 @@ from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.uncertainty import ScaleRange, UncertaintySet
 
 TASK, SEED, HORIZON, EPSILON = "lqr_2_1", 0, 100, 2.0
+REACH = str(Path(__file__).resolve().parent / "fixtures" / "point_reach" / "task.toml")
 FINGERPRINT = plant_fingerprint(TASK, SEED)
 NUDGE_ONE_POINT = "UPDATE points SET s_0 = s_0 + 1e-9 WHERE trajectory = 0 AND step = 3"
 NUDGE_ONE_POINT = "UPDATE points SET s_0 = s_0 + 1e-9 WHERE trajectory = 0 AND step = 3"
@@ -35,6 +36,24 @@ def make_run(
     loop = build_loop(config, expert, store_path=folder / "run.sqlite")
     try:
         loop.run(max_episodes)
+    finally:
+        assert loop.store is not None
+        loop.store.close()
+    return folder
+
+
+def make_reach_run(folder: Path) -> Path:
+    """A certified run of the point-mass reach (its state holds a target): success claimed, the feedback policy, L
+    from the data, the file's horizon. Its expert's plan is a linear feedback law, so the policy certifies on one
+    expert call, in about 30 episodes and a few seconds."""
+    horizon = get_task(REACH).default_horizon
+    expert = get_task(REACH).make_expert(SEED, horizon)
+    lipschitz = resolve_lipschitz(REACH, None, expert, seed=SEED, horizon=horizon, run_file=folder / "run.sqlite")
+    config = build_config(REACH, SEED, lipschitz, SUCCESS_EPSILON, horizon=horizon, certify="success",
+                          policy="feedback", expert=expert)  # fmt: skip
+    loop = build_loop(config, expert, store_path=folder / "run.sqlite")
+    try:
+        assert loop.run(300).certified
     finally:
         assert loop.store is not None
         loop.store.close()

@@ -110,6 +110,11 @@ class DeploymentState:
     # nothing of it.
     model_mismatch: str = ""
     stopping_for: str = ""  # the reason a deactivate now in progress was asked for
+    # A task whose state holds a target: the topic it comes from ("" for any other task), the target the policy
+    # acts on in words ("" until one is given), and the last target refused (WARN until one is taken again).
+    target_topic: str = ""
+    target: str = ""
+    target_refusal: str = ""
     refused_at: float = -math.inf  # monotonic time of the last refused state
     refused_reason: str = ""
     answered_at: float | None = None  # monotonic time the last fresh command went out, since activation
@@ -143,8 +148,26 @@ class DeploymentState:
         self.refusal = self.stopped_because = self.stopped_for = ""
 
     def released(self) -> None:
-        """The run let go (cleanup, shutdown, error)."""
+        """The run let go (cleanup, shutdown, error): its target with it."""
         self.fingerprint = self.fingerprint_source = ""
+        self.target_topic = self.target = self.target_refusal = ""
+
+    def awaits_target(self, topic: str) -> None:
+        """Configured on a task whose state holds a target, which comes on ``topic``: none yet."""
+        self.target_topic, self.target, self.target_refusal = topic, "", ""
+
+    def target_taken(self, words: str) -> None:
+        """A target the policy acts on from now on, in words."""
+        self.target, self.target_refusal = words, ""
+        self.note(f"target taken: {words}")
+
+    def target_refused(self, reason: str) -> str:
+        """A target refused for ``reason``: the one before (or none) is kept, and WARN says so until another is
+        taken; the refusal in words."""
+        kept = f"the target kept is {self.target}" if self.target else "there is still no target"
+        self.target_refusal = f"target refused: {reason}; {kept}"
+        self.note(self.target_refusal)
+        return self.target_refusal
 
     def cleaned_up(self) -> None:
         self.refusal = self.stopped_because = self.stopped_for = self.model_mismatch = ""
@@ -239,7 +262,9 @@ class DeploymentState:
         """No fresh command for ``age`` seconds (``timeout`` the limit) and ``sent`` the safe command: counted; what
         the watchdog found, in words."""
         self.counters.watchdog_expiries += 1
-        if self.answered_at is None:
+        if self.waiting_for_target:
+            what = f"no target received on {self.target_topic} in the {age * 1e3:.0f} ms since activation"
+        elif self.answered_at is None:
             what = f"no joint state answered in the {age * 1e3:.0f} ms since activation"
         else:
             what = f"no new joint state for {age * 1e3:.0f} ms"
@@ -255,6 +280,11 @@ class DeploymentState:
 
     # ------------------------------------------------------------------ what it says
     @property
+    def waiting_for_target(self) -> bool:
+        """Configured on a task whose state holds a target, and none given yet: no state to act on."""
+        return bool(self.target_topic) and not self.target
+
+    @property
     def waiting_for_first_state(self) -> bool:
         """Activated, and the robot has sent no joint state yet."""
         return self.answered_at is None and self.arrived_since_activation == 0
@@ -269,6 +299,10 @@ class DeploymentState:
             p50, p99, most = percentiles(self.periods, (50, 99, 100))
             values["state period p50 / p99 / max (ms)"] = f"{p50 * 1e3:.2f} / {p99 * 1e3:.2f} / {most * 1e3:.2f}"
             values["state periods measured"] = len(self.periods)  # since activation, up to LATENCY_WINDOW
+        if self.target_topic:
+            values["target"] = self.target or f"none received on {self.target_topic}"
+        if self.target_refusal:
+            values["target refused"] = self.target_refusal
         if self.event is not None:
             values["last event"], values["last event at"] = self.event.what, self.event.at
         return values
@@ -294,12 +328,19 @@ class DeploymentState:
             doing += f" ({self.stopped_because})"
         if model_mismatch:
             return Status(doing, values, Level.WARN, model_mismatch)
+        if self.target_refusal:
+            return Status(doing, values, Level.WARN, self.target_refusal)
         return Status(doing, values, Level.WARN if self.stopped_for in STOPPED_BY_ITSELF else Level.OK)
 
     def _commanding_status(
         self, values: Mapping[str, object], overridden: bool, expired: bool, mismatch: str, now: float | None
     ) -> Status:
         level = Level.WARN if overridden else Level.OK
+        if self.waiting_for_target:  # no state to act on: the watchdog's safe command is all it sends, as it waits
+            doing = f"active: waiting for a target on {self.target_topic}"
+            if self.target_refusal:
+                return Status(doing, values, Level.WARN, self.target_refusal)
+            return Status(doing, values, level)
         if expired:
             if self.waiting_for_first_state:
                 return Status("active: waiting for the robot's first joint state", values, level)
@@ -309,6 +350,9 @@ class DeploymentState:
         if mismatch:  # latched: said while the robot is commanded at all, whatever its last transitions look like
             doing = "active: commanding the robot, whose transitions leave the certified set of robots"
             return Status(doing, values, Level.WARN, mismatch)
+        if self.target_refusal:  # the robot goes on towards the target kept, not the one asked for last
+            doing = "active: commanding the robot towards the target kept; the last target given was refused"
+            return Status(doing, values, Level.WARN, self.target_refusal)
         recent = (time.monotonic() if now is None else now) - self.refused_at < RECENT_S
         if self.answered_at is None:
             if recent:
