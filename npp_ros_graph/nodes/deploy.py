@@ -18,6 +18,14 @@ follows a fresh answer. For a run certified on a set of robots, the model monito
 checks each transition against the set after the command went out: WARN while the robot's transitions leave
 it, and with on_model_mismatch stop, a stop.
 
+A task whose state holds a target (a task file's ``state.target``) has joints no robot measures: the target is a
+point a user publishes on ``target_topic`` (geometry_msgs/PointStamped in ``target_frame``), whose coordinates
+(the point less the target's origin, at rest) complete the state. Until one comes nothing is commanded but the
+watchdog's safe command, and the node says it waits for a target; a point in another frame, not finite, or
+outside the box rho draws targets from (the certificate covers those only) is refused with its reason, never
+clamped, and the target before it (or none) is kept. A new target starts the model monitor's chain afresh: the
+target moves between two states, which no transition of the model does.
+
 /diagnostics says what is true now: OK while states flow and commands go out (or while the robot has
 not published yet), WARN while states are stale or refused, ERROR for a refused configure; the last
 event (a watchdog expiry, a stop, a refusal) is named with its time among the values. All of that is the
@@ -41,6 +49,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from geometry_msgs.msg import PointStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -53,7 +62,15 @@ from std_srvs.srv import Trigger
 from npp_ros.deployment.commands import COMMAND_INTERFACES, CommandLimits, check_command_interface, safe_command
 from npp_ros.deployment.coverage import Coverage
 from npp_ros.deployment.gate import Acceptance, Deployment, GateRefusal, load_deployment
-from npp_ros.deployment.joints import JointLayout, NonFiniteState, RobotStateError, parse_names, stored_state
+from npp_ros.deployment.joints import (
+    JointLayout,
+    NonFiniteState,
+    NoTarget,
+    RobotStateError,
+    describe_point,
+    parse_names,
+    stored_state,
+)
 from npp_ros.deployment.monitor import ModelMonitor
 from npp_ros.deployment.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
 from npp_ros.deployment.robot_set import robots_of
@@ -73,13 +90,14 @@ from npp_ros.run.read import read_run
 from npp_ros.tasks.uncertainty import UncertaintySet
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health, health_of_state
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, request_stop, run_node, stop_requested
-from npp_ros_graph.transport.convert import float64_array
+from npp_ros_graph.transport.convert import float64_array, point_from_msg
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, LATCHED_QOS
 
 STOP_SERVICE = "~/stop"
 CLEAR_MISMATCH_SERVICE = "~/clear_model_mismatch"
 ROBOT_DESCRIPTION = "/robot_description"  # robot_state_publisher's topic (std_msgs/String, transient local)
+TARGET_TOPIC = "~/target"  # a task whose state holds a target: the point to reach (geometry_msgs/PointStamped)
 WAIT_SLICE_S = 0.1  # configure's wait for the description looks again at least this often (and for a stop)
 NUMBERS = re.compile(r"[-+]?\d+(?:\.\d*)?(?:e[-+]?\d+)?")
 MISMATCH_ACTIONS = ("warn", "stop")
@@ -126,6 +144,11 @@ PARAMETERS = (
     Changeable("override_gate", False, "deploy even when the gate refuses (each reason logged as an error and kept on "
                "/diagnostics); never for a run file whose data fail their checksums"),
     Changeable("joint_states_topic", JOINT_STATES, "the robot's sensor_msgs/JointState topic"),
+    Changeable("target_topic", TARGET_TOPIC, "a task whose state holds a target (state.target): where the point to "
+               "reach comes (geometry_msgs/PointStamped); nothing is commanded before the first, and a point outside "
+               "the box rho draws targets from is refused, the target before it kept; unused for other tasks"),
+    Changeable("target_frame", "world", "the frame a target must be given in, the model's world frame: a point in "
+               "another frame is refused (no transform is looked up)"),
     Changeable("command_topic", FORWARD_COMMANDS, "the controller's std_msgs/Float64MultiArray command topic"),
     Changeable("command_joints", "", "the controller's joints in command order, comma-separated; empty = the task's "
                "actuated joints in the task's order"),
@@ -167,6 +190,8 @@ class DeploySettings:
     robot_check_delta: float
     override_gate: bool
     joint_states_topic: str
+    target_topic: str
+    target_frame: str
     command_topic: str
     command_joints: str
     command_interface: str
@@ -180,8 +205,13 @@ class DeploySettings:
         # The limits are checked now; the key files are read at configure, where a bad one is configure's refusal
         # with its reason (at start it would stop the node, and npp-deploy-ctl could only say it is not found).
         Acceptance(self.max_epsilon, self.min_p, self.max_delta)
-        if not all(t.strip() for t in (self.joint_states_topic, self.command_topic, self.robot_description_topic)):
-            raise ValueError("joint_states_topic, command_topic and robot_description_topic must name topics")
+        topics = (self.joint_states_topic, self.command_topic, self.robot_description_topic, self.target_topic)
+        if not all(t.strip() for t in topics):
+            raise ValueError(
+                "joint_states_topic, command_topic, robot_description_topic and target_topic must name topics"
+            )
+        if not self.target_frame.strip():
+            raise ValueError("target_frame must name a frame (the model's world frame: world)")
 
     def acceptance(self, model_fingerprint: str | None = None) -> Acceptance:
         fingerprint = self.robot_model_fingerprint if model_fingerprint is None else model_fingerprint
@@ -217,6 +247,9 @@ robot of it.
 
 subscribes  joint_states_topic (sensor_msgs/JointState: names in any order, extra joints ignored)
             robot_description_topic (std_msgs/String, transient local: the robot's MJCF, for its fingerprint)
+            target_topic, a task whose state holds a target (geometry_msgs/PointStamped in target_frame: the
+            point to reach, from configure on); nothing is commanded before the first; one in another frame, not
+            finite or outside the box rho draws targets from is refused (not clamped), the target before kept
 publishes   command_topic (std_msgs/Float64MultiArray, one entry per command joint, in their order)
             /diagnostics (diagnostic_msgs/DiagnosticArray: lifecycle state, gate, what it does now, the last
             event and its time, refusals, watchdog, clamps, coverage, answer time, state period)
@@ -262,6 +295,8 @@ class DeployNode(LifecycleNode):
         self.stopped_by = ""  # the signal that stops the process (SIGINT, SIGTERM)
         self._warn = ThrottledWarnings(self)
         self._state_sub = None
+        self._target_sub = None
+        self._target_moved = False  # a new target since the model monitor's last state: its chain starts again
         self.command_pub: Publisher | None = None  # created at configure, on the configured topic
         self.create_service(Trigger, STOP_SERVICE, self.on_stop)
         self.create_service(Trigger, CLEAR_MISMATCH_SERVICE, self.on_clear_mismatch)
@@ -496,9 +531,19 @@ class DeployNode(LifecycleNode):
         self._state_sub = self.create_subscription(
             JointState, settings.joint_states_topic, self.on_joint_state, CONTROL_QOS
         )
+        if layout.target is not None:
+            self._target_sub = self.create_subscription(
+                PointStamped, settings.target_topic, self.on_target, CONTROL_QOS
+            )
+            self.state.awaits_target(self._target_sub.topic_name)
+            self.get_logger().info(
+                f"the state holds a target ({', '.join(layout.target.joints)}): waiting for a target on "
+                f"{self._target_sub.topic_name} (geometry_msgs/PointStamped in frame {settings.target_frame!r}) "
+                f"inside the box rho draws targets from, {layout.target.describe()}"
+            )
         self.get_logger().info(
             f"configured: {deployment.describe()}; robot model fingerprint {fingerprint[:12]}... from {source}; "
-            f"state joints {list(layout.state_joints)} from {self._state_sub.topic_name}, commands for "
+            f"state joints {list(layout.measured)} from {self._state_sub.topic_name}, commands for "
             f"{list(layout.command_joints)} on {self.command_pub.topic_name} ({settings.command_interface}), "
             f"limits {self.limits.describe()}, coverage radius {coverage.radius:.4g}"
         )
@@ -526,6 +571,8 @@ class DeployNode(LifecycleNode):
         self.state.activated()
         self.watchdog.arm()
         self.get_logger().info("active: commanding the robot from its next usable joint state")
+        if self.state.waiting_for_target:
+            self.get_logger().info(f"waiting for a target on {self.state.target_topic}: nothing is commanded before")
         if self.command_pub is not None and self.command_pub.get_subscription_count() == 0:
             self.get_logger().warning(
                 f"nothing subscribes to {self.command_pub.topic_name} yet: is the controller loaded and active?"
@@ -565,6 +612,9 @@ class DeployNode(LifecycleNode):
         if self._state_sub is not None:
             self.destroy_subscription(self._state_sub)
             self._state_sub = None
+        if self._target_sub is not None:
+            self.destroy_subscription(self._target_sub)
+            self._target_sub = None
         if self.command_pub is not None:
             self.destroy_publisher(self.command_pub)
             self.command_pub = None
@@ -634,6 +684,8 @@ class DeployNode(LifecycleNode):
             self.state.arrived(time.monotonic())
             try:
                 raw = layout.state(msg.name, msg.position, msg.velocity)
+            except NoTarget:
+                pass  # a usable state with nothing to act on yet: the node waits, as for a first joint state
             except RobotStateError as exc:
                 self._refused_state(exc)
             else:
@@ -699,11 +751,12 @@ class DeployNode(LifecycleNode):
         if monitor is None:
             return
         arrived = self.state.arrived_since_activation
-        if resumed or arrived != self._monitor_arrival + 1:
-            monitor.restart()  # a state skipped (overtaken, refused) or a stale spell: no one-step transition
+        if resumed or arrived != self._monitor_arrival + 1 or self._target_moved:
+            # A state skipped (overtaken, refused), a stale spell or a new target: no one-step transition
+            monitor.restart()
             if self.window is not None:
                 self.window.restart()
-        self._monitor_arrival = arrived
+        self._monitor_arrival, self._target_moved = arrived, False
         self._watch_window(raw, action, stamp)
         was_outside = monitor.outside
         monitor.observe(raw, action)
@@ -773,6 +826,24 @@ class DeployNode(LifecycleNode):
         self._warn("outside coverage", problem)
         return False
 
+    def on_target(self, msg: PointStamped) -> None:
+        """A target: taken from the next joint state on, or refused with its reason (the target before kept)."""
+        layout = self.layout
+        if layout is None or layout.target is None:
+            return
+        try:
+            coordinates = layout.aim(point_from_msg(msg, self.settings.target_frame))
+        except ValueError as exc:  # another frame (MessageError), not finite or outside the box (TargetRefused)
+            reason = self.state.target_refused(str(exc))
+            self._warn(NUMBERS.sub("#", reason), reason)
+            self.diagnostics.publish()
+            return
+        self._target_moved = True
+        words = f"{describe_point(layout.target.point(coordinates))} in {self.settings.target_frame}"
+        self.state.target_taken(words)
+        self.get_logger().info(f"target {words} taken (its joints at {describe_point(coordinates)})")
+        self.diagnostics.publish()
+
     def on_states_stopped(self, age: float) -> None:
         """Watchdog thread, in its step: no fresh command for state_timeout seconds; send the safe command."""
         self.state.watchdog_expired(age, self.settings.state_timeout, self.send_safe_command())
@@ -781,7 +852,9 @@ class DeployNode(LifecycleNode):
         """Watchdog thread, after its step: say so."""
         stale = self.state.stale
         self.state.note(f"watchdog expiry: {stale}")
-        if self.state.waiting_for_first_state:
+        if self.state.waiting_for_target:
+            self.get_logger().info(f"waiting for a target on {self.state.target_topic}: {stale}")
+        elif self.state.waiting_for_first_state:
             self.get_logger().info(f"waiting for the robot's first joint state: {stale}")
         else:
             self.get_logger().error(stale)

@@ -13,8 +13,11 @@ topic, it publishes a state, then steps only when a command answers it, and publ
 state left unanswered for ``resend_after`` seconds is published again with the same stamp (so a
 controller activated later picks it up).
 
-Joint states: every joint of the model, position = qpos, velocity = qvel, effort = the control
-applied to its actuator (0 for a joint without one), stamped with the robot's clock. Real time: the
+Joint states: every joint of the model but a target's, position = qpos, velocity = qvel, effort = the control
+applied to its actuator (0 for a joint without one), stamped with the robot's clock. A task whose state holds a
+target (a task file's ``state.target``) simulates the target as a body of the model that nothing moves, but a
+real arm measures no such joints: they are left out, as a robot's joint_state_broadcaster would, and npp-deploy
+reads the target from a topic of its own. Real time: the
 clock starts at the wall clock's time when the robot is built, each stepped state is stamped dt after
 the state before it (so its stamps follow the steps taken: with ``time_scale`` 1 and no overrun they
 stay with the wall clock; a skipped period, an overrun, leaves them behind it by that period), and
@@ -29,7 +32,9 @@ forgets the held command and applies zero; in real time it then holds the plant 
 every HOLD_REPUBLISH_S, until the first command after the reset, which it applies at once; in lockstep
 it publishes the start and steps on commands. It answers with the start as it measures it (its state
 noise included, as in its joint states) and that state's stamp. A state of the wrong length or with
-non-finite entries is refused with the reason, changing nothing.
+non-finite entries is refused with the reason, changing nothing. The requested state is the whole stored
+state: for a task whose state holds a target, its target entries put the simulated target there (a body
+nothing moves, which changes no motion of the robot and is in no joint state), and the answer holds them.
 
 Its model: the MJCF it runs, published once on /robot_description (std_msgs/String, transient local
 and reliable, as robot_state_publisher publishes a URDF), from which npp-deploy computes the model
@@ -66,7 +71,7 @@ from npp_ros.deployment.joints import JointLayout, parse_names, parse_vector
 from npp_ros.deployment.robot_model import mjcf_fingerprint, model_mjcf
 from npp_ros.deployment.robot_set import robot_mjcf
 from npp_ros.policy.vectors import finite_vector
-from npp_ros.tasks.registry import TASK_NAMES, Plant, get_task
+from npp_ros.tasks.registry import Plant, get_task
 from npp_ros.tasks.uncertainty import PARAMETERS as UNCERTAIN
 from npp_ros.tasks.uncertainty import ModelParameters, Robot, RobotEffects, model_elements
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
@@ -78,7 +83,8 @@ from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_
 HOLD_REPUBLISH_S = 0.05  # holding (start_on_command, after a reset): how often the start goes out again, wall seconds
 
 PARAMETERS = (
-    Param("task", "lqr_2_1", "the task whose plant this robot is", choices=TASK_NAMES),
+    Param("task", "lqr_2_1", "the task whose plant this robot is: a registered task (plug-ins too) or a task file "
+          "(path ending in .toml)"),
     Param("seed", 0, "task seed (the plant's model depends on it)", 0, 2**32 - 1),
     Param("initial_state", "", "the state to start in, comma-separated qpos then qvel; empty = s0 ~ rho of "
           "`episode`"),
@@ -200,7 +206,9 @@ subscribes  command_topic (std_msgs/Float64MultiArray, one entry per command joi
 publishes   robot_description_topic (std_msgs/String, transient local: the MJCF of its model, once)
 serves      reset_service (npp_interfaces/srv/ResetRobot): state = qpos then qvel, or empty for its own start
             (initial_state, else s0 of `episode`); answers the start as measured (with its state noise) and the
-            stamp of that joint state; real time: holds the start until the next command, applied at once
+            stamp of that joint state; real time: holds the start until the next command, applied at once;
+            a task whose state holds a target (state.target): the target's entries put the simulated target,
+            which moves nothing and is not in joint_states_topic (a real arm measures no target)
 publishes   /diagnostics (steps, overruns, resets and refused resets among its values)
 
 Stamps follow the robot's clock: real time, the wall clock's time at start plus dt per step taken (with
@@ -285,10 +293,13 @@ class RobotNode(Node):
         model = plant.physics.model
         self._qpos = np.array([model.jnt_qposadr[model.joint(n).id] for n in plant.joint_names], dtype=np.intp)
         self._qvel = np.array([model.jnt_dofadr[model.joint(n).id] for n in plant.joint_names], dtype=np.intp)
+        # What a joint state reports: the robot's own joints, never a target's (which the reset puts, and no robot
+        # measures); the whole state is still what a reset answers.
+        self._measured = np.array([plant.joint_names.index(n) for n in layout.measured], dtype=np.intp)
         self._effort_of = np.array(
-            [plant.actuated_joint_names.index(n) if n in plant.actuated_joint_names else -1 for n in plant.joint_names]
+            [plant.actuated_joint_names.index(n) if n in plant.actuated_joint_names else -1 for n in layout.measured]
         )
-        self._state_msg = JointState(name=list(plant.joint_names))
+        self._state_msg = JointState(name=list(layout.measured))
         self._applied = np.zeros(plant.action_dim)
         self.plant, self.layout, self.robot = plant, layout, robot
         self._effects = RobotEffects(robot, plant.action_dim)
@@ -303,11 +314,13 @@ class RobotNode(Node):
             self.description_pub.publish(String(data=mjcf))
             described = f"its MJCF on {settings.robot_description_topic}"
         mode = "lockstep" if settings.lockstep else f"real time, every {plant.dt * 1e3:g} ms"
+        target = [] if layout.target is None else list(layout.target.joints)
+        unmeasured = f" ({target} the target's: not in its joint states)" if target else ""
         if not settings.lockstep and settings.time_scale != 1.0:
             mode += f" of robot time, {settings.time_scale:g}x the wall clock"
         self.get_logger().info(
             f"robot {settings.task} seed {settings.seed} ready ({mode}), {robot.describe()}: joints "
-            f"{plant.joint_names}, commands for "
+            f"{plant.joint_names}{unmeasured}, commands for "
             f"{list(layout.command_joints)} on {settings.command_topic}, s0 {np.round(s0, 6).tolist()}; "
             f"model fingerprint {plant.model_sha256()}, {described}"
         )
@@ -464,8 +477,8 @@ class RobotNode(Node):
         raw = np.concatenate([data.qpos[self._qpos], data.qvel[self._qvel]])
         if self._effects is not None:
             raw = self._effects.observe(raw)  # the robot's noise on what it reports, if it has some
-        msg.position = float64_array(raw[: len(self._qpos)])
-        msg.velocity = float64_array(raw[len(self._qpos) :])
+        msg.position = float64_array(raw[: len(self._qpos)][self._measured])
+        msg.velocity = float64_array(raw[len(self._qpos) :][self._measured])
         msg.effort = float64_array(np.where(self._effort_of >= 0, self._applied[self._effort_of], 0.0))
         self._last_sent = time.monotonic()
         self.state_pub.publish(msg)

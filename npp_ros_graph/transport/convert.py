@@ -15,6 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PointStamped
 from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.msg import EpisodeResult, GapReport, PlantDescription
 from npp_interfaces.msg import PolicySpec as PolicySpecMsg
@@ -165,6 +166,17 @@ def action_from_joint_state(msg: JointState, actuated_joint_names: Sequence[str]
     return finite_vector(msg.effort, len(joints), "effort", f"one per actuated joint {joints}")
 
 
+def point_from_msg(msg: PointStamped, frame: str) -> FloatArray:
+    """The point a PointStamped carries, given in ``frame``; a MessageError naming both frames for a point in
+    another (or in none): no transform is looked up, a point is the model's world coordinates or refused."""
+    point = np.array([msg.point.x, msg.point.y, msg.point.z], dtype=np.float64)
+    given = msg.header.frame_id
+    if given != frame:
+        named = f"in frame {given!r}" if given else "in no frame (header.frame_id empty)"
+        raise MessageError(f"target {tuple(point.tolist())} is {named}, not {frame!r}: give it in {frame!r}")
+    return point
+
+
 # ----------------------------------------------------------------------------- plant
 def plant_description(plant: Plant, seed: int, horizon: int) -> PlantDescription:
     space = control_space(plant)
@@ -191,7 +203,7 @@ def policy_spec_to_msg(spec: PolicySpec) -> PolicySpecMsg:
         kind=spec.kind, lipschitz=spec.lipschitz.value, lipschitz_source=spec.lipschitz.source,
         lipschitz_margin=spec.lipschitz.margin, state_dim=control.state_dim, angle_entries=list(control.angles),
         action_low=float64_array(control.action_low), action_high=float64_array(control.action_high),
-        invariant_entries=list(control.invariant),
+        invariant_entries=list(control.invariant), distance_weights=float64_array(control.weights),
     )  # fmt: skip
 
 
@@ -201,7 +213,11 @@ def policy_spec_from_msg(msg: PolicySpecMsg) -> PolicySpec:
         raise ValueError("the dataset answer names no policy (an npp_ros from before the policy was sent whole?)")
     kind = check_policy_kind(msg.kind)
     control = ControlSpace.of(msg.state_dim, list(msg.angle_entries), list(msg.action_low), list(msg.action_high))
-    control = replace(control, invariant=tuple(int(i) for i in msg.invariant_entries))
+    control = replace(
+        control,
+        invariant=tuple(int(i) for i in msg.invariant_entries),
+        weights=tuple(float(w) for w in msg.distance_weights),
+    )
     lipschitz = LipschitzConstant(float(msg.lipschitz), msg.lipschitz_source, margin=float(msg.lipschitz_margin))
     return PolicySpec(kind, lipschitz, control)
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import Point, PointStamped
 from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.srv import ExpertTrajectory, ResetEpisode
 from sensor_msgs.msg import JointState
@@ -31,6 +32,7 @@ from npp_ros_graph.transport.convert import (
     gap_from_msg,
     gap_report,
     plant_description,
+    point_from_msg,
     robot_from_field,
     robot_to_field,
     rollout_result,
@@ -140,6 +142,17 @@ def test_action_round_trips_through_joint_state() -> None:
 def test_a_bad_action_message_is_refused_with_the_reason(msg: JointState, fragment: str) -> None:
     with pytest.raises(ValueError, match=fragment):
         action_from_joint_state(msg, ACTUATED)
+
+
+def test_a_target_point_is_read_in_its_frame_and_one_in_another_frame_is_refused() -> None:
+    msg = PointStamped(point=Point(x=0.25, y=-0.5, z=math.nan))  # finiteness is the target box's to judge
+    msg.header.frame_id = "world"
+    np.testing.assert_array_equal(point_from_msg(msg, "world"), [0.25, -0.5, math.nan])
+    with pytest.raises(MessageError, match=r"target \(0.25, -0.5, nan\) is in frame 'world', not 'map': give it in"):
+        point_from_msg(msg, "map")
+    msg.header.frame_id = ""
+    with pytest.raises(MessageError, match=r"in no frame \(header.frame_id empty\), not 'world'"):
+        point_from_msg(msg, "world")
 
 
 def test_plant_description_names_the_plant() -> None:

@@ -114,6 +114,8 @@ class RosRobotLink:
             raise RobotFault(f"the robot refused the reset: {response.message}")
         if len(response.state) != self.plant.state_dim or not np.all(np.isfinite(response.state)):
             raise RobotFault(f"the reset reported a start of {len(response.state)} values, not a finite state")
+        start = np.array(response.state, dtype=np.float64)
+        self.layout.aim_as(start)  # a target the state holds is where the reset put it: no joint state reports it
         self._stamp = float(response.stamp.sec) + 1e-9 * float(response.stamp.nanosec)
         self._held = True  # the robot repeats this measurement, with its stamp, until the first command
         # A command still in flight from before the reset (a robot that paused, a controller's last word) would move
@@ -122,7 +124,7 @@ class RosRobotLink:
         self._interrupted()
         if moved is not None:
             raise RobotFault("the robot moved after its reset before the episode's first command (a command in flight)")
-        return Reading(stored_state(self.plant, np.array(response.state, dtype=np.float64)), self._stamp)
+        return Reading(stored_state(self.plant, start), self._stamp)
 
     def step(self, command: FloatArray) -> Reading:
         self._interrupted()
