@@ -59,17 +59,24 @@ def pairwise_distances(points: FloatArray, queries: FloatArray) -> FloatArray:
 
 
 class MeasuredData:
-    """The dataset as the policy's distance sees it: the invariant entries left out (their difference is 0).
+    """The dataset as the policy's distance sees it: the invariant entries left out (their difference is 0), each
+    other entry times its weight (npp_ros.policy.feedback.ControlSpace.weights).
 
     Duck-types the parts of :class:`Dataset` the search reads (states, values, size, version); its states are a
     copy, brought up to date when the dataset grows.
     """
 
-    def __init__(self, dataset: Dataset, measured: tuple[int, ...]) -> None:
+    def __init__(self, dataset: Dataset, measured: tuple[int, ...], weights: FloatArray | None = None) -> None:
         self.dataset = dataset
         self.measured = list(measured)
+        self.weights = weights
         self.state_dim = len(measured)
         self._states = np.empty((0, self.state_dim))
+
+    def queries(self, states: FloatArray) -> FloatArray:
+        """States (rows) as this metric sees them, as its stored states are."""
+        picked = states[:, self.measured]
+        return np.ascontiguousarray(picked if self.weights is None else picked * self.weights)
 
     def __len__(self) -> int:
         return len(self.dataset)
@@ -86,7 +93,7 @@ class MeasuredData:
     def states(self) -> FloatArray:
         size = len(self.dataset)
         if self._states.shape[0] != size:
-            new = self.dataset.states[self._states.shape[0] : size, self.measured]
+            new = self.queries(self.dataset.states[self._states.shape[0] : size])
             self._states = np.ascontiguousarray(np.concatenate([self._states, new]))
         return self._states
 
@@ -129,9 +136,13 @@ class NonparametricPolicy:
         self.lipschitz = float(lipschitz)
         self.control = control
         self.kind: PolicyKind = kind
-        invariant = control is not None and bool(control.invariant)
-        # What every distance is measured on: the data itself, or its copy without the invariant entries.
-        self.measured = MeasuredData(dataset, control.measured) if invariant and control is not None else None
+        # What every distance is measured on: the data itself, or its copy without the invariant entries and with
+        # each entry times its weight.
+        self.measured = (
+            MeasuredData(dataset, control.measured, control.metric_weights)
+            if control is not None and (control.invariant or control.weights)
+            else None
+        )
         self.metric: Dataset | MeasuredData = dataset if self.measured is None else self.measured
         self.index = BoundIndex(self.metric, self.lipschitz, compress=compress) if index else None  # type: ignore[arg-type]
         self._cursor: NDArray[np.int64] | None = None  # path: the point each episode acted at last
@@ -177,7 +188,7 @@ class NonparametricPolicy:
     def _search(self, queries: FloatArray, offsets: FloatArray | None, lower: bool) -> BoundQuery:
         """max_i (Q_i - L d_i) if lower else min_j (Q_j + L d_j); d may include an action term."""
         if self.measured is not None:
-            queries = np.ascontiguousarray(queries[:, self.measured.measured])
+            queries = self.measured.queries(queries)
         if offsets is None and self.index is not None:
             value, index = self.index.search(queries, lower)
             return BoundQuery(value, index)
@@ -274,7 +285,7 @@ class NonparametricPolicy:
         known = len(self._slack)
         if known < self.dataset.num_trajectories:
             self._slack = np.concatenate([self._slack, trajectory_slack(states, offsets, known)])
-        queries = batch if self.measured is None else batch[:, self.measured.measured]
+        queries = batch if self.measured is None else self.measured.queries(batch)
         chosen = follow(
             cursor, found.index, found.value, queries, states, self.dataset.values, self.lipschitz, offsets, self._slack
         )

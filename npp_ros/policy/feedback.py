@@ -19,10 +19,15 @@ on V_lb when it leaves.
 A task may declare ``invariant`` state entries (positions that change neither dynamics nor reward, e.g. a rotary
 pendulum's arm angle): every policy's distance and the feedback difference take those entries' difference as 0,
 as if the state were shifted onto the stored point's position there.
+
+A task may also weigh its state entries in the policy's distance (``weights``): each entry's difference times its
+weight, so that a centimetre of a reach's target can count as much as a tenth of a radian of a joint. The weights
+decide only which data point the policy chooses; the feedback difference s - s_i* is the task's own, unweighted.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal, get_args
@@ -71,6 +76,7 @@ class ControlSpace:
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]
     invariant: tuple[int, ...] = ()
+    weights: tuple[float, ...] = ()  # each entry's weight in the policy's distance; () = every entry 1
 
     def __post_init__(self) -> None:
         if any(not 0 <= i < self.state_dim for i in self.angles):
@@ -79,6 +85,10 @@ class ControlSpace:
             raise ValueError(f"invariant entries {self.invariant} must lie in [0, {self.state_dim})")
         if len(set(self.invariant)) == self.state_dim:
             raise ValueError("every state entry is invariant: the policy would have no distance to choose by")
+        if self.weights and (len(self.weights) != self.state_dim or not all(
+            math.isfinite(w) and w > 0 for w in self.weights
+        )):  # fmt: skip
+            raise ValueError(f"distance weights must be {self.state_dim} finite numbers > 0, got {self.weights}")
         if len(self.action_low) != len(self.action_high):
             raise ValueError("action_low and action_high must have one entry per actuator")
         low, high = np.asarray(self.action_low), np.asarray(self.action_high)
@@ -87,7 +97,13 @@ class ControlSpace:
 
     @classmethod
     def of(
-        cls, state_dim: int, angles: Sequence[int], low: ArrayLike, high: ArrayLike, invariant: Sequence[int] = ()
+        cls,
+        state_dim: int,
+        angles: Sequence[int],
+        low: ArrayLike,
+        high: ArrayLike,
+        invariant: Sequence[int] = (),
+        weights: Sequence[float] = (),
     ) -> ControlSpace:
         return cls(
             int(state_dim),
@@ -95,7 +111,15 @@ class ControlSpace:
             tuple(float(x) for x in np.ravel(low)),
             tuple(float(x) for x in np.ravel(high)),
             tuple(sorted({int(i) for i in invariant})),
+            tuple(float(w) for w in weights) if any(float(w) != 1.0 for w in weights) else (),
         )
+
+    @property
+    def metric_weights(self) -> FloatArray | None:
+        """The weights of the measured entries, in their order; None when every one is 1."""
+        if not self.weights:
+            return None
+        return np.array([self.weights[i] for i in self.measured], dtype=np.float64)
 
     @property
     def measured(self) -> tuple[int, ...]:

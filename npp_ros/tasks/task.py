@@ -350,4 +350,7 @@ def control_space(plant: Plant) -> ControlSpace:
     """How the plant's states differ and how far its actuators reach (npp_ros.policy.feedback)."""
     low = getattr(plant, "action_low", np.full(plant.action_dim, -np.inf))
     high = getattr(plant, "action_high", np.full(plant.action_dim, np.inf))
-    return ControlSpace.of(plant.state_dim, getattr(plant, "angles", ()), low, high, getattr(plant, "invariant", ()))
+    return ControlSpace.of(
+        plant.state_dim, getattr(plant, "angles", ()), low, high, getattr(plant, "invariant", ()),
+        getattr(plant, "distance_weights", ()),
+    )  # fmt: skip

@@ -17,6 +17,9 @@ describes every key. In short::
     invariant = []                 # joints whose position changes neither dynamics nor reward (checked at load)
     target = []                    # or the x, y, z slide joints of a point no torque moves (a reach's target)
 
+    [state.weights]                # optional: each entry's weight in the policy's distance (default 1)
+    shoulder = 2.0                 # a joint's position; or { position = 2.0, velocity = 0.5 }
+
     [rho]                          # s0 uniform in these ranges; joints not named start at 0, at rest
     shoulder = { position = [-3.14, 3.14], velocity = [0.0, 0.0] }
 
@@ -112,6 +115,7 @@ class FilePlant(SuitePlant):
         self.angles = tuple(definition.wrapped)
         self.invariant = tuple(definition.invariant)  # the policy's distance ignores them (npp_ros.policy.feedback)
         self.target_joints = tuple(definition.target_joints)  # a robot has none: a deployment reads them as a point
+        self.distance_weights = tuple(definition.distance_weights)  # the policy's distance (npp_ros.policy.feedback)
         self.seed = int(seed)
         self.physics = dm_mujoco.Physics.from_xml_path(str(definition.model_path))
         self._task = definition.reward

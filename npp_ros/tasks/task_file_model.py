@@ -16,7 +16,8 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.suite_plant import substeps_per_control_step
 from npp_ros.tasks.task_file_reader import Reader
 
-STATE_KEYS = {"joints", "wrap", "invariant", "target"}
+STATE_KEYS = {"joints", "wrap", "invariant", "target", "weights"}
+WEIGHT_KEYS = {"position", "velocity"}
 TARGET_AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))  # target_x, _y, _z: the world's axes, in order
 RHO_KEYS = {"position", "velocity"}
 
@@ -136,6 +137,28 @@ def read_state(
                 "state.target", f"joint {name!r} is a target coordinate: it neither wraps nor is invariant"
             )
     return tuple(model_joints), tuple(wrapped), tuple(sorted(invariant)), target
+
+
+def read_weights(reader: Reader, doc: dict[str, Any], model: Any) -> tuple[float, ...]:
+    """``[state.weights]``: each joint's weight in the policy's distance, a number (its position's) or a table
+    ``{ position = w, velocity = w }``; entries not named weigh 1. () when every weight is 1 (the plain distance)."""
+    state = reader.table(doc.get("state", {}), "state")
+    if "weights" not in state:
+        return ()
+    table = reader.table(state["weights"], "state.weights")
+    joints = model_ids(model, "joint")
+    n = len(joints)
+    weights = np.ones(2 * n)
+    for name, given in table.items():
+        key = f"state.weights.{name}"
+        _known_joint(reader, key, name, joints)
+        parts = given if isinstance(given, dict) else {"position": given}
+        reader.unknown_keys(parts, WEIGHT_KEYS, f"{key}.")
+        j = joints[name]
+        for part, index in (("position", int(model.jnt_qposadr[j])), ("velocity", n + int(model.jnt_dofadr[j]))):
+            if part in parts:
+                weights[index] = reader.number(parts[part], f"{key}.{part}" if isinstance(given, dict) else key, True)
+    return tuple(float(w) for w in weights) if np.any(weights != 1.0) else ()
 
 
 def read_target(reader: Reader, state: dict[str, Any], model: Any, joints: dict[str, int]) -> tuple[str, ...]:

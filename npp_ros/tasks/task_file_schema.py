@@ -25,7 +25,14 @@ from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_KINDS, wrap_angle
 from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.tasks.task import DEFAULT_HORIZON, check_horizon
 from npp_ros.tasks.task_file_cost import DEFAULT_CONTROL_WEIGHT, DEFAULT_VELOCITY_WEIGHT
-from npp_ros.tasks.task_file_model import load_model, read_actuators, read_rho, read_state, read_timestep
+from npp_ros.tasks.task_file_model import (
+    load_model,
+    read_actuators,
+    read_rho,
+    read_state,
+    read_timestep,
+    read_weights,
+)
 from npp_ros.tasks.task_file_reader import Reader, TaskFileError
 from npp_ros.tasks.task_file_success import read_success
 from npp_ros.tasks.task_file_terms import FunctionReward, Term, TermReward, read_reward, read_terms
@@ -76,6 +83,7 @@ class TaskDefinition:
     uncertainty: UncertaintySet = EXACT  # [uncertainty]: what of the robot is uncertain (the exact model: nothing)
     invariant: tuple[int, ...] = ()  # [state] invariant: qpos indices whose value changes neither dynamics nor reward
     target_joints: tuple[str, ...] = ()  # [state] target: the x, y, z slide joints of a point no torque moves
+    distance_weights: tuple[float, ...] = ()  # [state.weights]: each state entry's weight in the policy's distance
 
     @property
     def name(self) -> str:
@@ -124,6 +132,7 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
     dt = read_timestep(reader, doc, model)
     horizon, epsilon, lipschitz, certify, policy = _run_defaults(reader, doc)
     joint_names, wrapped, invariant, target = read_state(reader, doc, model)
+    weights = read_weights(reader, doc, model)
     actuator_names, actuated = read_actuators(reader, doc, model)
     driven = sorted(set(actuated) & set(target))
     if driven:
@@ -144,6 +153,7 @@ def parse(path: Path, content: bytes) -> TaskDefinition:
         policy=policy, joint_names=joint_names, actuator_names=actuator_names, actuated_joint_names=actuated,
         wrapped=wrapped, rho_low=low, rho_high=high, reward=reward, cost_terms=cost_terms, expert=options,
         success=success, uncertainty=uncertainty, invariant=invariant, target_joints=target,
+        distance_weights=weights,
     )  # fmt: skip
 
 

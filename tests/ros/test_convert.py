@@ -305,6 +305,8 @@ def test_a_runs_policy_round_trips_whole_through_the_dataset_answer() -> None:
     control = ControlSpace(control.state_dim, control.angles, control.action_low, control.action_high, invariant=(0,))
     spec = PolicySpec("path", LipschitzConstant(263.3, "lqr-analytic", margin=1e-6), control)
     assert policy_spec_from_msg(policy_spec_to_msg(spec)) == spec
+    weighted = PolicySpec("feedback", spec.lipschitz, ControlSpace.of(4, (1,), [-1.0], [1.0], weights=(1, 10, 1, 0.5)))
+    assert policy_spec_from_msg(policy_spec_to_msg(weighted)) == weighted
     with pytest.raises(ValueError, match="names no policy"):
         policy_spec_from_msg(PolicySpecMsg())
     with pytest.raises(ValueError, match="the policy must be one of"):
