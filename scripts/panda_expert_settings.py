@@ -66,6 +66,11 @@ def measure(path: Path, requests: int) -> list[dict[str, object]]:
     return rows
 
 
+def iterations(row: dict[str, object]) -> str:
+    """A request's iterations, with how iLQR stopped when it did not converge."""
+    return f"{row['iterations']}" if row["stop"] == "converged" else f"{row['iterations']} ({row['stop']})"
+
+
 def report(results: dict[str, list[dict[str, object]]], requests: int) -> str:
     lines = [
         "# The Panda reaching expert: its settings, each set back",
@@ -73,19 +78,19 @@ def report(results: dict[str, list[dict[str, object]]], requests: int) -> str:
         f"`.venv/bin/python scripts/panda_expert_settings.py --requests {requests}`: the same {requests} requests "
         "(s0 of rho, seeds 1..N) per variant, one process, one core; seconds are wall time on a shared machine.",
         "",
-        "| variant | success | iterations (converged) | seconds, median | hand distance, last 0.5 s (max) | "
+        "| variant | success | iterations | seconds, median | hand distance, last 0.5 s (max) | "
         "hand speed, last 0.5 s (max) |",
         "|---|---|---|---|---|---|",
     ]
     for name, rows in results.items():
-        its = ", ".join(f"{r['iterations']}{'' if r['stop'] == 'converged' else '*'}" for r in rows)
+        its = ", ".join(iterations(r) for r in rows)
         lines.append(
             f"| {name} | {sum(bool(r['success']) for r in rows)} of {len(rows)} | {its} | "
             f"{statistics.median(float(r['seconds']) for r in rows):.1f} | "  # type: ignore[arg-type]
-            f"{max(float(r['last_distance_max_m']) for r in rows) * 100:.1f} cm | "  # type: ignore[arg-type]
+            f"{max(float(r['last_distance_max_m']) for r in rows) * 1000:.1f} mm | "  # type: ignore[arg-type]
             f"{max(float(r['last_speed_max_m_s']) for r in rows):.3f} m/s |"  # type: ignore[arg-type]
         )
-    lines += ["", "\\* stopped at max_iterations (30) without converging.", ""]
+    lines += ["", "An iteration count without a note converged; the others say how iLQR stopped instead.", ""]
     return "\n".join(lines)
 
 
@@ -93,7 +98,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--requests", type=int, default=5, help="requests per variant")
     parser.add_argument("--out", type=Path, default=Path("results/panda-reach/expert"), help="output folder")
+    parser.add_argument("--render", action="store_true", help="only write the table again from OUT's json")
     args = parser.parse_args()
+    if args.render:
+        results = json.loads((args.out / "expert-settings.json").read_text())
+        (args.out / "expert-settings.md").write_text(report(results, len(next(iter(results.values())))))
+        return
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         for k, (name, edits) in enumerate(VARIANTS.items()):
