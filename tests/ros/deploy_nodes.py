@@ -1,5 +1,5 @@
 """npp-deploy as a test drives it over DDS: its lifecycle, its parameters, its /diagnostics and its commands
-(tests/ros/test_deploy_robot.py, test_deploy_target.py)."""
+(tests/ros/test_deploy_robot.py, test_deploy_target_graph.py)."""
 
 from __future__ import annotations
 
