@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from npp_ros.deployment.commands import gravity_hold, safe_command
+from npp_ros.deployment.joints import JointLayout, NoTarget
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.task_file import FilePlant, GravityHold, TaskFileError, target_origin
 from npp_ros.tasks.task_file_cost import TermCost
@@ -191,3 +193,24 @@ def test_a_target_something_moves_is_refused(panda_dir: Path, old: str, new: str
     scene_copy(panda_dir, old, new)
     with pytest.raises(TaskFileError, match=expected):
         get_task(str(panda_dir / "task.toml"))
+
+
+def test_the_gravity_safe_effort_holds_the_arm_before_any_target() -> None:
+    """npp-deploy's safe command with safe_effort gravity: the torques that hold the measured pose, computed from a
+    joint state of the arm's own joints before any target was given; zero effort lets the same arm fall."""
+    task = get_task(str(EXAMPLE / "task.toml"))
+    plant = task.make_plant(0)
+    layout = JointLayout.of_plant(plant)
+    s0 = task.sample_initial_state(np.random.default_rng(5))
+    names = [f"joint{i}" for i in range(1, 8)]
+    with pytest.raises(NoTarget) as waiting:
+        layout.state(names, s0[:ARM_JOINTS].tolist(), s0[10:17].tolist())
+    held = safe_command("effort", layout, waiting.value.raw, gravity_hold(plant))
+    assert not np.array_equal(held, np.zeros(7))
+    drift = {}
+    for name, command in (("gravity", held), ("zero", safe_command("effort", layout, waiting.value.raw))):
+        plant.reset(s0)
+        for _ in range(20):
+            plant.step(layout.action(command))
+        drift[name] = float(np.max(np.abs(plant.state()[:ARM_JOINTS] - s0[:ARM_JOINTS])))
+    assert drift["gravity"] < 0.01 < 0.1 < drift["zero"], drift

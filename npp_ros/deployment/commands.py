@@ -7,6 +7,7 @@ model's control range, and :func:`safe_command` is what the robot gets when the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -18,6 +19,10 @@ from npp_ros.tasks.registry import Plant
 
 CommandInterface = Literal["effort", "position"]
 COMMAND_INTERFACES: tuple[str, ...] = ("effort", "position")
+# The safe effort: zero (a robot whose own controller holds it against gravity, as an arm's torque interface
+# usually does), or the torques that hold the measured pose against the model's gravity (a robot that falls at
+# zero effort, as npp-robot running an arm's model does: the certified torques carry gravity themselves).
+SAFE_EFFORTS: tuple[str, ...] = ("zero", "gravity")
 _MJ_BIAS_NONE = 0  # a motor: the control is a force or torque
 
 
@@ -39,13 +44,34 @@ def check_command_interface(plant: Plant, interface: str) -> None:
         )
 
 
-def safe_command(interface: str, layout: JointLayout, raw_state: FloatArray | None) -> FloatArray:
-    """What a robot gets when the policy stops: zero effort, or its present position held."""
+def safe_command(
+    interface: str,
+    layout: JointLayout,
+    raw_state: FloatArray | None,
+    hold: Callable[[FloatArray], FloatArray] | None = None,
+) -> FloatArray:
+    """What a robot gets when the policy stops: zero effort, or with ``hold`` (the task's actuator order) the
+    effort that holds its measured pose; or its present position held. Before any joint state, zero effort."""
     if interface == "position":
         if raw_state is None:
             raise RobotStateError("no joint state received yet: there is no position to hold")
         return layout.hold(raw_state)
+    if hold is not None and raw_state is not None:
+        return layout.command(hold(raw_state))
     return np.zeros(len(layout.command_joints))
+
+
+def gravity_hold(plant: Plant) -> Callable[[FloatArray], FloatArray]:
+    """The efforts that hold the plant's measured pose at rest under its model's gravity (the task file's
+    GravityHold), for :func:`safe_command`; a plant without a MuJoCo model has none."""
+    from npp_ros.tasks.task_file import GravityHold
+
+    model = getattr(getattr(plant, "physics", None), "model", None)
+    if model is None:
+        raise ValueError(f"{plant.task} has no MuJoCo model to compute the torques that hold it")
+    low = np.asarray(getattr(plant, "action_low", np.full(plant.action_dim, -np.inf)), dtype=np.float64)
+    high = np.asarray(getattr(plant, "action_high", np.full(plant.action_dim, np.inf)), dtype=np.float64)
+    return GravityHold(model.ptr, low, high)
 
 
 @dataclass(frozen=True)

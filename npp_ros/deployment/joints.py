@@ -36,7 +36,12 @@ class NonFiniteState(RobotStateError):
 
 class NoTarget(RobotStateError):
     """A joint state of a task whose state holds a target, before any target was given: nothing to act on yet,
-    though the state itself is fine."""
+    though the state itself is fine. ``raw`` is that state with the target's entries at 0 (what a safe command
+    that holds the robot's pose may read; never what the policy acts on)."""
+
+    def __init__(self, message: str, raw: FloatArray) -> None:
+        super().__init__(message)
+        self.raw = raw
 
 
 class TargetRefused(ValueError):
@@ -189,7 +194,9 @@ class JointLayout:
                 f"(entries must be within +-{MAX_MAGNITUDE:g})"
             )
         if self.target is not None and self._aim is None:
-            raise NoTarget(f"no target given yet: the state holds the target's joints {', '.join(self.target.joints)}")
+            raise NoTarget(
+                f"no target given yet: the state holds the target's joints {', '.join(self.target.joints)}", raw
+            )
         return raw
 
     def _entries(self, which: np.ndarray, raw: FloatArray) -> str:

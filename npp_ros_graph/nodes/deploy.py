@@ -59,7 +59,14 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from npp_ros.deployment.commands import COMMAND_INTERFACES, CommandLimits, check_command_interface, safe_command
+from npp_ros.deployment.commands import (
+    COMMAND_INTERFACES,
+    SAFE_EFFORTS,
+    CommandLimits,
+    check_command_interface,
+    gravity_hold,
+    safe_command,
+)
 from npp_ros.deployment.coverage import Coverage
 from npp_ros.deployment.gate import Acceptance, Deployment, GateRefusal, load_deployment
 from npp_ros.deployment.joints import (
@@ -154,6 +161,9 @@ PARAMETERS = (
                "actuated joints in the task's order"),
     Changeable("command_interface", "effort", "what the controller commands; the safe command is zero effort, or "
                "the present position held", choices=COMMAND_INTERFACES),
+    Changeable("safe_effort", "zero", "an effort interface's safe command: zero (a robot whose controller holds it "
+               "against gravity), or gravity (the torques that hold the measured pose under the model's gravity: a "
+               "robot that falls at zero effort, as npp-robot running an arm does)", choices=SAFE_EFFORTS),
     Changeable("effort_limit", 0.0, "largest |command| on top of the model's actuator limits; 0 = the model's only",
                0.0),
     Changeable("state_timeout", 0.1, "seconds without a fresh answer to a usable joint state before the safe "
@@ -195,6 +205,7 @@ class DeploySettings:
     command_topic: str
     command_joints: str
     command_interface: str
+    safe_effort: str
     effort_limit: float
     state_timeout: float
     coverage_radius: float
@@ -290,6 +301,7 @@ class DeployNode(LifecycleNode):
         self._monitor_arrival = -1  # the arrival count of the last state the monitor took
         self.description: Description | None = None
         self._raw: np.ndarray | None = None  # the last joint state taken, [positions, velocities]
+        self.hold: Callable[[np.ndarray], np.ndarray] | None = None  # safe_effort gravity: the torques that hold
         self._last_answered: tuple[int, int] | None = None  # the stamp of the last state answered
         self._command = Float64MultiArray()
         self.stopped_by = ""  # the signal that stops the process (SIGINT, SIGTERM)
@@ -500,6 +512,8 @@ class DeployNode(LifecycleNode):
         try:
             plant = deployment.plant
             check_command_interface(plant, settings.command_interface)
+            holding = settings.command_interface == "effort" and settings.safe_effort == "gravity"
+            hold = gravity_hold(plant) if holding else None
             layout = JointLayout.of_plant(plant, parse_names(settings.command_joints))
             coverage = Coverage.of_deployment(deployment, settings.coverage_radius)
             robots = robots_of(deployment.metadata)
@@ -523,6 +537,7 @@ class DeployNode(LifecycleNode):
         else:  # unsigned, or a signature nobody asked to check: the operator should know
             self.get_logger().warning(provenance)
         self.deployment, self.layout, self.coverage, self.monitor = deployment, layout, coverage, monitor
+        self.hold = hold
         self.window = MotionWindow(settings.monitor_window) if monitor is not None and settings.monitor_window else None
         self.state.configured(fingerprint, source)
         self.limits = CommandLimits.of_plant(plant, settings.effort_limit)
@@ -635,12 +650,13 @@ class DeployNode(LifecycleNode):
             self.get_logger().info(f"{why}: {sent}; commanding stopped")
 
     def send_safe_command(self) -> str:
-        """Publish the safe command (zero effort, or the present position held); say what was sent."""
+        """Publish the safe command (zero effort or the effort that holds the pose, or the present position held);
+        say what was sent."""
         layout, publisher = self.layout, self.command_pub
         if layout is None or publisher is None:
             return "no safe command (not configured)"
         try:
-            command = safe_command(self.settings.command_interface, layout, self._raw)
+            command = safe_command(self.settings.command_interface, layout, self._raw, self.hold)
         except RobotStateError as exc:
             return f"no safe command: {exc}"
         publisher.publish(Float64MultiArray(data=float64_array(command)))
@@ -684,8 +700,8 @@ class DeployNode(LifecycleNode):
             self.state.arrived(time.monotonic())
             try:
                 raw = layout.state(msg.name, msg.position, msg.velocity)
-            except NoTarget:
-                pass  # a usable state with nothing to act on yet: the node waits, as for a first joint state
+            except NoTarget as exc:
+                self._raw = exc.raw  # nothing to act on yet (the node waits): the pose a safe command may hold
             except RobotStateError as exc:
                 self._refused_state(exc)
             else:
