@@ -307,14 +307,21 @@ def state_periods(
     transition(executor, robot, "deactivate", 60.0)
     s0 = case.task.initial_state(case.seed, 0)
     robot.aim(executor, s0)
-    params = {"task": case.task_ref, "seed": str(case.seed), "initial_state": ",".join(repr(float(x)) for x in s0)}
+    # npp-deploy takes the model's fingerprint from its parameter here and reads no description; npp-robot publishes
+    # the task's own MJCF unchecked (nominal: the model it runs, no robot of a set), since it refuses to start on a
+    # task file whose model loads mesh files: the published text does not compile away from its folder.
+    params = {"task": case.task_ref, "seed": str(case.seed), "initial_state": ",".join(repr(float(x)) for x in s0),
+              "publish_description": "nominal"}  # fmt: skip
     proc = spawn(["npp_ros_graph.nodes.robot", *ros_args(params)], env, log_path)
     try:
         # The robot publishes from its start; npp-deploy measures from its activation on.
-        if not wait_for(executor, lambda: robot.count_publishers(JOINT_STATES) >= 2, 120.0):
+        if not wait_for(executor, lambda: proc.poll() is not None or robot.count_publishers(JOINT_STATES) >= 2, 120):
             raise RuntimeError(f"npp-robot's joint states did not appear; see {log_path}")
         transition(executor, robot, "activate", 60.0)
-        wait_for(executor, lambda: False, periods * robot.plant.dt)
+        wait_for(executor, lambda: proc.poll() is not None, periods * robot.plant.dt)
+        if proc.poll() is not None:
+            tail = log_path.read_text().strip().splitlines()[-1:]
+            raise RuntimeError(f"npp-robot stopped (exit {proc.returncode}): {' '.join(tail)}; see {log_path}")
         seen = robot.statuses
         if not wait_for(executor, lambda: robot.statuses > seen and STATE_PERIOD in robot.health.values, 10.0):
             raise RuntimeError("npp-deploy reported no state period")
