@@ -11,6 +11,7 @@ import pytest
 
 from npp_ros.deployment.commands import gravity_hold, safe_command
 from npp_ros.deployment.joints import JointLayout, NoTarget
+from npp_ros.deployment.robot_model import mjcf_fingerprint, model_mjcf
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.task_file import FilePlant, GravityHold, TaskFileError, target_origin
 from npp_ros.tasks.task_file_cost import TermCost
@@ -214,3 +215,13 @@ def test_the_gravity_safe_effort_holds_the_arm_before_any_target() -> None:
             plant.step(layout.action(command))
         drift[name] = float(np.max(np.abs(plant.state()[:ARM_JOINTS] - s0[:ARM_JOINTS])))
     assert drift["gravity"] < 0.01 < 0.1 < drift["zero"], drift
+
+
+def test_the_arms_description_compiles_alone_to_the_tasks_fingerprint() -> None:
+    """What npp-robot publishes on /robot_description: its include inlined and its mesh files by absolute path, so
+    the text compiles away from the example's folder and gives the fingerprint the run recorded."""
+    plant = get_task(str(EXAMPLE / "task.toml")).make_plant(0)
+    text = model_mjcf(plant)
+    assert text is not None and "<include" not in text and "meshdir" not in text
+    assert f'file="{EXAMPLE.resolve() / "panda" / "meshes" / "link1.stl"}"' in text
+    assert mjcf_fingerprint(plant, text) == plant.model_sha256()

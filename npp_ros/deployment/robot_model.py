@@ -6,7 +6,10 @@ describes itself in MJCF needs no operator to copy that fingerprint: :func:`mjcf
 compiles the text with MuJoCo and hashes it with the task plant's own code, so the two agree
 exactly when the compiled dynamics do. :func:`model_mjcf` gives a plant's MJCF as one
 self-contained text (includes inlined, numbers as the source wrote them: MuJoCo's own XML writer
-rounds them to 6 digits, which changes the fingerprint).
+rounds them to 6 digits, which changes the fingerprint). A model that loads files (a mesh, a texture: an
+arm's links) names them by absolute path there, as MuJoCo resolves them from the model's folder: the
+text then compiles wherever those files are at that path (the robot's host, a checkout at the same
+place), as a URDF's meshes resolve only where their package is installed.
 """
 
 from __future__ import annotations
@@ -49,7 +52,10 @@ def _source_of(plant: Plant) -> tuple[str, Callable[[str], bytes]] | None:
     model_path = getattr(definition, "model_path", None)
     if model_path is not None:  # a task file's model, beside its file
         path = Path(model_path)
-        return path.read_text(), lambda name: (path.parent / name).read_bytes()
+        root = ET.fromstring(path.read_text())
+        _inline(root, lambda name: (path.parent / name).read_bytes(), depth=0)
+        _absolute_asset_files(root, path.parent.resolve())
+        return ET.tostring(root, encoding="unicode"), lambda name: (path.parent / name).read_bytes()
     bodies, actuators = getattr(plant, "bodies", None), getattr(plant, "actuators", None)
     if bodies is not None and actuators is not None:  # the lqr tasks: the model is drawn from the seed
         from dm_control.suite import lqr
@@ -78,6 +84,29 @@ def inline_includes(text: str, read: Callable[[str], bytes]) -> str:
     root = ET.fromstring(text)
     _inline(root, read, depth=0)
     return ET.tostring(root, encoding="unicode")
+
+
+ASSET_DIRS = {"mesh": "meshdir", "hfield": "meshdir", "skin": "meshdir", "texture": "texturedir"}
+
+
+def _absolute_asset_files(root: ET.Element, folder: Path) -> None:
+    """Every asset ``file`` (mesh, height field, skin, texture) as the absolute path MuJoCo would open, from the
+    model's ``folder`` and its compiler's meshdir, texturedir or assetdir, which are then dropped."""
+    dirs: dict[str, str] = {}
+    compilers = root.findall(".//compiler")
+    for compiler in compilers:
+        for key in ("assetdir", "meshdir", "texturedir"):
+            if key in compiler.attrib:
+                dirs[key] = compiler.attrib[key]
+    for tag, key in ASSET_DIRS.items():
+        base = folder / dirs.get(key, dirs.get("assetdir", ""))
+        for element in root.iter(tag):
+            name = element.get("file")
+            if name and not Path(name).is_absolute():
+                element.set("file", str((base / name).resolve()))
+    for compiler in compilers:
+        for key in ("assetdir", "meshdir", "texturedir"):
+            compiler.attrib.pop(key, None)
 
 
 def _inline(element: ET.Element, read: Callable[[str], bytes], depth: int) -> None:
