@@ -1,10 +1,11 @@
 """Certify the Panda's reach on several seeds, then check each certificate on fresh (start, target) draws.
 
 Per seed: ``npp-learn --task examples/panda_reach/task.toml --seed S --certify CLAIM --rule RULE --evaluate 0
---run-dir RUNS/CLAIM-sS`` (its output in RUNS/CLAIM-sS.log), unless that folder already holds the run; then
-the same command again with ``--evaluate N``, which resumes the stored run (no new episode, no expert call)
-and rolls its certified policy out from N held-out starts. The table: expert calls, episodes, trajectories
-in the certified policy, the run's wall time (its own closing line), and the held-out success.
+--run-dir RUNS/CLAIM-sS`` (its output in RUNS/CLAIM-sS.log; ``--prefix`` names the folders otherwise),
+unless that folder already holds the run; then the same command again with ``--evaluate N``, which resumes the
+stored run (no new episode, no expert call) and rolls its certified policy out from N held-out starts. The
+table: expert calls, episodes, trajectories in the certified policy, the run's wall time (its own closing line),
+and the held-out success.
 
     .venv/bin/python scripts/panda_reach_trial.py --seeds 0 1 2 3 --certify success --rule mixture \\
         --evaluate 1000 --runs runs/panda --out results/panda-reach/success
@@ -25,7 +26,7 @@ WALL = re.compile(r"run folder\s+.*\(([\d.]+) s\)")
 
 
 def learn(args: argparse.Namespace, seed: int, evaluate: int, log: Path) -> None:
-    run_dir = args.runs / f"{args.certify}-s{seed}"
+    run_dir = args.runs / f"{args.prefix or args.certify}-s{seed}"
     command = [sys.executable, "-m", "npp_ros.cli.learn", "--task", TASK, "--seed", str(seed), "--certify",
                args.certify, "--rule", args.rule, "--evaluate", str(evaluate), "--run-dir", str(run_dir)]  # fmt: skip
     if args.uncertainty is not None:
@@ -35,12 +36,12 @@ def learn(args: argparse.Namespace, seed: int, evaluate: int, log: Path) -> None
 
 
 def seed_row(args: argparse.Namespace, seed: int) -> dict[str, object]:
-    run_dir = args.runs / f"{args.certify}-s{seed}"
-    log = args.runs / f"{args.certify}-s{seed}.log"
+    name = f"{args.prefix or args.certify}-s{seed}"
+    run_dir, log = args.runs / name, args.runs / f"{name}.log"
     if not (run_dir / "summary.json").is_file():
         learn(args, seed, 0, log)
     first = WALL.search(log.read_text()) if log.is_file() else None
-    learn(args, seed, args.evaluate, args.runs / f"{args.certify}-s{seed}-evaluate.log")
+    learn(args, seed, args.evaluate, args.runs / f"{name}-evaluate.log")
     summary = json.loads((run_dir / "summary.json").read_text())
     certificate = summary.get("certificate") or {}
     evaluation = summary.get("evaluation") or {}
@@ -65,7 +66,8 @@ def held_out_words(evaluation: dict[str, object]) -> str:
 
 def report(args: argparse.Namespace, rows: list[dict[str, object]]) -> str:
     command = " ".join(sys.argv[1:]).replace(str(args.runs), "RUNS")
-    lines = [f"# The Panda's reach: the {args.certify} claim, {len(rows)} seeds", "",
+    robots = "" if args.uncertainty is None else f" on its set of robots (--uncertainty {args.uncertainty:g})"
+    lines = [f"# The Panda's reach: the {args.certify} claim{robots}, {len(rows)} seeds", "",
              f"`.venv/bin/python scripts/panda_reach_trial.py {command}`", "",
              "| seed | ended | expert calls | episodes | trajectories in the policy | wall time | held-out success |",
              "|---|---|---|---|---|---|---|"]  # fmt: skip
@@ -87,6 +89,7 @@ def main() -> None:
     parser.add_argument("--uncertainty", type=float, default=None, help="the set of robots' factor (default: none)")
     parser.add_argument("--evaluate", type=int, default=1000, help="held-out (start, target) draws per certificate")
     parser.add_argument("--runs", type=Path, default=Path("runs/panda"), help="where the run folders go")
+    parser.add_argument("--prefix", default="", help="the run folders' names: PREFIX-sSEED (default: the claim)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     args = parser.parse_args()
     args.runs.mkdir(parents=True, exist_ok=True)
