@@ -16,7 +16,7 @@ from deploy_runs import make_reach_run
 from npp_ros.run.read import read_run
 from npp_ros_graph.bench.deploy import main
 
-pytestmark = pytest.mark.slow  # a command line as its own process, with npp-deploy and npp-robot
+pytestmark = [pytest.mark.slow, pytest.mark.long]  # a command line as its own process, with npp-deploy and npp-robot
 
 QUICK_STATES, QUICK_STOPS, WARM_UP = 300, 3, 50  # --quick's states and stops, and the bench's warm-up states
 
