@@ -69,7 +69,8 @@ class TermCost:
     def _value_and_gradient(self, term: Term, x: FloatArray) -> tuple[float, FloatArray]:
         """The term's quantity at x (kinematics already at x) and its gradient in x = [qpos, qvel].
 
-        For a distance, ``self._across`` is left as J' (I - n n') J in qpos (the curvature across the offset)."""
+        For a distance with ``hessian = "offset"``, ``self._across`` is left as J' (I - n n') J in qpos (the curvature
+        across the offset); 0 otherwise."""
         n = 2 * self.nq
         grad = np.zeros(n)
         model, data = self.model, self.data
@@ -90,15 +91,16 @@ class TermCost:
         a, b = term.target
         delta = data.site_xpos[a] - data.site_xpos[b]
         distance = float(np.linalg.norm(delta))
-        self._across = np.zeros((self.nq, self.nq))
+        self._across.fill(0.0)
         if distance > 1e-12:
             self._site_jacobian(a, self._jac)
             self._site_jacobian(b, self._jac2)
             jac = (self._jac - self._jac2)[:, : self.nq]
             unit = delta / distance
             grad[: self.nq] = unit @ jac
-            sideways = jac - np.outer(unit, unit @ jac)
-            self._across = sideways.T @ sideways
+            if term.hessian == "offset":  # only a term that asks for it pays for the curvature across
+                sideways = jac - np.outer(unit, unit @ jac)
+                self._across = sideways.T @ sideways
         return distance, grad
 
     def _energy(self, x: FloatArray) -> float:
