@@ -241,7 +241,7 @@ class Judge:
         self.policy = run.policy
         self.success = self.task.success
         definition = self.task.definition  # a task file's task (the Panda's reach)
-        self.origin = target_origin(definition)
+        self.origin = target_origin(self.plant)
         names = list(self.plant.joint_names)
         self.names = names
         self.targets = [names.index(n) for n in definition.target_joints]

@@ -70,7 +70,7 @@ class TargetBox:
         definition = plant.definition  # type: ignore[attr-defined]  # a task file's plant (FilePlant)
         at = [definition.joint_names.index(name) for name in joints]  # qpos indices: hinge and slide joints only
         low, high = np.asarray(definition.rho_low)[at], np.asarray(definition.rho_high)[at]
-        return cls(joints, target_origin(definition), low, high)
+        return cls(joints, target_origin(plant), low, high)  # type: ignore[arg-type]  # a FilePlant
 
     def coordinates(self, point: ArrayLike) -> FloatArray:
         """The target joints' positions for a world point; TargetRefused, with the reason, for a point that is not

@@ -185,8 +185,11 @@ class FileExpert(PlanningExpert):
     ) -> None:
         plant = FilePlant(definition, seed)
         zero = np.zeros(plant.action_dim)
-        hold = GravityHold(plant.physics.model.ptr, plant.action_low, plant.action_high)
-        warm_start = hold if definition.expert.get("warm_start") == "gravity" else (lambda _x: zero)
+        warm_start = (
+            GravityHold(plant.physics.model.ptr, plant.action_low, plant.action_high)
+            if definition.expert.get("warm_start") == "gravity"
+            else (lambda _x: zero)
+        )
         success = definition.success
         super().__init__(
             plant,
@@ -276,13 +279,20 @@ def load_task_file(name: str) -> FileTask:
     return _task(path, digest, content)
 
 
-def target_origin(definition: TaskDefinition) -> FloatArray:
-    """Where the target is when its three joints are at 0: its body's position in the world. A point p in the
-    world is the target joints' position p - origin."""
-    plant = FilePlant(definition)
+def target_origin(plant: FilePlant) -> FloatArray:
+    """Where the plant's target is when its three joints are at 0: its body's position in the world. A point p in
+    the world is the target joints' position p - origin."""
     model = plant.physics.model
-    joint = model.joint(definition.target_joints[0])
+    joint = model.joint(plant.target_joints[0])
     return np.array(model.body_pos[int(joint.bodyid[0])], dtype=np.float64)
+
+
+def sampled_action_range(plant: FilePlant) -> tuple[FloatArray, FloatArray]:
+    """The actuator range the load-time checks draw random actions from: the control range, [-1, 1] where an
+    actuator has no limit."""
+    low = np.where(np.isfinite(plant.action_low), plant.action_low, -1.0)
+    high = np.where(np.isfinite(plant.action_high), plant.action_high, 1.0)
+    return low, high
 
 
 TARGET_STEPS = 20  # control steps of random torques a declared target is checked on at load
@@ -295,8 +305,7 @@ def check_target(definition: TaskDefinition) -> None:
         return
     plant = FilePlant(definition)
     rng = np.random.default_rng(0)
-    low = np.where(np.isfinite(plant.action_low), plant.action_low, -1.0)
-    high = np.where(np.isfinite(plant.action_high), plant.action_high, 1.0)
+    low, high = sampled_action_range(plant)
     entries = [definition.joint_names.index(name) for name in definition.target_joints]
     entries += [plant.positions + i for i in entries]
     s0 = definition.sample_initial_state(rng)
@@ -327,8 +336,7 @@ def check_invariance(definition: TaskDefinition) -> None:
         return
     plant = FilePlant(definition)
     rng = np.random.default_rng(0)
-    low = np.where(np.isfinite(plant.action_low), plant.action_low, -1.0)
-    high = np.where(np.isfinite(plant.action_high), plant.action_high, 1.0)
+    low, high = sampled_action_range(plant)
     positions = plant.positions
     for entry in definition.invariant:
         joint = definition.joint_names[int(np.flatnonzero(plant.physics.model.jnt_qposadr == entry)[0])]
