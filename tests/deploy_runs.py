@@ -11,9 +11,11 @@ from pathlib import Path
 
 from npp_ros.certificate.certifier import SUCCESS_EPSILON, StoppingRule
 from npp_ros.policy.feedback import PolicyKind
+from npp_ros.run.loop import RunConfig, RunResult
 from npp_ros.run.seal import write_seal
 from npp_ros.run.setup import build_config, build_loop, plant_fingerprint, resolve_lipschitz
 from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.task import Expert
 from npp_ros.tasks.uncertainty import ScaleRange, UncertaintySet
 
 TASK, SEED, HORIZON, EPSILON = "lqr_2_1", 0, 100, 2.0
@@ -21,6 +23,16 @@ REACH = str(Path(__file__).resolve().parent / "fixtures" / "point_reach" / "task
 FINGERPRINT = plant_fingerprint(TASK, SEED)
 NUDGE_ONE_POINT = "UPDATE points SET s_0 = s_0 + 1e-9 WHERE trajectory = 0 AND step = 3"
 NUDGE_ONE_POINT = "UPDATE points SET s_0 = s_0 + 1e-9 WHERE trajectory = 0 AND step = 3"
+
+
+def stored_run(config: RunConfig, expert: Expert, folder: Path, max_episodes: int) -> RunResult:
+    """Algorithm 1 with ``config`` to at most ``max_episodes``, stored in ``folder``'s run file, closed after."""
+    loop = build_loop(config, expert, store_path=folder / "run.sqlite")
+    try:
+        return loop.run(max_episodes)
+    finally:
+        assert loop.store is not None
+        loop.store.close()
 
 
 def make_run(
@@ -33,12 +45,7 @@ def make_run(
     expert = get_task(TASK).make_expert(SEED, HORIZON)
     lipschitz = resolve_lipschitz(TASK, "analytic", expert)
     config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=HORIZON, certify="oracle", rule=rule, policy=policy)
-    loop = build_loop(config, expert, store_path=folder / "run.sqlite")
-    try:
-        loop.run(max_episodes)
-    finally:
-        assert loop.store is not None
-        loop.store.close()
+    stored_run(config, expert, folder, max_episodes)
     return folder
 
 
@@ -51,12 +58,7 @@ def make_reach_run(folder: Path) -> Path:
     lipschitz = resolve_lipschitz(REACH, None, expert, seed=SEED, horizon=horizon, run_file=folder / "run.sqlite")
     config = build_config(REACH, SEED, lipschitz, SUCCESS_EPSILON, horizon=horizon, certify="success",
                           policy="feedback", expert=expert)  # fmt: skip
-    loop = build_loop(config, expert, store_path=folder / "run.sqlite")
-    try:
-        assert loop.run(300).certified
-    finally:
-        assert loop.store is not None
-        loop.store.close()
+    assert stored_run(config, expert, folder, 300).certified
     return folder
 
 
@@ -115,10 +117,5 @@ def with_robots(folder: Path, robots: UncertaintySet = LQR_ROBOTS, horizon: int 
     lipschitz = resolve_lipschitz(TASK, "analytic", expert)
     config = build_config(TASK, SEED, lipschitz, EPSILON, horizon=horizon, certify="oracle", policy="feedback")
     record = robots.resolved(get_task(TASK).make_plant(SEED).physics.model).record()
-    loop = build_loop(dataclasses.replace(config, uncertainty=record), expert, store_path=folder / "run.sqlite")
-    try:
-        assert loop.run(300).certified
-    finally:
-        assert loop.store is not None
-        loop.store.close()
+    assert stored_run(dataclasses.replace(config, uncertainty=record), expert, folder, 300).certified
     return folder
