@@ -1,4 +1,4 @@
-"""Certify the Panda's reach on several seeds, then check each certificate on fresh (start, target) draws.
+"""Certify the Panda's reach (or any ``--task``) on several seeds, then check each certificate on fresh draws.
 
 Per seed: ``npp-learn --task examples/panda_reach/task.toml --seed S --certify CLAIM --rule RULE --evaluate 0
 --run-dir RUNS/CLAIM-sS`` (its output in RUNS/CLAIM-sS.log; ``--prefix`` names the folders otherwise),
@@ -27,10 +27,12 @@ WALL = re.compile(r"run folder\s+.*\(([\d.]+) s\)")
 
 def learn(args: argparse.Namespace, seed: int, evaluate: int, log: Path) -> None:
     run_dir = args.runs / f"{args.prefix or args.certify}-s{seed}"
-    command = [sys.executable, "-m", "npp_ros.cli.learn", "--task", TASK, "--seed", str(seed), "--certify",
+    command = [sys.executable, "-m", "npp_ros.cli.learn", "--task", args.task, "--seed", str(seed), "--certify",
                args.certify, "--rule", args.rule, "--evaluate", str(evaluate), "--run-dir", str(run_dir)]  # fmt: skip
     if args.uncertainty is not None:
         command += ["--uncertainty", str(args.uncertainty)]
+    if args.policy_lipschitz is not None:
+        command += ["--policy-lipschitz", args.policy_lipschitz]
     with log.open("a") as out:
         subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, check=False)
 
@@ -67,7 +69,8 @@ def held_out_words(evaluation: dict[str, object]) -> str:
 def report(args: argparse.Namespace, rows: list[dict[str, object]]) -> str:
     command = " ".join(sys.argv[1:]).replace(str(args.runs), "RUNS")
     robots = "" if args.uncertainty is None else f" on its set of robots (--uncertainty {args.uncertainty:g})"
-    lines = [f"# The Panda's reach: the {args.certify} claim{robots}, {len(rows)} seeds", "",
+    name = "The Panda's reach" if args.task == TASK else args.task
+    lines = [f"# {name}: the {args.certify} claim{robots}, {len(rows)} seeds", "",
              f"`.venv/bin/python scripts/panda_reach_trial.py {command}`", "",
              "| seed | ended | expert calls | episodes | trajectories in the policy | wall time | held-out success |",
              "|---|---|---|---|---|---|---|"]  # fmt: skip
@@ -83,12 +86,16 @@ def report(args: argparse.Namespace, rows: list[dict[str, object]]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default=TASK, help="the task (default: the Panda's reach); any task npp-learn takes")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
     parser.add_argument("--certify", default="success", choices=("success", "oracle"))
     parser.add_argument("--rule", default="mixture", choices=("sequential", "mixture"))
     parser.add_argument("--uncertainty", type=float, default=None, help="the set of robots' factor (default: none)")
     parser.add_argument("--evaluate", type=int, default=1000, help="held-out (start, target) draws per certificate")
     parser.add_argument("--runs", type=Path, default=Path("runs/panda"), help="where the run folders go")
+    parser.add_argument(
+        "--policy-lipschitz", default=None, choices=("claim", "select"), help="the policy's L (default: npp-learn's)"
+    )
     parser.add_argument("--prefix", default="", help="the run folders' names: PREFIX-sSEED (default: the claim)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     args = parser.parse_args()

@@ -130,12 +130,14 @@ def author_certificate(
     robots: str = "",
     reference: str = "",
     robot: RobotClaim | None = None,
+    policy_lipschitz: float | None = None,
 ) -> Certificate:
     """The certificate a run issues when ``status`` certifies, about the policy on its first trajectories;
     ``success``: what the run measured of the task's success criterion (None: the task states none); ``robots``:
     the set of robots each episode drew from, in words ("": the exact model); ``reference``: what V^E is then (the
     expert planning on each robot, unless it says otherwise); ``robot``: a run whose plant is the robot itself,
-    whose claim is over that robot's starts and rests on no model (success claims only)."""
+    whose claim is over that robot's starts and rests on no model (success claims only); ``policy_lipschitz``: the L
+    the certified policy chooses by when the run chose its own (None: the claim's)."""
     measured = success if success is not None else MeasuredSuccess(None)
     certify = spec.certify
     if certify == "success":
@@ -174,6 +176,7 @@ def author_certificate(
         assumptions=listed,
         failures=status.failures,
         mixture=math.exp(status.log_mixture) if status.log_mixture is not None else None,
+        policy_lipschitz=policy_lipschitz,
     )
 
 

@@ -360,6 +360,9 @@ class Certificate:
     assumptions: tuple[str, ...]
     failures: int = 0  # the mixture rule: failed checks of the certifying verification (window = its checks)
     mixture: float | None = None  # the mixture rule: M at certification (at least 1 / delta_spent)
+    # The L the certified policy chooses its data point by, where the run chose it from its data
+    # (npp_ros.run.policy_lipschitz); None: the claim's own L.
+    policy_lipschitz: float | None = None
 
     def summary(self, label: str = "") -> str:
         """The certificate for people; ``label`` names the task (a task file's ``name`` key), and the task's
@@ -375,6 +378,14 @@ class Certificate:
             f"  policy          {'path-following' if spec.policy == 'path' else 'greedy'} over "
             f"{self.policy_trajectories} trajectories ({self.dataset_size} triplets)",
             f"  L used          {lipschitz.value:.6g} ({lipschitz.source}, margin {lipschitz.margin:g})",
+            *(
+                [
+                    f"  policy's L      {self.policy_lipschitz:.6g} (chosen from the run's data; it only picks the "
+                    "data point the policy follows)"
+                ]
+                if self.policy_lipschitz is not None
+                else []
+            ),
             f"  epsilon, p, delta  {spec.epsilon:g}, {spec.p:g}, {spec.delta:g}"
             if spec.certify != "success"
             else f"  p, delta        {spec.p:g}, {spec.delta:g} (no epsilon: the claim bounds no gap)",

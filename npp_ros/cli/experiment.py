@@ -50,6 +50,7 @@ from npp_ros.experiment import (
 )
 from npp_ros.experiment.arms import HELD_OUT
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_KINDS
+from npp_ros.run.policy_lipschitz import POLICY_LIPSCHITZ_MODES
 from npp_ros.tasks.lqr import TASKS
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.sources import short_name
@@ -114,6 +115,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--explore", nargs="+", type=float, default=[0.0], metavar="RADIUS",
         help="exploration radii, side by side as arms: " + help_of("explore"),
+    )  # fmt: skip
+    ap.add_argument(
+        "--policy-lipschitz", nargs="+", choices=POLICY_LIPSCHITZ_MODES, default=["claim"],
+        help="the policy's L, side by side as arms: " + help_of("policy_lipschitz"),
     )  # fmt: skip
     ap.add_argument(
         "--rules",
@@ -307,7 +312,14 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
     for task in args.tasks:
         settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
     return settings, default_arms(
-        args.tasks, args.lipschitz, args.experts, args.certify, args.rules, args.policies, args.explore
+        args.tasks,
+        args.lipschitz,
+        args.experts,
+        args.certify,
+        args.rules,
+        args.policies,
+        args.explore,
+        args.policy_lipschitz,
     )
 
 

@@ -31,7 +31,7 @@ from npp_ros.run.loop import NPPLoop, RunConfig, RunResult
 from npp_ros.run.progress import Counter, StatusLine, unreachable_text
 from npp_ros.run.records import RunFileError, UnrecordedSettings, write_episode_log
 from npp_ros.run.request import FIELD_NAMES, resolve_run
-from npp_ros.run.setup import build_loop, expert_notice, lipschitz_checks, policy_for
+from npp_ros.run.setup import build_loop, expert_notice, lipschitz_checks
 from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import StopsAtTimeBudget, get_task, task_label
 from npp_ros.tasks.sources import short_name
@@ -152,9 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.evaluate > 0 and len(loop.dataset):
         states = held_out_initial_states(task, args.seed, args.evaluate)
         certificate = result.certificate
-        policy = loop.policy
-        if certificate is not None and certificate.policy_trajectories != loop.policy_data.num_trajectories:
-            policy = policy_for(loop.dataset.prefix(certificate.policy_trajectories), config.spec, args.task, args.seed)
+        policy = loop.policy if certificate is None else loop.policy_over(certificate.policy_trajectories)
         if config.spec.certify == "success":
             succeeded = check_success(
                 policy, task, task.make_plant(args.seed), states, args.horizon, p=args.p, delta=args.delta,

@@ -46,7 +46,6 @@ from npp_ros.run.read import Run, read_run
 from npp_ros.run.records import RunFileError, RunMetadata
 from npp_ros.run.rederive import AgreedRuns, rederive
 from npp_ros.run.seal import SealCheck
-from npp_ros.run.setup import policy_for
 from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import Plant, Task, UnknownTaskError
 
@@ -184,8 +183,7 @@ def _pass_gate(run: Run, acceptance: Acceptance) -> Deployment:
     # Overridden: the certificate's policy where the certificate agrees with its run, else all the data.
     count = dataset.num_trajectories if certificate is None else certificate.policy_trajectories
     data = dataset if count == dataset.num_trajectories else dataset.prefix(count)
-    seed = run.metadata.seed
-    policy = policy_for(data, run.spec, run.task.name, seed)
+    policy = run.policy_over(count)
     policy.v_lb(data.states[0])  # builds the search index now: the first state on the robot must not wait for it
     outside = [row.initial_state for row in rows if row.trajectory is None or row.trajectory >= count]
     checked_starts = np.array(outside, dtype=np.float64).reshape(len(outside), run.metadata.state_dim)

@@ -5,12 +5,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import product
 
 import numpy as np
 
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import PAPER_POLICY, check_policy_kind
+from npp_ros.run.policy_lipschitz import check_policy_lipschitz
 from npp_ros.run.request import RunRequest
 from npp_ros.tasks.registry import Expert, ExpertOptions, OptimizerTask, get_task
 from npp_ros.tasks.sources import short_name
@@ -36,9 +38,11 @@ class Arm:
     rule: str = "paper"  # ... and its stopping rule, unless the arm says otherwise
     policy: str = PAPER_POLICY  # how the policy acts at its chosen point (npp_ros.policy.feedback)
     explore: float = 0.0  # > 0: a failed check also asks where the policy went (npp_ros.run.explore)
+    policy_lipschitz: str = "claim"  # the policy's L: the claim's, or chosen from the run's data (select)
 
     def __post_init__(self) -> None:
         check_policy_kind(self.policy)
+        check_policy_lipschitz(self.policy_lipschitz, self.certify)
         if self.certify not in CERTIFY_MODES:
             raise ValueError(f"unknown certification mode {self.certify!r}; known: {', '.join(CERTIFY_MODES)}")
         if self.rule not in STOPPING_RULES:
@@ -64,7 +68,8 @@ class Arm:
         base = f"{short_name(self.task)}-{self.expert}-L{self.lipschitz}"  # a task file's path is no folder name
         base = base if self.paper_certification else f"{base}-{self.certify}-{self.rule}"
         base = base if self.policy == PAPER_POLICY else f"{base}-{self.policy}"
-        return base if not self.explore else f"{base}-explore{self.explore:g}"
+        base = base if not self.explore else f"{base}-explore{self.explore:g}"
+        return base if self.policy_lipschitz == "claim" else f"{base}-policyL{self.policy_lipschitz}"
 
     @property
     def label(self) -> str:
@@ -72,6 +77,7 @@ class Arm:
         how = "" if self.paper_certification else f", certify={self.certify} ({self.rule})"
         acts = "" if self.policy == PAPER_POLICY else f", {self.policy} policy"
         acts += f", exploring beyond {self.explore:g}" if self.explore else ""
+        acts += ", the policy's L selected from its data" if self.policy_lipschitz == "select" else ""
         return f"{self.task}, {expert}, {self.lipschitz} L{how}{acts}"
 
 
@@ -118,6 +124,7 @@ def default_arms(
     rules: Sequence[str] | None = None,
     policies: Sequence[str] = (PAPER_POLICY,),
     explore: Sequence[float] = (0.0,),
+    policy_lipschitz: Sequence[str] = ("claim",),
 ) -> list[Arm]:
     """Each task with the experts, L settings and modes it offers among those asked for.
 
@@ -128,8 +135,8 @@ def default_arms(
     one-shot rule) and sound modes (rollout, oracle, surrogate) under the sequential rule; None is
     "paper" for a task whose expert is optimal and the task's default mode otherwise. ``rules``
     lists the rules the sound modes run under, side by side; None is each mode's default rule.
-    ``policies`` lists how the policy acts, and ``explore`` the exploration radii, side by side (same seeds, same
-    s0 streams).
+    ``policies`` lists how the policy acts, ``explore`` the exploration radii and ``policy_lipschitz`` the policy's
+    L (the claim's, selected), side by side (same seeds, same s0 streams); a surrogate arm takes the claim's only.
     """
     arms = []
     for task in tasks:
@@ -141,14 +148,14 @@ def default_arms(
                     continue
                 if expert == "detuned" and setting == "paper":
                     continue
-                for mode in modes:
-                    for policy in policies:
-                        for radius in explore:
-                            if mode == "paper":
-                                arms.append(Arm(task, expert, setting, policy=policy, explore=radius))
-                                continue
-                            chosen = rules or (DEFAULT_RULES[mode],)
-                            arms += [Arm(task, expert, setting, mode, rule, policy, radius) for rule in chosen]
+                for mode, policy, radius, own in product(modes, policies, explore, policy_lipschitz):
+                    if own != "claim" and mode in ("paper", "surrogate"):
+                        continue  # the surrogate gap speaks of the policy greedy on the claim's L
+                    if mode == "paper":
+                        arms.append(Arm(task, expert, setting, policy=policy, explore=radius))
+                        continue
+                    chosen = rules or (DEFAULT_RULES[mode],)
+                    arms += [Arm(task, expert, setting, mode, rule, policy, radius, own) for rule in chosen]
     return arms
 
 
@@ -158,6 +165,7 @@ def arm_request(arm: Arm, seed: int, settings: ExperimentSettings) -> RunRequest
     return RunRequest(
         task=arm.task, seed=seed, epsilon=(settings.epsilon or {}).get(arm.task), lipschitz=arm.lipschitz,
         certify=arm.certify, rule=arm.rule, policy=arm.policy, explore=arm.explore,  # type: ignore[arg-type]
+        policy_lipschitz=arm.policy_lipschitz,
         p=settings.p, delta=settings.delta, horizon=settings.horizon, max_episodes=settings.max_episodes[arm.task],
         time_budget=settings.time_budget if optimizer else None, expert_stop=settings.stop if optimizer else None,
     )  # fmt: skip

@@ -28,6 +28,7 @@ from npp_ros.run.evaluation import (
     check_policy,
     policy_rollouts,
 )
+from npp_ros.run.policy_lipschitz import certified_lipschitz
 from npp_ros.run.setup import policy_for
 from npp_ros.tasks.registry import Expert, get_task
 
@@ -189,7 +190,9 @@ def check_certificate(
     task = get_task(arm.task)
     states = held_out_states(arm.task, seed, count)
     spec = certificate.spec
-    policy = policy_for(dataset.prefix(certificate.policy_trajectories), spec, arm.task, seed)
+    policy = policy_for(
+        dataset.prefix(certificate.policy_trajectories), spec, arm.task, seed, certified_lipschitz(certificate)
+    )
     return check_policy(
         policy, task, task.make_plant(seed), expert, states, settings.horizon,
         epsilon=spec.epsilon, p=spec.p, delta=spec.delta,

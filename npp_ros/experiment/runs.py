@@ -28,7 +28,7 @@ from npp_ros.run.loop import NPPLoop, Observer
 from npp_ros.run.progress import status_text
 from npp_ros.run.records import EpisodeRow
 from npp_ros.run.request import resolve_run
-from npp_ros.run.setup import build_loop, policy_for
+from npp_ros.run.setup import build_loop
 from npp_ros.run.store import RUN_FILE
 from npp_ros.tasks.registry import Expert, get_task
 
@@ -104,11 +104,8 @@ def run_arm_seed(
             reached = min(checkpoint, loop.next_episode)
             if reached in done:
                 continue
-            calls = policy_trajectories_at(loop, reached)
-            if calls == loop.policy_data.num_trajectories:
-                policy = loop.policy  # its search index is already built
-            else:  # resumed past an unevaluated checkpoint: rebuild the data as it was there
-                policy = policy_for(loop.dataset.prefix(calls), config.spec, arm.task, seed)
+            # Resumed past an unevaluated checkpoint: the data (and the policy's L) as they were there.
+            policy = loop.policy_over(policy_trajectories_at(loop, reached))
             if evaluator is None:
                 asked = lambda k, n: report(f"{key}: the expert from evaluation s0 {k}/{n}")  # noqa: E731
                 evaluator = Evaluator(arm, seed, settings, expert, asked, store=run_dir / EVALUATION_FILE)

@@ -15,7 +15,8 @@ import numpy as np
 
 from npp_ros.policy.dataset import Dataset, FloatArray
 
-SOURCES = ("user", "paper", "lqr-analytic", "data")  # data: fixed from a run's first expert answers
+# data: fixed from a run's first expert answers; selected: a policy's own L (npp_ros.run.policy_lipschitz)
+SOURCES = ("user", "paper", "lqr-analytic", "data", "selected")
 
 
 class LipschitzWarning(UserWarning):

@@ -63,7 +63,16 @@ from npp_ros.certificate.values import ValueBasis
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
+from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.spec import PolicySpec
+from npp_ros.run.policy_lipschitz import (
+    LipschitzChoice,
+    acted_by,
+    check_policy_lipschitz,
+    choice_point,
+    choose_lipschitz,
+    recent_starts,
+)
 from npp_ros.run.records import (
     EpisodeRow,
     RunFileError,
@@ -166,6 +175,9 @@ class RunConfig:
     gamma: float = 1.0
     plant_fingerprint: str = ""  # the compiled model's SHA-256 (Plant.model_sha256): which plant the data are of
     explore: float = 0.0  # > 0: after a failed check, also ask where the policy's rollout leaves the data this far
+    # The L the policy chooses its data point by: the claim's ("claim") or chosen from the run's data ("select",
+    # npp_ros.run.policy_lipschitz).
+    policy_lipschitz: str = "claim"
     # The set of robots the run draws from (UncertaintySet.record(), its elements named): '' = the exact model.
     uncertainty: str = ""
     # Under uncertainty, the model the expert plans on: each episode's robot, or the nominal one (nominal_plan).
@@ -209,19 +221,25 @@ class RunResult:
         return self.certificate is not None
 
 
-def policy_spec(spec: CertificationSpec, control: ControlSpace) -> PolicySpec:
-    """The policy a run's spec names, as one value: its kind and L from the spec, the task's control space. The one
-    place a run's policy is decided; the supervisor sends it whole to the policy node."""
-    return PolicySpec(spec.policy, spec.lipschitz, control)
+def policy_spec(
+    spec: CertificationSpec, control: ControlSpace, lipschitz: LipschitzConstant | None = None
+) -> PolicySpec:
+    """The policy a run's spec names, as one value: its kind from the spec, its L the spec's unless the run chose
+    its own (``lipschitz``, npp_ros.run.policy_lipschitz), the task's control space. The one place a run's policy is
+    decided; the supervisor sends it whole to the policy node."""
+    return PolicySpec(spec.policy, lipschitz or spec.lipschitz, control)
 
 
-def make_policy(data: Dataset, spec: CertificationSpec, control: ControlSpace | None) -> NonparametricPolicy:
-    """The policy a run's spec names over ``data``: the choice on V_lb with the spec's L (its distance blind to the
-    task's invariant entries), acting open loop, with the expert's feedback, or along the path it chose, in the
-    task's control space. Every place that acts for a run builds it here (:func:`policy_spec`)."""
+def make_policy(
+    data: Dataset, spec: CertificationSpec, control: ControlSpace | None, lipschitz: LipschitzConstant | None = None
+) -> NonparametricPolicy:
+    """The policy a run's spec names over ``data``: the choice on V_lb with its L (the spec's, or the one the run
+    chose for its policy; its distance blind to the task's invariant entries), acting open loop, with the expert's
+    feedback, or along the path it chose, in the task's control space. Every place that acts for a run builds it
+    here (:func:`policy_spec`)."""
     if control is None:  # a plant that states no control space: no angles, no limits, nothing invariant
-        return NonparametricPolicy(data, spec.lipschitz.value, kind=spec.policy)
-    return policy_spec(spec, control).build(data)
+        return NonparametricPolicy(data, (lipschitz or spec.lipschitz).value, kind=spec.policy)
+    return policy_spec(spec, control, lipschitz).build(data)
 
 
 class NPPLoop:
@@ -287,6 +305,12 @@ class NPPLoop:
                 "the robot's own episodes, which give no expert value to compare with"
             )
         self.robot_facts = robot_facts
+        check_policy_lipschitz(config.policy_lipschitz, certify)
+        if config.policy_lipschitz == "select" and replay is None:
+            raise ValueError(
+                "a policy L chosen from the run's data (policy_lipschitz select) needs the policy's replay"
+            )
+        self.choices: dict[int, LipschitzChoice] = {}  # the policy's L chosen at each choice point (trajectories)
         self.prior_count = int(json.loads(config.prior)["trajectories"]) if config.prior else 0
         self.certifier = certifier_for(self.spec, with_policy=self.prior_count > 0)
         self.rows: list[EpisodeRow] = []
@@ -375,12 +399,69 @@ class NPPLoop:
             self.dataset.append(item)
 
     def _new_policy(self) -> NonparametricPolicy:
-        return make_policy(self.policy_data, self.spec, self.control)
+        return make_policy(self.policy_data, self.spec, self.control, self.policy_lipschitz)
 
     @property
     def policy_spec(self) -> PolicySpec | None:
         """How this run's policy acts, as one value (None where the task states no control space)."""
-        return None if self.control is None else policy_spec(self.spec, self.control)
+        return None if self.control is None else policy_spec(self.spec, self.control, self.policy_lipschitz)
+
+    @property
+    def policy_lipschitz(self) -> LipschitzConstant | None:
+        """The L the policy acts by when the run chose its own (policy_lipschitz select); None: the claim's."""
+        point = choice_point(self.policy_data.num_trajectories) if self.config.policy_lipschitz == "select" else 0
+        if not point:
+            return None
+        choice = self._choice_at(point)
+        return LipschitzConstant(choice.value, "selected", choice.describe())
+
+    def policy_over(self, count: int) -> NonparametricPolicy:
+        """The run's policy over its first ``count`` trajectories (an evaluation of an earlier policy), by the L it
+        acted by then."""
+        if count == self.policy_data.num_trajectories:
+            return self.policy
+        stored = self.store.lipschitz_choices() if self.store is not None else {}
+        lipschitz = acted_by({**stored, **self.choices}, count) if self.config.policy_lipschitz == "select" else None
+        return make_policy(self.dataset.prefix(count), self.spec, self.control, lipschitz)
+
+    def _choice_at(self, point: int) -> LipschitzChoice:
+        """The choice at ``point`` trajectories: made once (on the first ``point`` stored trajectories and the starts
+        of the episodes up to the one that stored the last of them), then kept, in the run file too."""
+        if point in self.choices:
+            return self.choices[point]
+        stored = self.store.lipschitz_choices() if self.store is not None else {}
+        if point in stored:
+            self.choices[point] = stored[point]
+            return stored[point]
+        assert self.replay is not None
+        replay, control = self.replay, self.control
+        last = max(
+            (row.episode for row in self.rows if row.trajectory is not None and row.trajectory < point), default=-1
+        )
+
+        def build(data: Dataset, lipschitz: float) -> NonparametricPolicy:
+            constant = LipschitzConstant(lipschitz, "selected")
+            return make_policy(data, self.spec, control, constant)
+
+        def run(state: FloatArray, policy: NonparametricPolicy, robot: Robot | None) -> tuple[FloatArray, float]:
+            found = replay.rollout(state, policy, robot)
+            return found.states, found.total_return
+
+        choice = choose_lipschitz(
+            self.dataset.prefix(point), recent_starts(self.rows, last), self.spec.lipschitz.value, build, run,
+            self.success,
+        )  # fmt: skip
+        if self.store is not None:
+            self.store.record_lipschitz_choice(choice)
+        self.choices[point] = choice
+        return choice
+
+    def _policy_grew(self, before: int) -> None:
+        """The policy's data grew from ``before`` trajectories: a new choice point gives the policy its new L."""
+        if self.config.policy_lipschitz == "select" and choice_point(self.policy_data.num_trajectories) != choice_point(
+            before
+        ):
+            self.policy = self._new_policy()
 
     def _set_policy_prefix(self, count: int) -> None:
         self.policy_data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
@@ -484,6 +565,7 @@ class NPPLoop:
         # Persist before anything else can fail: expert data is the expensive part.
         if self.store is not None:
             self.store.record_episode(row, trajectory, explored)
+        self.rows.append(row)  # before the data joins: a choice of the policy's L reads this episode's start
         if new:
             first = self.dataset.num_trajectories
             for item in new:
@@ -491,6 +573,7 @@ class NPPLoop:
             if status.frozen:  # the policy under test stays as it is until its test ends
                 self._hold_back(len(new))
             elif self.policy_data is self.dataset:
+                self._policy_grew(first)
                 for joined in range(first, self.dataset.num_trajectories):
                     self._joined(joined)
             else:
@@ -498,7 +581,6 @@ class NPPLoop:
         elif not status.frozen and self.held_back:  # a verification ended on a check without a trajectory
             self._release_held()
         self.certifier.observe(checked, failed)
-        self.rows.append(row)
         if mode == "surrogate" and self.driver is not None:
             ret = self._drive(episode, s0, robot)
             if ret is not None:
@@ -574,6 +656,7 @@ class NPPLoop:
             robots=describe_robots(self.config.uncertainty),
             reference=REFERENCE[self.config.expert_model],
             robot=None if self.robot_facts is None else self.robot_facts.claim(),
+            policy_lipschitz=None if self.policy_lipschitz is None else self.policy_lipschitz.value,
         )
 
     def measured_success(self) -> MeasuredSuccess:

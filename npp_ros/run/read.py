@@ -15,14 +15,16 @@ import json
 import sqlite3
 import types
 from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, fields
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Union, get_args, get_origin, get_type_hints
 
 from npp_ros.certificate.certifier import Certificate, CertificationSpec
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset
+from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.per_robot.success_map import SuccessMap, model_bodies, run_success_map
+from npp_ros.run.policy_lipschitz import LipschitzChoice, acted_by
 from npp_ros.run.records import EpisodeRow, RobotEpisode, RunFileError, RunMetadata
 from npp_ros.run.seal import SealCheck, check_file
 from npp_ros.run.setup import policy_for, spec_of
@@ -57,6 +59,8 @@ class Run:
     claimed: dict[str, object]
     seal: SealCheck  # intact (or unsealed, from before seals): a broken seal is a RunFileError
     robot_episodes: tuple[RobotEpisode, ...] = ()  # a run on a robot: every episode it ran (npp_ros.run.on_robot)
+    # The policy's L the run chose at each data size (policy_lipschitz select; npp_ros.run.policy_lipschitz).
+    lipschitz_choices: dict[int, LipschitzChoice] = field(default_factory=dict)
 
     @property
     def folder(self) -> Path:
@@ -93,8 +97,19 @@ class Run:
     def policy(self) -> NonparametricPolicy:
         """The certificate's policy (its first trajectories, acting as its spec names); uncertified: all the data."""
         count = self.dataset.num_trajectories if self.certificate is None else self.certificate.policy_trajectories
+        return self.policy_over(count)
+
+    def policy_over(self, count: int) -> NonparametricPolicy:
+        """The run's policy over its first ``count`` trajectories, acting as its spec names, by the L it acted by."""
         data = self.dataset if count == self.dataset.num_trajectories else self.dataset.prefix(count)
-        return policy_for(data, self.spec, str(self.metadata.task), int(self.metadata.seed))
+        task, seed = str(self.metadata.task), int(self.metadata.seed)
+        return policy_for(data, self.spec, task, seed, self.policy_lipschitz(count))
+
+    def policy_lipschitz(self, count: int) -> LipschitzConstant | None:
+        """The L the policy over ``count`` trajectories acts by where the run chose its own (None: the claim's): the
+        choice at its size's choice point; for data the run's policy never held whole (an uncertified run's data with
+        a test's trajectories held back), the last choice it made below that."""
+        return acted_by(self.lipschitz_choices, count)
 
 
 def read_run(folder: str | Path) -> Run:
@@ -125,6 +140,7 @@ def read_run(folder: str | Path) -> Run:
                 record = store.certificate()
                 rows = store.episodes()
                 robot_episodes = tuple(store.robot_episodes())
+                choices = store.lipschitz_choices()
             except (sqlite3.DatabaseError, json.JSONDecodeError) as exc:
                 raise RunFileError(f"{run_file} cannot be read: {exc}") from exc
             dataset = store.load_dataset()
@@ -135,12 +151,12 @@ def read_run(folder: str | Path) -> Run:
     except ValueError as exc:  # CertificationSpec's refusal of recorded values
         raise RunFileError(f"{run_file} records no valid specification: {exc}") from None
     if record is None:
-        return Run(run_file, metadata, task, spec, dataset, rows, None, {}, seal, robot_episodes)
+        return Run(run_file, metadata, task, spec, dataset, rows, None, {}, seal, robot_episodes, choices)
     if not isinstance(record, Mapping):
         raise RunFileError(f"{run_file}'s certificate is {type(record).__name__}, not a record")
     claimed = {name: record.get(name, RunMetadata.BEFORE_RECORDED.get(name)) for name in spec.record()}
     certificate = certificate_of(record, spec, run_file)
-    return Run(run_file, metadata, task, spec, dataset, rows, certificate, claimed, seal, robot_episodes)
+    return Run(run_file, metadata, task, spec, dataset, rows, certificate, claimed, seal, robot_episodes, choices)
 
 
 def _unsealed_by(run_file: Path, seal: SealCheck) -> str:

@@ -51,6 +51,7 @@ class RunMetadata(SimpleNamespace):
     BEFORE_RECORDED: ClassVar[dict[str, object]] = {
         "policy": "open-loop",
         "explore": 0.0,
+        "policy_lipschitz": "claim",
         "uncertainty": "",
         "expert_model": "robot",
         "robot_run": "",

@@ -207,6 +207,16 @@ def rederive(run: Run, progress: Callable[[int, int], None] | None = None) -> Re
             total,
             started,
         )
+    for point, stored_choice in sorted(run.lipschitz_choices.items()):
+        chosen = loop.choices.get(point)
+        if chosen is None or chosen.value != stored_choice.value:
+            derived_value = "none" if chosen is None else f"{chosen.value:.6g}"
+            return _found(
+                f"the policy's L chosen at {point} trajectories: stored {stored_choice.value:.6g}, derived "
+                f"{derived_value}",
+                total,
+                started,
+            )
     return _certificate_found(run, loop, total, started)
 
 

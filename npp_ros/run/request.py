@@ -31,6 +31,7 @@ from npp_ros.policy.feedback import POLICY_HELP, POLICY_KINDS, PolicyKind
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.explore import EXPLORE_HELP, check_radius
 from npp_ros.run.loop import RunConfig
+from npp_ros.run.policy_lipschitz import POLICY_LIPSCHITZ_HELP, POLICY_LIPSCHITZ_MODES, check_policy_lipschitz
 from npp_ros.run.setup import build_config, check_uncertainty, resolve_lipschitz
 from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODEL_HELP, EXPERT_MODELS, check_expert_model
 from npp_ros.tasks.registry import Expert, ExpertOptions, Task, by_task, check_horizon, get_task
@@ -124,6 +125,9 @@ class RunRequest:
     )
     rule: StoppingRule | None = field(default=None, metadata=spelled(RULE_HELP, CHOICE, choices=STOPPING_RULES))
     policy: PolicyKind | None = field(default=None, metadata=spelled(_policy_help, CHOICE, choices=POLICY_KINDS))
+    policy_lipschitz: str = field(
+        default="claim", metadata=spelled(POLICY_LIPSCHITZ_HELP, CHOICE, choices=POLICY_LIPSCHITZ_MODES)
+    )
     condition: Condition = field(default="i", metadata=spelled("Theorem 4.1 condition", CHOICE, choices=CONDITIONS))
     p: float = field(
         default=0.9,
@@ -166,6 +170,7 @@ class RunRequest:
             check_horizon(self.horizon)
         check_gamma(self.gamma)
         check_radius(self.explore)
+        check_policy_lipschitz(self.policy_lipschitz, self.certify)
         check_uncertainty(self.uncertainty)
         check_expert_model(self.expert_model, self.uncertainty)
         if self.max_episodes < 1:
@@ -271,5 +276,6 @@ def resolve_run(
         certify=request.certify, rule=request.rule, policy=request.policy or definition.default_policy,
         explore=request.explore,
         uncertainty=request.uncertainty, expert_model=request.expert_model, options=options, expert=expert,
+        policy_lipschitz=request.policy_lipschitz,
     )  # fmt: skip
     return ResolvedRun(request, options, expert, epsilon, lipschitz, config)

@@ -34,8 +34,11 @@ from pathlib import Path
 SEAL_TABLE = "seal"
 RUN_PART = "run"  # the digest over every other part: the whole file's
 THROUGH_PART = "points:through"  # how many trajectories the points chains cover
-TABLES = ("meta", "trajectories", "points", "episodes", "robot_episodes")
-_ORDER = {"trajectories": "id", "episodes": "episode", "points": "trajectory, step", "robot_episodes": "id"}
+TABLES = ("meta", "trajectories", "points", "episodes", "robot_episodes", "lipschitz_choices")
+_ORDER = {
+    "trajectories": "id", "episodes": "episode", "points": "trajectory, step", "robot_episodes": "id",
+    "lipschitz_choices": "trajectories",
+}  # fmt: skip
 _EMPTY = hashlib.sha256(b"").hexdigest()
 
 
@@ -79,12 +82,13 @@ def part_name(table: str, column: str) -> str:
 
 
 def _small_parts(conn: sqlite3.Connection, present: set[str]) -> dict[str, str]:
-    """Every meta key and every column of trajectories, episodes and (a run on a robot) robot_episodes, hashed whole."""
+    """Every meta key and every column of trajectories, episodes, (a run on a robot) robot_episodes and (a policy L
+    chosen from the run's data) lipschitz_choices, hashed whole."""
     parts: dict[str, str] = {}
     if "meta" in present:
         for key, value in conn.execute("SELECT key, value FROM meta ORDER BY key"):
             parts[part_name("meta", str(key))] = _digest((key, value))
-    for table in ("trajectories", "episodes", "robot_episodes"):
+    for table in ("trajectories", "episodes", "robot_episodes", "lipschitz_choices"):
         if table not in present:
             continue
         for column in _columns(conn, table):

@@ -40,6 +40,7 @@ from npp_ros.policy.lipschitz import (
 )
 from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
+from npp_ros.run.policy_lipschitz import check_policy_lipschitz
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts, expert_settings
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, stores_window_values, tracked_on_robot
@@ -148,13 +149,15 @@ def build_config(
     expert_model: str = DEFAULT_EXPERT_MODEL,
     options: ExpertOptions | None = None,
     expert: Expert | None = None,
+    policy_lipschitz: str = "claim",
 ) -> RunConfig:
     """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
     ``rule`` None the default rule of that checked quantity (DEFAULT_RULES), ``policy`` how the policy acts,
     ``explore`` > 0 the radius beyond which a failed check also asks where the policy went (npp_ros.run.explore),
     ``uncertainty`` > 0 the task's uncertainty set, its ranges' distance from the nominal model multiplied by this
     (1: the set the task declares; 0: the exact model), a robot drawn from it per episode (:func:`robot_fn`),
-    ``expert_model`` the model the expert plans on then (npp_ros.tasks.nominal_plan).
+    ``expert_model`` the model the expert plans on then (npp_ros.tasks.nominal_plan), ``policy_lipschitz`` the L the
+    policy chooses by (the claim's, or selected from the run's data: npp_ros.run.policy_lipschitz).
 
     ``options`` are the expert's (None: the task's, with this gamma) and ``expert`` the run's expert built with them
     (None: one is built here to read them off): the config records the settings that decide its answers as that
@@ -178,6 +181,7 @@ def build_config(
     return RunConfig(
         task, seed, definition.state_dim, definition.action_dim, spec,
         horizon=horizon, gamma=gamma, plant_fingerprint=plant_fingerprint(task, seed), explore=check_radius(explore),
+        policy_lipschitz=check_policy_lipschitz(policy_lipschitz, certify),
         uncertainty=uncertainty_record(task, seed, uncertainty, expert_model),
         expert_model=check_expert_model(expert_model, uncertainty), **settings,  # type: ignore[arg-type]
     )  # fmt: skip
@@ -284,10 +288,12 @@ def task_control_space(task: str, seed: int) -> ControlSpace:
     return control_space(get_task(task).make_plant(seed))
 
 
-def policy_for(data: Dataset, spec: CertificationSpec, task: str, seed: int) -> NonparametricPolicy:
+def policy_for(
+    data: Dataset, spec: CertificationSpec, task: str, seed: int, lipschitz: LipschitzConstant | None = None
+) -> NonparametricPolicy:
     """The policy ``spec`` names over ``data`` for this task's plant: what a run's checks, its evaluations and a
-    robot act with."""
-    return make_policy(data, spec, task_control_space(task, seed))
+    robot act with; ``lipschitz`` the L it acts by where the run chose its own (None: the claim's)."""
+    return make_policy(data, spec, task_control_space(task, seed), lipschitz)
 
 
 def initial_state_fn(task: str, seed: int) -> Callable[[int], FloatArray]:
@@ -340,7 +346,9 @@ def build_loop(
     if store is None and store_path is not None:
         store = RunStore.open_or_create(store_path, config.metadata())
     task = get_task(config.task)
-    needs_replay = oracle is None or task.success is not None or config.explore > 0
+    needs_replay = (
+        oracle is None or task.success is not None or config.explore > 0 or config.policy_lipschitz != "claim"
+    )
     replay = PolicyReplay(task.make_plant(config.seed), config.horizon) if needs_replay else None
     if oracle is None:
         drive = rollouts or config.spec.certify != "surrogate"
@@ -366,7 +374,7 @@ def build_loop(
         control=task_control_space(config.task, config.seed),
         explorer=RolloutExplorer(replay, config.explore) if config.explore and replay is not None else None,
         success=task.success,
-        replay=replay if driver is not None else None,
+        replay=replay if driver is not None or config.policy_lipschitz != "claim" else None,
         robots=robot_fn(config),
     )
 

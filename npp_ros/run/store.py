@@ -76,6 +76,7 @@ from typing import Any
 import numpy as np
 
 from npp_ros.policy.dataset import Dataset, DatasetError, FloatArray, Trajectory
+from npp_ros.run.policy_lipschitz import LipschitzChoice
 from npp_ros.run.records import (
     EPISODE_COLUMNS,
     LATER_COLUMNS,
@@ -512,6 +513,24 @@ class RunStore:
             out.append(RobotEpisode(**item))
         return out
 
+    def record_lipschitz_choice(self, choice: LipschitzChoice) -> None:
+        """The policy's L chosen at a choice point (npp_ros.run.policy_lipschitz): kept, so that the run, its gate and
+        its readers act by the L it chose, whatever machine reads it."""
+        self._writable()
+        with _transaction(self._conn, self.path):
+            self._conn.execute(LIPSCHITZ_CHOICES_SCHEMA)
+            self._conn.execute(
+                "INSERT INTO lipschitz_choices VALUES (?, ?, ?, ?)",
+                (choice.trajectories, choice.value, choice.starts, choice.record()),
+            )
+
+    def lipschitz_choices(self) -> dict[int, LipschitzChoice]:
+        """The policy's L chosen at each choice point, by its data size in trajectories (none: the claim's L)."""
+        if not self._conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'lipschitz_choices'").fetchone():
+            return {}
+        rows = self._conn.execute("SELECT trajectories, value, starts, scores FROM lipschitz_choices ORDER BY 1")
+        return {int(row[0]): LipschitzChoice.from_record(*row) for row in rows}
+
     def set_certificate(self, certificate: Mapping[str, Any]) -> None:
         self._writable()
         with _transaction(self._conn, self.path):
@@ -637,6 +656,11 @@ ROBOT_EPISODES_SCHEMA = (
     "CREATE TABLE IF NOT EXISTS robot_episodes (id INTEGER PRIMARY KEY, episode INTEGER NOT NULL, role TEXT NOT NULL, "
     "requested TEXT, start TEXT NOT NULL, steps INTEGER NOT NULL, started_at REAL NOT NULL, robot_time REAL NOT NULL, "
     "late_commands INTEGER NOT NULL, fault TEXT, success INTEGER, policy_return REAL, rollout BLOB NOT NULL)"
+)
+
+LIPSCHITZ_CHOICES_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS lipschitz_choices (trajectories INTEGER PRIMARY KEY, value REAL NOT NULL, "
+    "starts INTEGER NOT NULL, scores TEXT NOT NULL)"
 )
 
 

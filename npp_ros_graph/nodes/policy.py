@@ -24,7 +24,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -37,6 +37,8 @@ from std_msgs.msg import UInt32, UInt64
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, DatasetError
+from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.policy.spec import PolicySpec
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health
 from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import ThrottledWarnings, publishers_of, run_node
@@ -100,6 +102,7 @@ class PolicyNode(Node):
         self._action = JointState()
         self.dataset: Dataset | None = None
         self.policy: NonparametricPolicy | None = None
+        self.spec: PolicySpec | None = None  # how the run's policy acts (its L follows the trajectories' messages)
         self._catch_up_future = None
         self._catch_up_sent = 0.0
         self._catch_up_needed = True
@@ -180,11 +183,22 @@ class PolicyNode(Node):
             _, traj = trajectory_from_msg(msg)
             with self._data_lock:
                 self.dataset.append(traj)
+                self._follow_lipschitz(msg.policy_lipschitz)
         except DatasetError as exc:
             self.get_logger().error(f"trajectory {msg.index} refused: {exc}")
             return False
         self.status_pub.publish(UInt32(data=self.dataset.num_trajectories))
         return True
+
+    def _follow_lipschitz(self, lipschitz: float) -> None:
+        """The run chose another L for its policy as its data grew (npp_ros.run.policy_lipschitz): act by it, with the
+        trajectory that brought it (so the count the sim waits for and the L arrive together). Under the data lock."""
+        spec = self.spec
+        if spec is None or self.dataset is None or lipschitz <= 0 or lipschitz == spec.lipschitz.value:
+            return
+        self.spec = replace(spec, lipschitz=LipschitzConstant(lipschitz, "selected"))
+        self.policy = self.spec.build(self.dataset)
+        self.get_logger().info(f"the run's policy now acts by L = {lipschitz:g} (chosen from its data)")
 
     def maybe_catch_up(self) -> None:
         pending = self._catch_up_future
@@ -241,7 +255,7 @@ class PolicyNode(Node):
                 self._warn("policy", f"cannot act as the supervisor asks: {exc}")
                 return
             with self._data_lock:
-                self.policy = policy
+                self.policy, self.spec = policy, spec
             self.get_logger().info(f"acting greedily as the run certifies: {spec.describe()}")
         for msg in response.trajectories:
             if msg.index == self.dataset.num_trajectories and not self._append(msg):
@@ -262,7 +276,7 @@ class PolicyNode(Node):
         with self._data_lock:
             self.run, self.seal = run, seal
             self.dataset = Dataset(self.plant.state_dim, self.plant.action_dim)
-            self.policy = None
+            self.policy = self.spec = None
             self._answered_key = None
 
     # ---------------------------------------------------------------- acting

@@ -78,9 +78,13 @@ def _gains(trajectory: Trajectory) -> array[float]:
     return float64_array(() if trajectory.gains is None else trajectory.gains.ravel())
 
 
-def trajectory_to_msg(index: int, trajectory: Trajectory, run: str = "") -> TrajectoryMsg:
-    """Trajectory `index` of the dataset of run `run` (its identity: see seal.py)."""
+def trajectory_to_msg(
+    index: int, trajectory: Trajectory, run: str = "", policy_lipschitz: float = 0.0
+) -> TrajectoryMsg:
+    """Trajectory `index` of the dataset of run `run` (its identity: see seal.py), with the L the run's policy acts
+    by as it is sent (0: the policy spec's)."""
     return TrajectoryMsg(
+        policy_lipschitz=float(policy_lipschitz),
         run=run,
         index=index,
         state_dim=trajectory.states.shape[1],
@@ -341,6 +345,8 @@ def certificate_to_msg(certificate: Certificate, time: Time) -> CertificateMsg:
     named = {CERTIFICATE_RENAMED.get(name, name): value for name, value in certificate.record().items()}
     if named.get("mixture") is None:
         named["mixture"] = math.nan  # not the mixture rule: no statistic
+    if named.get("policy_lipschitz") is None:
+        named["policy_lipschitz"] = math.nan  # the policy chooses by the claim's L
     carried = CertificateMsg.get_fields_and_field_types()
     msg = CertificateMsg(**{name: value for name, value in named.items() if name in carried})
     msg.header.stamp = time
@@ -367,5 +373,6 @@ def certificate_from_msg(msg: CertificateMsg, task: str, diameter: float | None 
     fields = CertificateMsg.get_fields_and_field_types()
     renamed = {carried: name for name, carried in CERTIFICATE_RENAMED.items()}
     record = {renamed.get(name, name): getattr(msg, name) for name in fields if name != "header"}
-    record.update(task=task, mixture=mixture, assumptions=list(msg.assumptions))
+    own = None if math.isnan(msg.policy_lipschitz) else float(msg.policy_lipschitz)
+    record.update(task=task, mixture=mixture, assumptions=list(msg.assumptions), policy_lipschitz=own)
     return Certificate.from_record(record, spec)

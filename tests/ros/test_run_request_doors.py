@@ -27,7 +27,8 @@ from npp_ros_graph.tools import launcher
 # One value per field, none of them its default: a door that drops one is caught.
 GIVEN: dict[str, Any] = {
     "task": "pendulum_swingup", "seed": 3, "epsilon": 12.5, "lipschitz": "data", "certify": "oracle",
-    "rule": "mixture", "policy": "open-loop", "condition": "i", "p": 0.8, "delta": 0.05, "horizon": 200,
+    "rule": "mixture", "policy": "open-loop", "policy_lipschitz": "select", "condition": "i", "p": 0.8,
+    "delta": 0.05, "horizon": 200,
     "gamma": 1.0, "explore": 0.5, "uncertainty": 1.0, "expert_model": "nominal", "max_episodes": 7, "time_budget": 30.0,
     "expert_stop": "time", "values": "return-to-go", "max_iterations": 4,
 }  # fmt: skip
@@ -74,13 +75,13 @@ def test_npp_experiment_takes_the_fields_it_runs_side_by_side_with_the_requests_
     args = ap.parse_args(["--tasks", "pendulum_swingup", "--seeds", "3", "--epsilon", "12.5", "--lipschitz", "data",
                           "--certify", "oracle", "--rules", "mixture", "--policies", "open-loop", "--p", "0.8",
                           "--delta", "0.05", "--horizon", "200", "--explore", "0.5", "--max-episodes", "7",
-                          "--time-budget", "30", "--expert-stop", "time"])  # fmt: skip
+                          "--time-budget", "30", "--expert-stop", "time", "--policy-lipschitz", "select"])  # fmt: skip
     settings, arms = experiment.plan(args)
     assert (settings.p, settings.delta, settings.horizon, settings.time_budget, settings.stop) == (
         0.8, 0.05, 200, 30.0, "time"
     )  # fmt: skip
-    assert [(a.lipschitz, a.certify, a.rule, a.policy, a.explore) for a in arms] == [
-        ("data", "oracle", "mixture", "open-loop", 0.5)
+    assert [(a.lipschitz, a.certify, a.rule, a.policy, a.explore, a.policy_lipschitz) for a in arms] == [
+        ("data", "oracle", "mixture", "open-loop", 0.5, "select")
     ]
 
 

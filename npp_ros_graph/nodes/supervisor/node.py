@@ -208,8 +208,11 @@ class SupervisorNode(Node):
         self.handshake.on_rollout(msg, driven_with)
 
     def trajectory_msg(self, index: int, trajectory: Trajectory) -> TrajectoryMsg:
+        """A trajectory, sealed for this run, with the L the run's policy acts by now (it may choose its own)."""
         assert self.seal is not None
-        return self.seal.seal(trajectory_to_msg(index, trajectory, self.run_id))
+        spec = self.loop.policy_spec if self.loop is not None else None
+        lipschitz = 0.0 if spec is None else spec.lipschitz.value
+        return self.seal.seal(trajectory_to_msg(index, trajectory, self.run_id, lipschitz))
 
     def serve_dataset(self, request: GetTrajectories.Request, response: GetTrajectories.Response):
         loop = self.loop

@@ -1,0 +1,56 @@
+"""A run that chooses its policy's own L (policy_lipschitz select) through the graph: the supervisor chooses at each
+doubling of the policy's data, the policy node acts by each new L with the trajectory that brought it, and the run
+ends exactly as the in-process run does (its checks, its returns, its choices)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from reference import decisions
+
+from npp_ros.run.read import read_run
+from npp_ros.run.request import RunRequest, resolve_run
+from npp_ros.run.setup import build_loop
+
+pytestmark = pytest.mark.slow
+
+# The pendulum's success claim at 10 iterations per answer (deterministic: the time budget is never reached): its
+# first choice, at 4 trajectories (episode 14 or so), moves the policy off the claim's L.
+TASK, HORIZON, MAX_EPISODES, ITERATIONS, BUDGET = "pendulum_swingup", 1000, 30, 10, 120.0
+
+
+def test_a_selected_policy_l_through_the_graph_gives_the_in_process_run(tmp_path: Path, ros_domain: int) -> None:
+    run_dir = tmp_path / "graph"
+    command = [
+        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--horizon", str(HORIZON),
+        "--certify", "success", "--policy-lipschitz", "select", "--max-episodes", str(MAX_EPISODES),
+        "--max-iterations", str(ITERATIONS), "--time-budget", str(BUDGET), "--run-dir", str(run_dir),
+    ]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=900)
+    logs = "\n".join(f"== {p.name}\n{p.read_text()[-3000:]}" for p in sorted((run_dir / "logs").glob("*.log")))
+    ended = (
+        done.returncode == 0 or f"NOT CERTIFIED within {MAX_EPISODES} episodes" in done.stdout + done.stderr
+    )  # both end a run
+    assert ended, f"{done.stdout[-2000:]}\n{done.stderr[-3000:]}\n{logs}"
+    graph = read_run(run_dir)
+    assert graph.metadata.policy_lipschitz == "select" and graph.lipschitz_choices
+
+    request = RunRequest(
+        task=TASK, horizon=HORIZON, certify="success", policy_lipschitz="select", max_iterations=ITERATIONS,
+        time_budget=BUDGET,
+    )  # fmt: skip
+    resolved = resolve_run(request)
+    loop = build_loop(resolved.config, resolved.expert)
+    local = loop.run(max_episodes=MAX_EPISODES)
+    assert decisions(graph.episodes) == decisions(local.rows)
+    assert [(r.checked_gap, r.policy_return) for r in graph.episodes] == [
+        (r.checked_gap, r.policy_return) for r in local.rows
+    ]
+    assert {k: c.value for k, c in graph.lipschitz_choices.items()} == {k: c.value for k, c in loop.choices.items()}
+    chosen = {c.value for c in graph.lipschitz_choices.values()}
+    assert chosen != {graph.spec.lipschitz.value}, "no choice moved the policy off the claim's L: nothing was tested"
+    policy_log = "".join(p.read_text() for p in (run_dir / "logs").glob("*policy*.log"))
+    assert "the run's policy now acts by L =" in policy_log
