@@ -348,7 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     record_invocation(args.out / "experiment.json", argv, wall, len(jobs), failures)
     for row in rows:
         print(
-            f"{row.task:8s} {row.expert:8s} L {row.lipschitz_setting:8s} seed {row.seed}: "
+            f"{row.task:8s} {row.expert:8s} L {row.lipschitz_setting:8s} {row.certify} ({row.rule}){row.acts} "
+            f"seed {row.seed}: "
             f"certified at {row.certified_episode}, {row.fraction_within_epsilon:.0%} within eps, "
             f"{row.lower_bound_violations}/{row.rollouts} below V_lb -> {row.verdict}"
         )

@@ -72,13 +72,17 @@ class Arm:
         return base if self.policy_lipschitz == "claim" else f"{base}-policyL{self.policy_lipschitz}"
 
     @property
+    def acts(self) -> str:
+        """How the arm's policy acts, as a suffix of its label ('' for the paper's open-loop policy)."""
+        acts = "" if self.policy == PAPER_POLICY else f", {self.policy} policy"
+        acts += f", exploring beyond {self.explore:g}" if self.explore else ""
+        return acts + (", the policy's L selected from its data" if self.policy_lipschitz == "select" else "")
+
+    @property
     def label(self) -> str:
         expert = f"{self.expert} expert"
         how = "" if self.paper_certification else f", certify={self.certify} ({self.rule})"
-        acts = "" if self.policy == PAPER_POLICY else f", {self.policy} policy"
-        acts += f", exploring beyond {self.explore:g}" if self.explore else ""
-        acts += ", the policy's L selected from its data" if self.policy_lipschitz == "select" else ""
-        return f"{self.task}, {expert}, {self.lipschitz} L{how}{acts}"
+        return f"{self.task}, {expert}, {self.lipschitz} L{how}{self.acts}"
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,7 @@ class ResultRow:
     expert_answers: int = 0  # ... judged
     policy_successes: int = 0  # of the policy's rollouts in episodes whose check measured them ...
     policy_checked: int = 0  # ... judged (a surrogate check measures none)
+    acts: str = ""  # how the arm's policy acts where it is not the paper's (Arm.acts): arms differ by it too
 
 
 def held_out_verdict(check: HeldOutCheck | None, p: float, delta: float) -> str:
@@ -137,6 +138,7 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
         expert_answers=success.expert_answers,
         policy_successes=success.policy_successes,
         policy_checked=success.policy_checked,
+        acts=record.arm.acts,
     )
 
 
@@ -199,7 +201,7 @@ def certificate_table(rows: Sequence[ResultRow]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
-    for (task, expert, setting, certify, rule), group in _arms(rows).items():
+    for (task, expert, setting, certify, rule, acts), group in _arms(rows).items():
         certs = [r.certified_episode for r in group if r.certified_episode is not None]
         episodes = [r.certified_episode if r.certified_episode is not None else r.episodes for r in group]
         span = f"{int(np.median(episodes))} ({min(episodes)}-{max(episodes)})"
@@ -213,16 +215,18 @@ def certificate_table(rows: Sequence[ResultRow]) -> str:
         said = ", ".join(f"{v} x {k}" for k, v in verdicts.items())
         calls = int(np.median([r.oracle_calls for r in group]))
         lines.append(
-            f"| {task} | {expert} | {setting} | {certify} ({rule}) | {len(certs)}/{len(group)} | {span} | {calls} "
-            f"| {worst} | {below if checked else '-'} | {said} |"
+            f"| {task} | {expert} | {setting} | {certify} ({rule}){acts} | {len(certs)}/{len(group)} | {span} "
+            f"| {calls} | {worst} | {below if checked else '-'} | {said} |"
         )
     return head + "\n".join(lines) + "\n"
 
 
-def _arms(rows: Sequence[ResultRow]) -> dict[tuple[str, str, str, str, str], list[ResultRow]]:
-    groups: dict[tuple[str, str, str, str, str], list[ResultRow]] = {}
+def _arms(rows: Sequence[ResultRow]) -> dict[tuple[str, str, str, str, str, str], list[ResultRow]]:
+    """The rows by arm (seeds pooled); ``acts`` is the arm's policy as a cell's suffix ('' for the paper's)."""
+    groups: dict[tuple[str, str, str, str, str, str], list[ResultRow]] = {}
     for row in rows:
-        groups.setdefault((row.task, row.expert, row.lipschitz_setting, row.certify, row.rule), []).append(row)
+        key = (row.task, row.expert, row.lipschitz_setting, row.certify, row.rule, row.acts)
+        groups.setdefault(key, []).append(row)
     return groups
 
 
@@ -256,8 +260,9 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
-    for (task, expert, _, certify, rule), group in _arms(rows).items():
+    for (task, expert, _, certify, rule, acts), group in _arms(rows).items():
         expert = expert if (certify, rule) == ("surrogate", "paper") else f"{expert}, {certify} ({rule})"
+        expert += acts
         used = "/".join(f"{r.lipschitz:.0f}" for r in group)
         needed = "/".join(f"{r.slope_needed:.0f}" for r in group)
         bound = "" if all(r.l_is_bound for r in group) else " **not a bound**"
