@@ -16,6 +16,11 @@ command, then stepping once per control period with the latest command held
 - on the swing-up tasks, whether the pole ended upright (within 8 degrees over the last half of the
   horizon), on the robot and in process.
 
+A reach whose state holds a target (a task file's ``state.target``): each episode's target is s0's, published on
+npp-deploy's target topic (geometry_msgs/PointStamped in frame ``world``, ten times a second from before its
+activation to the episode's end), and the episode is judged on the task's success criterion too, on the robot and
+in process.
+
 The s0 are draws from rho the run never made (episodes 10^6 + k of the run's own stream). A run certified on a
 set of robots (``--uncertainty``) is tried on robots drawn from its set the same way (npp-robot's ``robot``
 parameter; the in-process reference runs on the same robot), unless ``--robots nominal`` asks for its model; the
@@ -52,6 +57,7 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Point, PointStamped
 from lifecycle_msgs.srv import ChangeState
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -68,9 +74,11 @@ from npp_ros.tasks.uncertainty import MAX_ACTION_DELAY, PARAMETERS, Robot, Uncer
 from npp_ros_graph.bench.deploy import transition
 from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, WARN, Health, health_of
-from npp_ros_graph.transport.topics import FORWARD_COMMANDS, JOINT_STATES
+from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES
 
 MODEL = "the task's model"  # what the robot is when the run names no set or --robots nominal asks for it
+TARGET, TARGET_FRAME = "/npp_deploy/target", "world"  # npp-deploy's target_topic and target_frame defaults
+TARGET_PERIOD_S = 0.1  # a reach's target, sent again this often (npp-deploy takes the newest)
 FIRST_TRIAL_EPISODE = 10**6  # s0 of episodes no run draws: fresh for the policy
 START_TIMEOUT_S = 120.0  # a robot process importing rclpy and MuJoCo on a busy machine
 # Every joint state of an episode is kept: the trial replays them all.
@@ -105,6 +113,8 @@ class TrialEpisode:
     robot_upright: bool | None  # swing-up tasks: the pole within 8 degrees over the last half; else None
     in_process_upright: bool | None
     robot: str = ""  # the robot of a run certified on a set (Robot.record()); "" = the task's model
+    robot_success: bool | None = None  # the task's success criterion on the robot's states (None: it states none)
+    in_process_success: bool | None = None
 
     @property
     def gap(self) -> float:
@@ -122,10 +132,27 @@ class TrialNode(Node):
         self.raws: list[np.ndarray] = []  # [qpos, qvel] from s0 on
         self.efforts: list[np.ndarray] = []  # efforts[k]: the command applied in step k
         self.create_subscription(JointState, JOINT_STATES, self.on_state, KEEP_ALL)
+        self.target: PointStamped | None = None  # a reach: s0's target, sent to npp-deploy until the episode ends
+        if layout.target is not None:
+            self.target_pub = self.create_publisher(PointStamped, TARGET, CONTROL_QOS)
+            self.create_timer(TARGET_PERIOD_S, self.send_target)
 
     def expect(self, s0: np.ndarray) -> None:
-        """A new episode from s0: what came before is dropped."""
+        """A new episode from s0: what came before is dropped; a reach aims at s0's target."""
         self.s0, self.raws, self.efforts = s0, [], []
+        if self.layout.target is not None and s0.size:
+            self.layout.aim_as(s0)  # the robot measures no target: its states hold s0's, as the task stores them
+            point = self.layout.target.point(self.layout.aimed)
+            self.target = PointStamped(point=Point(x=float(point[0]), y=float(point[1]), z=float(point[2])))
+            self.target.header.frame_id = TARGET_FRAME
+            self.send_target()
+        elif not s0.size:
+            self.target = None
+
+    def send_target(self) -> None:
+        if self.target is not None:
+            self.target.header.stamp = self.get_clock().now().to_msg()
+            self.target_pub.publish(self.target)
 
     def on_state(self, msg: JointState) -> None:
         """The robot publishes s0 while it waits for its first command; the episode starts with the
@@ -212,6 +239,8 @@ def judge(deployment: Deployment, episode: int, s0: np.ndarray, raws: np.ndarray
     )
     reference = rollout(plant, policy.act, s0, horizon, drawn)
     first = bool(np.array_equal(actions[0], reference.actions[0]))
+    criterion = deployment.task.success
+    success = (None, None) if criterion is None else (criterion.met(stored), criterion.met(reference.states))
     angle = POLE_ANGLE.get(deployment.task.name)
     upright: tuple[bool | None, bool | None] = (None, None)
     if angle is not None:
@@ -222,8 +251,9 @@ def judge(deployment: Deployment, episode: int, s0: np.ndarray, raws: np.ndarray
         )
     record = "" if drawn is None else drawn.record()
     return TrialEpisode(
-        episode, robot.total_return, reference.total_return, fresh, first, mismatches, *upright, robot=record
-    )
+        episode, robot.total_return, reference.total_return, fresh, first, mismatches, *upright, robot=record,
+        robot_success=success[0], in_process_success=success[1],
+    )  # fmt: skip
 
 
 def _replayer(actions: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
@@ -525,6 +555,9 @@ def summary(rows: list[TrialEpisode], epsilon: float) -> dict[str, Any]:
     if rows and rows[0].robot_upright is not None:
         out["robot_upright"] = int(sum(bool(r.robot_upright) for r in rows))
         out["in_process_upright"] = int(sum(bool(r.in_process_upright) for r in rows))
+    if rows and rows[0].robot_success is not None:
+        out["robot_success"] = int(sum(bool(r.robot_success) for r in rows))
+        out["in_process_success"] = int(sum(bool(r.in_process_success) for r in rows))
     return out
 
 
@@ -555,18 +588,20 @@ def markdown(out: dict[str, Any]) -> str:
         ),
         "| episodes | return robot / in process (median) | gap in process - robot: median / p90 / max "
         "| within epsilon of in process | fresh commands (median, min) | replay mismatches "
-        "| upright robot / in process |",
-        "|---|---|---|---|---|---|---|",
+        "| upright robot / in process | success robot / in process |",
+        "|---|---|---|---|---|---|---|---|",
         f"| {s['episodes']} | {s['robot_return_median']:.1f} / {s['in_process_return_median']:.1f} | "
         f"{s['gap_median']:.2f} / {s['gap_p90']:.2f} / {s['gap_max']:.2f} | {s['within_epsilon_of_in_process']:.0%} | "
         f"{s['fresh_command_share_median']:.1%}, {s['fresh_command_share_min']:.1%} | {s['replay_mismatches']} | "
-        + (f"{s['robot_upright']} / {s['in_process_upright']} |" if "robot_upright" in s else "- |"),
+        + (f"{s['robot_upright']} / {s['in_process_upright']} |" if "robot_upright" in s else "- |")
+        + (f" {s['robot_success']} / {s['in_process_success']} |" if "robot_success" in s else " - |"),
         "",
         "- return robot: the efforts the robot reported, replayed on the model from s0 (replay mismatches: joint "
         "states the replay does not reproduce bit for bit; 0 means the robot moved exactly as the model does).",
         "- fresh commands: steps whose command was the policy's answer to the state just before; the others ran "
         "on a held command (the answer missed its control period).",
         "- upright: the pole within 8 degrees of upright over the last half of the horizon.",
+        "- success: the task's own success criterion on the episode's states (a task that states one).",
     ]
     return "\n".join(lines) + "\n"
 

@@ -4,7 +4,9 @@ The bag's two topics become the core's :class:`~npp_ros.identification.recording
 (:func:`recording_from_bag`): each sensor_msgs/JointState assembled in the task's joint order by name
 (npp_ros.deployment.joints, as npp-deploy reads them), each std_msgs/Float64MultiArray command put in the task's
 actuator order, the two streams aligned on the bag's log times (the command in force when the robot next stepped),
-and the rows kept on the states' own stamps. Everything else is the core's npp-identify (npp_ros.cli.identify).
+and the rows kept on the states' own stamps. A reach's target (a task file's ``state.target``) is no joint a robot
+measures: its entries are 0 in the recording, which changes no prediction (the loader checks that the target's body
+moves nothing and nothing moves it). Everything else is the core's npp-identify (npp_ros.cli.identify).
 Reading a bag needs no running ROS graph; the two messages are decoded by rclpy, as a live subscriber decodes them
 (rosbags refuses a JointState whose effort is empty as rclpy writes it).
 """
@@ -22,7 +24,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from npp_ros.cli import identify as core
-from npp_ros.deployment.joints import JointLayout, parse_names
+from npp_ros.deployment.joints import JointLayout, NoTarget, parse_names
 from npp_ros.identification.recording import Recording
 from npp_ros.tasks.registry import Plant
 from npp_ros_graph.tools.bag import BagError, read_messages
@@ -43,7 +45,11 @@ def recording_from_bag(
                 msg = deserialize_message(message.raw, JointState)
                 state_times.append(message.log_ns * 1e-9)
                 stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
-                states.append(layout.state(list(msg.name), list(msg.position), list(msg.velocity)))
+                try:
+                    state = layout.state(list(msg.name), list(msg.position), list(msg.velocity))
+                except NoTarget as no_target:  # a reach's target is no joint of the robot and moves nothing
+                    state = no_target.raw
+                states.append(state)
             else:
                 data = np.asarray(deserialize_message(message.raw, Float64MultiArray).data, dtype=np.float64)
                 if len(data) != len(layout.command_joints) or not np.isfinite(data).all():

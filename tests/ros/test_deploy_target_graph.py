@@ -9,7 +9,10 @@ asserts a speed: each waits, with a timeout, for the robot's states to show what
 
 from __future__ import annotations
 
+import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -139,3 +142,20 @@ def test_npp_deploy_waits_for_a_target_reaches_one_inside_the_box_and_refuses_th
     assert "the certificate says nothing about it" in log
     print(f"\nthe mass ended within {miss * 1e3:.1f} mm of the target over the success window after it, "
           f"{kept * 1e3:.1f} mm after a refused one")  # fmt: skip
+
+
+def test_npp_trial_rehearses_a_reach_giving_each_episode_its_target(reach_run: Path, tmp_path: Path) -> None:
+    """npp-trial on a reach: each episode's target (s0's) goes to npp-deploy on its topic, the robot moves exactly as
+    the model does with it, and the episode is judged on the task's success criterion on the robot and in process."""
+    cmd = [sys.executable, "-m", "npp_ros_graph.bench.trial", str(reach_run), "--episodes", "2",
+           "--out", str(tmp_path)]  # fmt: skip
+    subprocess.run(cmd, check=True, timeout=600)
+    out = json.loads((tmp_path / "trial.json").read_text())
+    assert len(out["episodes"]) == 2
+    for episode in out["episodes"]:
+        assert episode["replay_mismatches"] == 0, episode  # the robot moved exactly as the model does
+        assert episode["first_command_answers_s0"], episode  # its first command answered s0 with its target
+        assert episode["robot_success"] is not None and episode["in_process_success"] is not None
+        if episode["fresh_command_share"] == 1.0:  # no command missed its period: the in-process episode exactly
+            assert episode["robot_success"] == episode["in_process_success"], episode
+    assert "success robot / in process" in (tmp_path / "trial.md").read_text()

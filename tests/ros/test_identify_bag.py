@@ -55,3 +55,35 @@ def test_a_bag_of_joint_states_and_commands_identifies_the_robot(
     assert out["verdict"] == "inside"
     assert npp_identify([str(tmp_path / "robot"), "--task", "pendulum_swingup", "--command-topic", "/other"]) == 2
     assert "0 commands on /other" in capsys.readouterr().err
+
+
+def test_a_reach_whose_state_holds_a_target_is_identified_from_its_joints_alone(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A robot measures its own joints, never the target a task's state holds (npp-robot leaves the target joints out
+    of /joint_states): a bag of such a robot identifies it as its in-process recording does."""
+    reach = str(Path(__file__).resolve().parents[1] / "fixtures" / "point_reach" / "task.toml")
+    task = get_task(reach)
+    plant = task.make_plant(0)
+    robot = Robot((("mass", "mass", 1.4), ("damping", "mass_x", 0.8), ("damping", "mass_y", 1.2)))
+    excitation = multisine(plant, 2.0)
+    s0 = np.array([0.02, -0.01, 0.05, 0.03, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # mass x, y; target x, y, z; then rates
+    recording = record_motion(plant, robot, lambda x: np.zeros(2), s0, excitation.steps, excitation.apply)
+    bag = BagWriter(tmp_path / "robot")
+    qos = [qos_entry(reliable=False, transient_local=False, depth=1)]
+    states = bag.add_topic("/joint_states", "sensor_msgs/msg/JointState", qos)
+    commands = bag.add_topic("/forward_effort_controller/commands", "std_msgs/msg/Float64MultiArray", qos)
+    start = 1_700_000_000 * 10**9
+    for t, (state, command) in enumerate(zip(recording.states, recording.commands, strict=True)):
+        at = start + round(t * plant.dt * 1e9)
+        msg = JointState(name=["mass_y", "mass_x"], position=[state[1], state[0]], velocity=[state[6], state[5]])
+        msg.header.stamp = stamp(at)
+        bag.write(states, serialize_message(msg), at)
+        bag.write(commands, serialize_message(Float64MultiArray(data=[float(c) for c in command])), at + 3_000_000)
+    bag.close()
+    assert npp_identify([str(tmp_path / "robot"), "--task", reach, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)["identification"]
+    direct = identify(task, recording).record()
+    for got, want in zip(out["combinations"], direct["combinations"], strict=True):
+        assert got["label"] == want["label"] and got["value"] == pytest.approx(want["value"], rel=1e-6)
+    assert out["verdict"] == direct["verdict"] == "inside"
