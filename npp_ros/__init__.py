@@ -5,7 +5,7 @@ The few things a Python user needs are exported here (see docs/tutorials/python.
     import npp_ros
     result = npp_ros.learn("cartpole_swingup", seed=0, run_dir="runs/mine")
     run = npp_ros.read_run("runs/mine")
-    print(run.certificate.summary(), run.policy.act(run.dataset.states[0]))
+    print(run.certificate.summary(), run.policy.controller()(run.dataset.states[0]))
 
 They load on first use, so ``import npp_ros.policy.dataset`` stays as light as it is; the imports under
 TYPE_CHECKING name them for type checkers and for tests/test_layering.py, which checks them against the
@@ -28,6 +28,7 @@ if TYPE_CHECKING:  # `X as X`: re-exported
     from npp_ros.tasks.registry import TASK_NAMES as TASK_NAMES
     from npp_ros.tasks.registry import get_task as get_task
     from npp_ros.tasks.registry import task_names as task_names
+    from npp_ros.tasks.rollout import rollout as rollout
 
 _EXPORTS = {
     "learn": "npp_ros.run.api",
@@ -40,6 +41,7 @@ _EXPORTS = {
     "Certificate": "npp_ros.certificate.certifier",
     "NonparametricPolicy": "npp_ros.policy.bounds",
     "POLICY_KINDS": "npp_ros.policy.feedback",
+    "rollout": "npp_ros.tasks.rollout",
 }
 __all__ = sorted(_EXPORTS)
 

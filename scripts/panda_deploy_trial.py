@@ -491,7 +491,7 @@ def main(argv: list[str] | None = None) -> int:
                            "load_average_start": load()}  # fmt: skip
     judge = Judge(args.run)
     starts = held_out_initial_states(judge.task, judge.seed, args.reaches)
-    references = [rollout(judge.plant, judge.policy.act, s0, judge.horizon) for s0 in starts]
+    references = [rollout(judge.plant, judge.policy.controller(), s0, judge.horizon) for s0 in starts]
     assert judge.success is not None
     print(f"in process: {sum(bool(judge.success.met(r.states)) for r in references)} of {len(starts)} reached "
           f"(the certified policy on the model)", flush=True)  # fmt: skip

@@ -43,7 +43,7 @@ def main() -> None:
     for k in range(args.starts):
         s0 = task.initial_state(meta.seed, 10**6 + k)
         reference = expert.trajectory(s0)
-        ours = rollout(plant, policy.act, s0, meta.horizon)
+        ours = rollout(plant, policy.controller(), s0, meta.horizon)
         gap = np.abs(ours.states - reference.states[: meta.horizon]).max(axis=1)
         off = np.flatnonzero(gap > args.tolerance)
         where = int(off[0]) if off.size else meta.horizon

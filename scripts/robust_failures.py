@@ -37,10 +37,10 @@ def main(argv: list[str] | None = None) -> int:
     assert robots is not None
     counts = {"failed": 0, "succeeds without the delay": 0, "succeeds on the nominal model": 0}
     for k, (s0, robot) in enumerate(zip(states, robots, strict=True)):
-        if task.success.met(rollout(plant, policy.act, s0, horizon, robot).states):
+        if task.success.met(rollout(plant, policy.controller(), s0, horizon, robot).states):
             continue
-        no_delay = task.success.met(rollout(plant, policy.act, s0, horizon, Robot(robot.scales)).states)
-        nominal = task.success.met(rollout(plant, policy.act, s0, horizon).states)
+        no_delay = task.success.met(rollout(plant, policy.controller(), s0, horizon, Robot(robot.scales)).states)
+        nominal = task.success.met(rollout(plant, policy.controller(), s0, horizon).states)
         counts["failed"] += 1
         counts["succeeds without the delay"] += int(no_delay and robot.action_delay > 0)
         counts["succeeds on the nominal model"] += int(nominal)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.bounds import NonparametricPolicy, PathEpisodeError
 from npp_ros.policy.dataset import Dataset, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 
@@ -42,10 +42,10 @@ def test_started_on_a_path_it_acts_with_that_paths_actions_where_the_greedy_choi
 def test_pushed_off_its_path_it_chooses_again_on_v_lb() -> None:
     data = crossing_paths()
     path = NonparametricPolicy(data, 10.0, control=SPACE, kind="path")
-    act = path.controller()
-    act(data.states[0])
+    episode = path.episode()
+    episode.act(data.states[0])
     pushed = np.array([0.4, 1.0])  # far from A's next point (0.1, 0): another point's bound is better by far more
-    action, index = path.act_at(pushed)
+    action, index = episode.act_at(pushed)
     assert index == path.greedy_index(pushed) != 1
     expected = data.actions[index] + data.gains[index] @ (pushed - data.states[index])
     np.testing.assert_allclose(action, expected, rtol=1e-12)
@@ -54,26 +54,28 @@ def test_pushed_off_its_path_it_chooses_again_on_v_lb() -> None:
 def test_past_its_paths_end_it_chooses_again() -> None:
     data = crossing_paths()
     path = NonparametricPolicy(data, 10.0, control=SPACE, kind="path")
-    act = path.controller()
+    episode = path.episode()
     for s in data.states[: STEPS - 1]:
-        act(s)
+        episode.act(s)
     last = data.states[STEPS - 1]
-    assert path.act_at(last)[1] == STEPS - 1
-    assert path.act_at(last)[1] == path.greedy_index(last) != STEPS - 1  # A has no point after its last
+    assert episode.act_at(last)[1] == STEPS - 1
+    assert episode.act_at(last)[1] == path.greedy_index(last) != STEPS - 1  # A has no point after its last
 
 
 def test_each_rollout_starts_afresh_and_a_batch_follows_each_row_as_alone() -> None:
     data = crossing_paths()
     path = NonparametricPolicy(data, 10.0, control=SPACE, kind="path")
     stored = data.states[:STEPS]
-    act = path.controller()
+    first = path.episode()
     for s in stored[:3]:
-        act(s)
-    assert path.act_at(stored[3])[1] == 3  # following A
-    act = path.controller()  # a new rollout: its first step is the greedy choice
-    assert path.act_at(stored[3])[1] == STEPS
-    with pytest.raises(ValueError, match="reset"):
-        path.act(stored[:2])  # a batch of 2 while it follows 1 episode
+        first.act(s)
+    second = path.episode()  # a new rollout: its first step is the greedy choice, whatever the first one follows
+    assert second.act_at(stored[3])[1] == STEPS
+    assert first.act_at(stored[3])[1] == 3  # the first one still follows A: no episode sees another's path
+    with pytest.raises(ValueError, match="take a new controller"):
+        first.act(stored[:2])  # a batch of 2 while it follows 1 episode
+    with pytest.raises(PathEpisodeError, match=r"take policy.controller\(\)"):
+        path.act(stored[0])  # outside an episode: the policy object holds no path to continue
     rng = np.random.default_rng(0)
     starts = stored[:4] + rng.normal(0, 0.03, size=(4, 2))
     batch = path.controller()

@@ -40,6 +40,10 @@ class EmptyDatasetError(DatasetError):
     """The policy has no data: it never invents an action."""
 
 
+class PathEpisodeError(RuntimeError):
+    """The path policy was asked to act outside an episode: its memory (the path it follows) is an episode's."""
+
+
 @dataclass(frozen=True)
 class BoundQuery:
     """Result of one bound evaluation: the bound and the index that attains it."""
@@ -145,18 +149,18 @@ class NonparametricPolicy:
         )
         self.metric: Dataset | MeasuredData = dataset if self.measured is None else self.measured
         self.index = BoundIndex(self.metric, self.lipschitz, compress=compress) if index else None  # type: ignore[arg-type]
-        self._cursor: NDArray[np.int64] | None = None  # path: the point each episode acted at last
         self._slack = np.zeros(0)  # path: r of each stored trajectory (npp_ros.policy.path)
 
     # ----------------------------------------------------------------- episodes
-    def reset(self) -> None:
-        """A new episode (or batch of episodes in lockstep) starts: the path policy forgets its path."""
-        self._cursor = None
+    def episode(self) -> NonparametricPolicy | PathEpisode:
+        """What acts over one new episode from s0 (or a batch in lockstep), with ``act`` and ``act_at``: the policy
+        itself where it has no memory; for the path policy a :class:`PathEpisode`, which holds that episode's path,
+        its own, so that two episodes never share one."""
+        return PathEpisode(self) if self.kind == "path" else self
 
     def controller(self) -> Callable[[ArrayLike], FloatArray]:
-        """The policy's action for a rollout from s0 (one, or a batch in lockstep): :meth:`act`, reset first."""
-        self.reset()
-        return self.act
+        """The policy's action for one new rollout from s0 (or a batch in lockstep): its episode's ``act``."""
+        return self.episode().act
 
     # ----------------------------------------------------------------- validation
     def _states(self, states: ArrayLike) -> tuple[FloatArray, bool]:
@@ -270,15 +274,15 @@ class NonparametricPolicy:
             raise EmptyDatasetError("the dataset is empty: the policy has no action to give")
         return self._search(batch, None, lower=True)
 
-    def _follow(self, batch: FloatArray, found: BoundQuery) -> NDArray[np.int64]:
-        """The path policy's point for each row (npp_ros.policy.path), remembered for the next step."""
-        cursor = self._cursor
+    def _follow(self, batch: FloatArray, found: BoundQuery, cursor: NDArray[np.int64] | None) -> NDArray[np.int64]:
+        """The path policy's point for each row (npp_ros.policy.path), after ``cursor`` (the points its episode
+        acted at last; None at the episode's first step)."""
         if cursor is None:
             cursor = np.full(len(batch), -1, dtype=np.int64)
         elif len(cursor) != len(batch):
             raise ValueError(
-                f"the path policy follows {len(cursor)} episodes, asked for {len(batch)} states: reset() it (or "
-                "take a controller()) when another rollout starts"
+                f"the path policy follows {len(cursor)} episodes, asked for {len(batch)} states: take a new "
+                "controller() when another rollout starts"
             )
         offsets = np.asarray(self.dataset.trajectory_offsets, dtype=np.int64)
         states = self.metric.states
@@ -286,25 +290,53 @@ class NonparametricPolicy:
         if known < self.dataset.num_trajectories:
             self._slack = np.concatenate([self._slack, trajectory_slack(states, offsets, known)])
         queries = batch if self.measured is None else self.measured.queries(batch)
-        chosen = follow(
+        return follow(
             cursor, found.index, found.value, queries, states, self.dataset.values, self.lipschitz, offsets, self._slack
         )
-        self._cursor = chosen
-        return chosen
 
     def act(self, states: ArrayLike) -> FloatArray:
-        """pi(s): a_{i*} (open loop, always an action from the dataset, Remark 3.2), or the feedback law at i*
-        (for the path policy: at the point of its path, the next step of the same episode)."""
+        """pi(s): a_{i*} (open loop, always an action from the dataset, Remark 3.2), or the feedback law at i*. The
+        path policy acts within an episode only: through :meth:`controller`, one per episode."""
         return self.act_at(states)[0]
 
     def act_at(self, states: ArrayLike) -> tuple[FloatArray, int | NDArray[np.int64]]:
         """pi(s) and i*, the chosen point (a robot checks its coverage there without another search)."""
+        if self.kind == "path":
+            raise PathEpisodeError(
+                "the path policy follows the trajectory it chose over one episode, so it acts within an episode only: "
+                "take policy.controller() (or policy.episode()) at each episode's start and call it at every step"
+            )
+        return self._act_at(states, None)[:2]
+
+    def _act_at(
+        self, states: ArrayLike, cursor: NDArray[np.int64] | None
+    ) -> tuple[FloatArray, int | NDArray[np.int64], NDArray[np.int64]]:
+        """pi(s), i*, and the chosen points as a path episode's next cursor."""
         batch, single = self._states(states)
         found = self._lower_nonempty(batch)
-        index = found.index if self.kind != "path" else self._follow(batch, found)
+        index = found.index if self.kind != "path" else self._follow(batch, found, cursor)
         if self.kind == "open-loop":
             actions = self.dataset.actions[index]
         else:
             assert self.control is not None
             actions = feedback_actions(self.dataset, index, batch, self.control)
-        return (actions[0].copy(), int(index[0])) if single else (actions.copy(), index)
+        if single:
+            return actions[0].copy(), int(index[0]), index
+        return actions.copy(), index, index
+
+
+class PathEpisode:
+    """One episode of the path policy (or a batch of episodes in lockstep): the points of its path it acted at last,
+    which no other episode sees. ``NonparametricPolicy.controller()`` makes one per rollout."""
+
+    def __init__(self, policy: NonparametricPolicy) -> None:
+        self.policy = policy
+        self._cursor: NDArray[np.int64] | None = None  # None: the episode's first step, a greedy choice on V_lb
+
+    def act(self, states: ArrayLike) -> FloatArray:
+        return self.act_at(states)[0]
+
+    def act_at(self, states: ArrayLike) -> tuple[FloatArray, int | NDArray[np.int64]]:
+        """This episode's next action and the point it follows."""
+        actions, index, self._cursor = self.policy._act_at(states, self._cursor)
+        return actions, index

@@ -234,10 +234,11 @@ def judge(deployment: Deployment, episode: int, s0: np.ndarray, raws: np.ndarray
     mismatches = int(np.sum(np.any(replayed[1:] != raws[1 : horizon + 1], axis=1)))
     robot = rollout(plant, _replayer(actions), s0, horizon, model_only)
     stored = np.array([stored_state(plant, raw) for raw in raws[:horizon]])
+    answer = policy.controller()  # the robot's episode answered state by state, as npp-deploy's activation did
     fresh = float(
-        np.mean([np.array_equal(policy.act(state), action) for state, action in zip(stored, actions, strict=True)])
+        np.mean([np.array_equal(answer(state), action) for state, action in zip(stored, actions, strict=True)])
     )
-    reference = rollout(plant, policy.act, s0, horizon, drawn)
+    reference = rollout(plant, policy.controller(), s0, horizon, drawn)
     first = bool(np.array_equal(actions[0], reference.actions[0]))
     criterion = deployment.task.success
     success = (None, None) if criterion is None else (criterion.met(stored), criterion.met(reference.states))

@@ -93,6 +93,7 @@ from npp_ros.deployment.state import (
 from npp_ros.deployment.timing import Watchdog
 from npp_ros.identification.identified import check_identified_robot
 from npp_ros.identification.window import MotionWindow, WindowVerdict, judge
+from npp_ros.policy.bounds import NonparametricPolicy, PathEpisode
 from npp_ros.run.read import read_run
 from npp_ros.tasks.uncertainty import UncertaintySet
 from npp_ros_graph.runtime.diagnostics import DiagnosticsReporter, Health, health_of_state
@@ -288,6 +289,7 @@ class DeployNode(LifecycleNode):
         self.settings = declare_settings(self, PARAMETERS, DeploySettings)
         self.state = DeploymentState()  # what it does and did: /diagnostics publishes its status
         self.deployment: Deployment | None = None
+        self.actor: NonparametricPolicy | PathEpisode | None = None  # the policy over this activation (policy.episode)
         self.layout: JointLayout | None = None
         self.limits: CommandLimits | None = None
         self.coverage: Coverage | None = None
@@ -583,6 +585,7 @@ class DeployNode(LifecycleNode):
             self.monitor.reset()
         if self.window is not None:
             self.window.restart()
+        self.actor = self.deployment.policy.episode()  # a path policy's path is this activation's, from its state
         self.state.activated()
         self.watchdog.arm()
         self.get_logger().info("active: commanding the robot from its next usable joint state")
@@ -734,7 +737,8 @@ class DeployNode(LifecycleNode):
         state = stored_state(deployment.plant, raw)
         assert self.coverage is not None and self.limits is not None
         policy = deployment.policy
-        wanted, chosen = policy.act_at(state)  # the certified policy's own action; s_{i*} spares coverage a search
+        assert self.actor is not None  # made at activation
+        wanted, chosen = self.actor.act_at(state)  # the certified policy's own action; s_{i*} spares coverage a search
         inside, distance = self.coverage.covers(state, policy.dataset.states[chosen])
         if not inside:
             problem = (

@@ -35,7 +35,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt32, UInt64
 
-from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.bounds import NonparametricPolicy, PathEpisode
 from npp_ros.policy.dataset import Dataset, DatasetError
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.spec import PolicySpec
@@ -103,6 +103,8 @@ class PolicyNode(Node):
         self.dataset: Dataset | None = None
         self.policy: NonparametricPolicy | None = None
         self.spec: PolicySpec | None = None  # how the run's policy acts (its L follows the trajectories' messages)
+        self._episode: NonparametricPolicy | PathEpisode | None = None  # what acts over the sim's current episode
+        self._episode_of: NonparametricPolicy | None = None  # the policy it is of
         self._catch_up_future = None
         self._catch_up_sent = 0.0
         self._catch_up_needed = True
@@ -380,9 +382,10 @@ class PolicyNode(Node):
         key = (episode, stamp.sec, stamp.nanosec)
         if self.policy.kind == "path" and key == self._answered_key and self._answered_action is not None:
             return self._answered_action
-        if self._answered_key is None or key[1:] == (0, 0) or episode != self._answered_key[0]:
-            self.policy.reset()
-        self._answered_action = self.policy.act(state)
+        new_episode = self._answered_key is None or key[1:] == (0, 0) or episode != self._answered_key[0]
+        if new_episode or self._episode is None or self._episode_of is not self.policy:
+            self._episode, self._episode_of = self.policy.episode(), self.policy  # new data: the path starts afresh
+        self._answered_action = self._episode.act(state)
         self._answered_key = key
         return self._answered_action
 
