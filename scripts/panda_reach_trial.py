@@ -33,6 +33,8 @@ def learn(args: argparse.Namespace, seed: int, evaluate: int, log: Path) -> None
         command += ["--uncertainty", str(args.uncertainty)]
     if args.policy_lipschitz is not None:
         command += ["--policy-lipschitz", args.policy_lipschitz]
+    if args.policy is not None:
+        command += ["--policy", args.policy]
     with log.open("a") as out:
         subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, check=False)
 
@@ -93,6 +95,7 @@ def main() -> None:
     parser.add_argument("--uncertainty", type=float, default=None, help="the set of robots' factor (default: none)")
     parser.add_argument("--evaluate", type=int, default=1000, help="held-out (start, target) draws per certificate")
     parser.add_argument("--runs", type=Path, default=Path("runs/panda"), help="where the run folders go")
+    parser.add_argument("--policy", default=None, help="how the policy acts (default: the task's)")
     parser.add_argument(
         "--policy-lipschitz", default=None, choices=("claim", "select"), help="the policy's L (default: npp-learn's)"
     )

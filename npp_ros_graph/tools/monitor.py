@@ -38,11 +38,12 @@ TEARDOWN_S = 20.0  # from the exit's start (the certificate, or the loop's end) 
 
 
 def gap_line(msg: GapReport) -> str:
-    """One episode: the gap its certification mode checked against epsilon, and the current test's streak."""
+    """One episode: the gap its certification mode checked against epsilon, and the current test's streak. Episodes
+    are counted from 1, as npp-learn's lines and the certificate's count them (the run file's index is from 0)."""
     mark = "ORACLE" if msg.oracle_called else "quiet"
     checked = checked_text(msg.checked_gap, msg.epsilon, msg.certify, msg.certify or "gap")
     return (
-        f"[gap]     episode {msg.episode:5d}  {checked}  {mark:<6} "
+        f"[gap]     episode {msg.episode + 1:5d}  {checked}  {mark:<6} "
         f"|D| {msg.dataset_size:8d}  oracle calls {msg.oracle_calls:4d}  "
         f"test {msg.test} streak {msg.quiet_episodes}/{msg.quiet_required}"
     )
@@ -52,7 +53,7 @@ def episode_line(msg: EpisodeResult) -> str:
     ret = "-" if math.isnan(msg.policy_return) else f"{msg.policy_return:.2f}"
     expert = f"{msg.expert_value:.2f}" if msg.expert_value_known else "-"
     return (
-        f"[episode] episode {msg.episode:5d}  return {ret:>8}  V*(s0) {expert:>8}  "
+        f"[episode] episode {msg.episode + 1:5d}  return {ret:>8}  V*(s0) {expert:>8}  "
         f"V_lb(s0) {msg.v_lb:.2f}  steps {msg.steps}"
     )
 

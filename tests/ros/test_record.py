@@ -213,7 +213,7 @@ def test_monitor_prints_the_bag_as_it_printed_the_live_run(recorded_run: Path) -
     with RunStore.open(recorded_run / "run.sqlite") as store:
         rows = store.episodes()
     gap_lines = [line for line in out.stdout.splitlines() if line.startswith("[gap]")]
-    assert [int(line.split()[2]) for line in gap_lines] == [row.episode for row in rows]
+    assert [int(line.split()[2]) for line in gap_lines] == [row.episode + 1 for row in rows]  # counted from 1
     assert sum(line.startswith("[episode]") for line in out.stdout.splitlines()) == len(rows)
     assert "[certificate] condition (i), epsilon 300" in out.stdout
     closing = [line.strip() for line in out.stdout.rstrip().splitlines()][-8:]
