@@ -69,7 +69,7 @@ def held_out_words(evaluation: dict[str, object]) -> str:
 
 
 def report(args: argparse.Namespace, rows: list[dict[str, object]]) -> str:
-    command = " ".join(sys.argv[1:]).replace(str(args.runs), "RUNS")
+    command = " ".join("RUNS" if arg == str(args.runs) else arg for arg in sys.argv[1:])  # the runs' folder, named
     robots = "" if args.uncertainty is None else f" on its set of robots (--uncertainty {args.uncertainty:g})"
     name = "The Panda's reach" if args.task == TASK else args.task
     lines = [f"# {name}: the {args.certify} claim{robots}, {len(rows)} seeds", "",

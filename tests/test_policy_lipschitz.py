@@ -7,11 +7,14 @@ from __future__ import annotations
 import sqlite3
 from pathlib import Path
 
+import numpy as np
 import pytest
 from deploy_runs import EPSILON, HORIZON, SEED, TASK, stored_run
 
+from npp_ros.policy.bounds import NonparametricPolicy
+from npp_ros.policy.dataset import Dataset, Trajectory
 from npp_ros.run.loop import RunConfig
-from npp_ros.run.policy_lipschitz import LADDER, choice_point
+from npp_ros.run.policy_lipschitz import LADDER, HeldOutStart, choice_point, choose_lipschitz
 from npp_ros.run.read import read_run
 from npp_ros.run.records import RunFileError
 from npp_ros.run.rederive import rederive
@@ -20,6 +23,7 @@ from npp_ros.run.seal import write_seal
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import get_task
+from npp_ros.tasks.success import SuccessCriterion
 
 EPISODES = 40
 FIRST_CHOICE = "trajectories = (SELECT MIN(trajectories) FROM lipschitz_choices)"  # the run's first choice
@@ -139,3 +143,31 @@ def test_the_certificate_names_the_policys_l_where_the_run_chose_it(tmp_path: Pa
     else:
         assert result.certificate.policy_lipschitz is None
     assert run.policy.lipschitz == (result.certificate.policy_lipschitz or run.spec.lipschitz.value)
+
+
+def test_the_choice_moves_off_the_claims_l_on_more_successes_only() -> None:
+    """Most successes wins; a tie keeps the claim's L whatever the returns say; without a criterion, return decides.
+    The rollouts here are a rule of the candidate's L (the policy's own), so each outcome is known in advance."""
+    data = Dataset(1, 1)
+    for k in range(4):
+        data.append(Trajectory(np.array([[float(k)]]), np.array([[0.0]]), np.array([1.0])))
+    starts = [HeldOutStart(np.array([0.5 + k]), None, (k,)) for k in range(3)]
+    criterion = SuccessCriterion("the state ends above 0", lambda states: bool(states[-1, 0] > 0), steps=1)
+
+    def build(data: Dataset, lipschitz: float) -> NonparametricPolicy:
+        return NonparametricPolicy(data, lipschitz)
+
+    def chooser(met: dict[float, bool], returns: dict[float, float]):  # outcome per factor of the claim's L
+        def run(state, policy, robot):
+            factor = round(policy.lipschitz / 2.0, 6)
+            return np.array([[1.0 if met[factor] else -1.0]]), returns[factor]
+
+        return run
+
+    flat = {f: 1.0 for f in LADDER}
+    higher = {f: 1.0 + f for f in LADDER}  # a larger L always returns a little more
+    everyone = {f: True for f in LADDER}
+    assert choose_lipschitz(data, starts, 2.0, build, chooser(everyone, higher), criterion).value == 2.0  # tie: claim
+    only_big = {f: f >= 100 for f in LADDER}
+    assert choose_lipschitz(data, starts, 2.0, build, chooser(only_big, flat), criterion).value == 200.0
+    assert choose_lipschitz(data, starts, 2.0, build, chooser(everyone, higher), None).value == 2.0 * LADDER[-1]

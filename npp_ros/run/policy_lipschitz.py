@@ -18,8 +18,9 @@ The rule, deterministic so that a resumed or re-derived run chooses the same:
   the last of them, each on its own drawn robot;
 - each candidate (the claim's L times :data:`LADDER`) is rolled out from each start, by the policy over the data
   without the trajectories that start's own episode stored (held out: a start is never followed by its own answer);
-- the candidate with the most successes on the task's criterion wins; ties go to the higher mean return, then to
-  the smaller L (the claim's L where nothing tells them apart).
+- the candidate with the most successes on the task's criterion wins; among those tied, the claim's L if it is one
+  of them (a return a fraction higher on a few starts is no evidence to move on), else the higher mean return, then
+  the smaller L. A task without a success criterion is decided by mean return, then the smaller L.
 
 Until the first choice the policy acts by the claim's L. The run file records each choice with its scores, and the
 certificate names the L its policy acts by.
@@ -169,7 +170,14 @@ def choose_lipschitz(
             total += ret
         mean = total / len(starts) if starts else 0.0
         scores.append(CandidateScore(lipschitz, successes, mean if math.isfinite(mean) else -math.inf))
-    best = max(range(len(scores)), key=lambda k: (scores[k].successes, scores[k].mean_return, -k))
+
+    def rank(k: int) -> tuple[float, ...]:
+        score = scores[k]
+        if success is None:
+            return (score.mean_return, -k)
+        return (score.successes, k == 0, score.mean_return, -k)  # k 0: the claim's own L (LADDER[0] = 1)
+
+    best = max(range(len(scores)), key=rank)
     return LipschitzChoice(data.num_trajectories, scores[best].lipschitz, len(starts), tuple(scores))
 
 
