@@ -35,7 +35,7 @@ def test_npp_learn_reports_both_held_out_phases(tmp_path: Path) -> None:
         assert f"{phase} 0/3 (" in run.stderr and f"{phase} 3/3 (" in run.stderr, run.stderr
     assert run.stderr.index("held-out: policy rollouts 3/3") < run.stderr.index("held-out: the expert's returns 0/3")
     # the task file's task by its name key, not its path and hash
-    assert run.stderr.startswith("npp-learn: two_link_arm_reach seed 0, epsilon 5")
+    assert run.stderr.startswith("npp-learn: two_link_arm_reach seed 0, oracle claim, epsilon 5; the policy acts")
     assert "note: two_link_arm_reach states no success criterion" in run.stderr
     assert "NOT CERTIFIED (two_link_arm_reach) after 2 episodes" in run.stdout and "sha256" not in run.stdout
     # oracle mode (the file's): the claim rests on no L, so no L check is printed as if it did

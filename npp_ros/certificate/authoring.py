@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass
 
 from npp_ros.certificate.certifier import (
+    L_FREE,
     SUCCESS_MARK,
     Certificate,
     CertificationSpec,
@@ -180,7 +181,6 @@ def author_certificate(
     )
 
 
-L_FREE = ("oracle", "success")  # the checked quantities whose claim rests on no Lipschitz constant
 ROBOT_DRAW = "(s0, theta)~rho x Theta"  # what a claim under model uncertainty is a probability over
 
 

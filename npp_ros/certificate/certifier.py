@@ -55,6 +55,7 @@ DEFAULT_RULES: dict[str, StoppingRule] = {
     "rollout": "sequential", "oracle": "sequential", "surrogate": "sequential", "success": "sequential"
 }  # fmt: skip
 CERTIFY_MODES: tuple[str, ...] = get_args(CheckedQuantity)
+L_FREE = ("oracle", "success")  # the checked quantities whose claim rests on no Lipschitz constant
 STOPPING_RULES: tuple[str, ...] = get_args(StoppingRule)
 
 # The statement ends with what the run measured of the task's success (authoring.MeasuredSuccess), from here on.
@@ -364,10 +365,21 @@ class Certificate:
     # (npp_ros.run.policy_lipschitz); None: the claim's own L.
     policy_lipschitz: float | None = None
 
+    def _lipschitz_lines(self) -> list[str]:
+        """The L a claim rests on, and the one the policy chooses its data point by, where they are not one."""
+        spec, lipschitz = self.spec, self.spec.lipschitz
+        chosen = "" if self.policy_lipschitz is None else f"{self.policy_lipschitz:.6g} (chosen from the run's data)"
+        picks = "it only picks the data point the policy follows"
+        if spec.certify in L_FREE:
+            own = chosen or f"{lipschitz.value:.6g} ({lipschitz.source})"
+            return [f"  policy's L      {own}: {picks}; the claim rests on no L"]
+        used = f"  L used          {lipschitz.value:.6g} ({lipschitz.source}, margin {lipschitz.margin:g})"
+        return [used, *([f"  policy's L      {chosen}: {picks}"] if chosen else [])]
+
     def summary(self, label: str = "") -> str:
         """The certificate for people; ``label`` names the task (a task file's ``name`` key), and the task's
         identity (a task file's path and hash) then follows on a line of its own."""
-        spec, lipschitz = self.spec, self.spec.lipschitz
+        spec = self.spec
         proof = "yes" if self.proven else "NO: it rests on a step that does not hold here (see assumptions)"
         lines = [
             f"CERTIFICATE ({label or self.task}, condition ({spec.condition}), certify={spec.certify}, "
@@ -377,15 +389,7 @@ class Certificate:
             f"  oracle calls    {self.oracle_calls}",
             f"  policy          {'path-following' if spec.policy == 'path' else 'greedy'} over "
             f"{self.policy_trajectories} trajectories ({self.dataset_size} triplets)",
-            f"  L used          {lipschitz.value:.6g} ({lipschitz.source}, margin {lipschitz.margin:g})",
-            *(
-                [
-                    f"  policy's L      {self.policy_lipschitz:.6g} (chosen from the run's data; it only picks the "
-                    "data point the policy follows)"
-                ]
-                if self.policy_lipschitz is not None
-                else []
-            ),
+            *self._lipschitz_lines(),
             f"  epsilon, p, delta  {spec.epsilon:g}, {spec.p:g}, {spec.delta:g}"
             if spec.certify != "success"
             else f"  p, delta        {spec.p:g}, {spec.delta:g} (no epsilon: the claim bounds no gap)",

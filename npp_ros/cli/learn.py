@@ -16,7 +16,7 @@ import warnings
 from dataclasses import asdict
 from pathlib import Path
 
-from npp_ros.certificate.authoring import L_FREE
+from npp_ros.certificate.certifier import L_FREE
 from npp_ros.cli.args import ListTasks, add_run_arguments, nonnegative_int, run_request
 from npp_ros.policy.lipschitz import LipschitzWarning
 from npp_ros.run.evaluation import (
@@ -28,7 +28,7 @@ from npp_ros.run.evaluation import (
     held_out_robots,
 )
 from npp_ros.run.loop import NPPLoop, RunConfig, RunResult
-from npp_ros.run.progress import Counter, StatusLine, unreachable_text
+from npp_ros.run.progress import Counter, StatusLine, claim_header, unreachable_text
 from npp_ros.run.records import RunFileError, UnrecordedSettings, write_episode_log
 from npp_ros.run.request import FIELD_NAMES, resolve_run
 from npp_ros.run.setup import build_loop, expert_notice, lipschitz_checks
@@ -119,12 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     args.horizon = request.horizon
 
     label = task_label(args.task)  # a task file's name key; its path and hash stay in the run file and summary.json
-    if config.spec.certify == "success":  # the claim bounds no gap and rests on no L: the policy's L is a choice
-        spec = config.spec
-        claim = f"success claim, p {spec.p:g}, delta {spec.delta:g}; the policy acts with {lipschitz.describe()}"
-    else:
-        claim = f"epsilon {epsilon:g}, {lipschitz.describe()}"
-    print(f"npp-learn: {label} seed {args.seed}, {claim}", file=sys.stderr)
+    print(f"npp-learn: {label} seed {args.seed}, {claim_header(config.spec, config.policy_lipschitz)}", file=sys.stderr)
     if loop.rows:
         print(f"npp-learn: resuming {run_dir / 'run.sqlite'} at episode {loop.next_episode}", file=sys.stderr)
     started = time.perf_counter()
@@ -176,9 +171,11 @@ def main(argv: list[str] | None = None) -> int:
         if evaluation is not None and evaluation.expert_answers_kept:
             print(f"npp-learn: held-out: {evaluation.expert_answers_kept} of the expert's {evaluation.states} returns "
                   f"kept from an earlier check of this run ({run_dir / KEPT_ANSWERS})", file=sys.stderr)  # fmt: skip
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", LipschitzWarning)  # reported below, in the summary
-        checks = lipschitz_checks(loop, expert, evaluation.visited_slope if evaluation else 0.0)
+    checks = []  # a claim that rests on no L (oracle, success) has no L to check: nothing is recorded of one
+    if config.spec.certify not in L_FREE:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", LipschitzWarning)  # reported below, in the summary
+            checks = lipschitz_checks(loop, expert, evaluation.visited_slope if evaluation else 0.0)
 
     summary = {
         "task": args.task,

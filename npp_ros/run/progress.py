@@ -7,9 +7,24 @@ import sys
 import time
 from typing import TextIO
 
-from npp_ros.certificate.certifier import Certificate, CertificationStatus
+from npp_ros.certificate.certifier import L_FREE, Certificate, CertificationSpec, CertificationStatus
 from npp_ros.run.loop import Observer
 from npp_ros.run.records import EpisodeRow
+
+
+def claim_header(spec: CertificationSpec, policy_lipschitz: str = "claim") -> str:
+    """What a run certifies, in the words its first line says: the claim's own numbers (no epsilon where it bounds
+    no gap, no L where it rests on none) and the L the policy chooses by."""
+    own = " (then chosen from the run's data)" if policy_lipschitz == "select" else ""
+    if spec.certify == "success":
+        return (
+            f"success claim, p {spec.p:g}, delta {spec.delta:g}; the policy acts with {spec.lipschitz.describe()}{own}"
+        )
+    if spec.certify in L_FREE:
+        return f"{spec.certify} claim, epsilon {spec.epsilon:g}; the policy acts with {spec.lipschitz.describe()}{own}"
+    return f"{spec.certify} claim, epsilon {spec.epsilon:g}, {spec.lipschitz.describe()}" + (
+        "; the policy's L chosen from the run's data" if own else ""
+    )
 
 
 def checked_text(checked_gap: float, epsilon: float, certify: str, label: str = "checked") -> str:

@@ -30,6 +30,7 @@ from std_msgs.msg import UInt32
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.run.loop import EpisodeInterrupted, NPPLoop, RunConfig
+from npp_ros.run.progress import claim_header
 from npp_ros.run.records import UnrecordedSettings
 from npp_ros.run.request import FIELD_NAMES, PLANT_FIELDS, RunRequest, resolve_run
 from npp_ros.run.setup import build_loop, initial_state_fn, robot_fn
@@ -268,7 +269,6 @@ class SupervisorNode(Node):
         # for 'data'), V(s0) where closed form, the value basis.
         run = resolve_run(request, run_file=run_dir / RUN_FILE)
         task, spec, config, expert = plant.task, get_task(plant.task), run.config, run.expert
-        epsilon, lipschitz = run.epsilon, run.lipschitz
         if expert.plant.model_sha256() != plant.model_sha256:
             raise RuntimeError("the sim's plant differs from the task's model: refusing to certify")
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -306,7 +306,7 @@ class SupervisorNode(Node):
             for notice in notices:  # a resumed file that never recorded some settings: said at every resume
                 log.warning(str(notice.message))
             self.get_logger().info(
-                f"{task} seed {plant.seed}: epsilon {epsilon:g}, {lipschitz.describe()}; "
+                f"{task} seed {plant.seed}: {claim_header(config.spec, config.policy_lipschitz)}; "
                 f"{'resuming at episode ' + str(loop.next_episode) if loop.rows else 'new run'} in {run_dir}"
             )
             self.publish_trajectories(0, loop.policy_data.num_trajectories)  # a restarted policy may listen here
