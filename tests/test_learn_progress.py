@@ -52,3 +52,16 @@ def test_a_certificate_names_its_task_by_label_and_keeps_its_identity() -> None:
     lines = certificate.summary("arm_reach").splitlines()
     assert lines[0].startswith("CERTIFICATE (arm_reach, condition (i)") and lines[1] == f"  task            {identity}"
     assert certificate.summary().startswith(f"CERTIFICATE ({identity},")
+
+
+def test_npp_learn_says_certified_when_the_certificate_is_issued_before_its_held_out_check(tmp_path: Path) -> None:
+    run = subprocess.run(
+        [sys.executable, "-m", "npp_ros.cli.learn", "--task", "lqr_2_1", "--horizon", "100", "--epsilon", "2",
+         "--certify", "oracle", "--policy", "open-loop", "--lipschitz", "analytic", "--evaluate", "5",
+         "--run-dir", str(tmp_path)],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    said = run.stderr.index("npp-learn: certified after ")
+    assert said < run.stderr.index("held-out: policy rollouts 0/5"), run.stderr
+    assert "expert calls (the policy over " in run.stderr

@@ -121,7 +121,13 @@ class StatusLine(Observer):
             self.stream.flush()
 
     def on_certificate(self, certificate: Certificate) -> None:
+        """Said the moment the certificate is issued, before whatever the command does next (a held-out check)."""
         self.close()
+        self.stream.write(
+            f"{self.prefix}certified after {certificate.episodes} episodes and {certificate.oracle_calls} expert "
+            f"calls (the policy over {certificate.policy_trajectories} trajectories)\n"
+        )
+        self.stream.flush()
 
     def close(self) -> None:
         if self.tty:
