@@ -7,6 +7,7 @@ a test graph is the graph npp-run starts; a test adds only what it changes (a na
 from __future__ import annotations
 
 import subprocess
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,7 +17,7 @@ from npp_ros_graph.graph.description import NODES, ROLES, graph_parameters
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher
 
-__all__ = ["alive", "children", "graph_parameters", "node_modules", "start_graph", "start_node"]
+__all__ = ["alive", "children", "graph_parameters", "node_modules", "npp_run_to_its_end", "start_graph", "start_node"]
 
 
 def start_node(
@@ -61,3 +62,14 @@ def alive(pid: int) -> bool:
     except OSError:
         return False
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def npp_run_to_its_end(options: list[str], run_dir: Path, max_episodes: int, timeout: float = 900.0) -> None:
+    """npp-run with ``options`` into ``run_dir`` until it ends, certified or not within ``max_episodes`` (both end a
+    run); anything else fails the test with the run's output and its nodes' logs."""
+    command = [sys.executable, "-m", "npp_ros_graph.tools.launcher", *options, "--max-episodes", str(max_episodes),
+               "--run-dir", str(run_dir)]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+    ended = done.returncode == 0 or f"NOT CERTIFIED within {max_episodes} episodes" in done.stdout + done.stderr
+    logs = "\n".join(f"== {p.name}\n{p.read_text()[-3000:]}" for p in sorted((run_dir / "logs").glob("*.log")))
+    assert ended, f"{done.stdout[-2000:]}\n{done.stderr[-3000:]}\n{logs}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -15,12 +16,32 @@ from std_msgs.msg import Float64MultiArray
 
 from npp_ros.identification.excitation import multisine
 from npp_ros.identification.fit import identify
-from npp_ros.identification.recording import record_motion
+from npp_ros.identification.recording import Recording, record_motion
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.tools.bag import BagWriter, qos_entry
 from npp_ros_graph.tools.identify import main as npp_identify
 from npp_ros_graph.transport.convert import stamp
+
+
+def write_bag(folder: Path, recording: Recording, dt: float, joint_state: Callable[[np.ndarray], JointState]) -> int:
+    """A robot's recording as its ros2_control topics carry it, in an MCAP bag: ``joint_state`` makes each state's
+    message; each command follows its state by 3 ms. Returns the last state's log time (ns)."""
+    bag = BagWriter(folder)
+    qos = [qos_entry(reliable=False, transient_local=False, depth=1)]
+    states = bag.add_topic("/joint_states", "sensor_msgs/msg/JointState", qos)
+    commands = bag.add_topic("/forward_effort_controller/commands", "std_msgs/msg/Float64MultiArray", qos)
+    start = 1_700_000_000 * 10**9
+    at = start
+    for t, (state, command) in enumerate(zip(recording.states, recording.commands, strict=True)):
+        at = start + round(t * dt * 1e9)
+        msg = joint_state(state)
+        msg.header.stamp = stamp(at)
+        bag.write(states, serialize_message(msg), at)
+        bag.write(commands, serialize_message(Float64MultiArray(data=[float(c) for c in command])), at + 3_000_000)
+    bag.write(commands, serialize_message(Float64MultiArray(data=[1.0, 2.0, 3.0])), at + 4_000_000)  # wrong size
+    bag.close()
+    return at
 
 
 def test_a_bag_of_joint_states_and_commands_identifies_the_robot(
@@ -32,20 +53,10 @@ def test_a_bag_of_joint_states_and_commands_identifies_the_robot(
     excitation = multisine(plant, 3.0)
     recording = record_motion(plant, robot, lambda x: np.array([0.6 * np.sign(x[1])]), [math.pi, 0.0],
                               excitation.steps, excitation.apply)  # fmt: skip
-    bag = BagWriter(tmp_path / "robot")
-    qos = [qos_entry(reliable=False, transient_local=False, depth=1)]
-    states = bag.add_topic("/joint_states", "sensor_msgs/msg/JointState", qos)
-    commands = bag.add_topic("/forward_effort_controller/commands", "std_msgs/msg/Float64MultiArray", qos)
-    start = 1_700_000_000 * 10**9
-    for t, (state, command) in enumerate(zip(recording.states, recording.commands, strict=True)):
-        at = start + round(t * plant.dt * 1e9)
-        # another joint first, and no effort (an empty sequence, which rosbags alone does not decode)
-        msg = JointState(name=["wheel", "hinge"], position=[0.0, state[0]], velocity=[0.0, state[1]])
-        msg.header.stamp = stamp(at)
-        bag.write(states, serialize_message(msg), at)
-        bag.write(commands, serialize_message(Float64MultiArray(data=[float(command[0])])), at + 3_000_000)
-    bag.write(commands, serialize_message(Float64MultiArray(data=[1.0, 2.0])), at + 4_000_000)  # wrong size: ignored
-    bag.close()
+    # another joint first, and no effort (an empty sequence, which rosbags alone does not decode); a command of the
+    # wrong size at the end, which a robot ignores too
+    write_bag(tmp_path / "robot", recording, plant.dt,
+              lambda x: JointState(name=["wheel", "hinge"], position=[0.0, x[0]], velocity=[0.0, x[1]]))  # fmt: skip
     assert npp_identify([str(tmp_path / "robot"), "--task", "pendulum_swingup", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)["identification"]
     direct = identify(task, recording).record()
@@ -69,18 +80,11 @@ def test_a_reach_whose_state_holds_a_target_is_identified_from_its_joints_alone(
     excitation = multisine(plant, 2.0)
     s0 = np.array([0.02, -0.01, 0.05, 0.03, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # mass x, y; target x, y, z; then rates
     recording = record_motion(plant, robot, lambda x: np.zeros(2), s0, excitation.steps, excitation.apply)
-    bag = BagWriter(tmp_path / "robot")
-    qos = [qos_entry(reliable=False, transient_local=False, depth=1)]
-    states = bag.add_topic("/joint_states", "sensor_msgs/msg/JointState", qos)
-    commands = bag.add_topic("/forward_effort_controller/commands", "std_msgs/msg/Float64MultiArray", qos)
-    start = 1_700_000_000 * 10**9
-    for t, (state, command) in enumerate(zip(recording.states, recording.commands, strict=True)):
-        at = start + round(t * plant.dt * 1e9)
-        msg = JointState(name=["mass_y", "mass_x"], position=[state[1], state[0]], velocity=[state[6], state[5]])
-        msg.header.stamp = stamp(at)
-        bag.write(states, serialize_message(msg), at)
-        bag.write(commands, serialize_message(Float64MultiArray(data=[float(c) for c in command])), at + 3_000_000)
-    bag.close()
+
+    def mass_joints(x: np.ndarray) -> JointState:  # the mass's joints only, in another order: no target joint
+        return JointState(name=["mass_y", "mass_x"], position=[x[1], x[0]], velocity=[x[6], x[5]])
+
+    write_bag(tmp_path / "robot", recording, plant.dt, mass_joints)
     assert npp_identify([str(tmp_path / "robot"), "--task", reach, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)["identification"]
     direct = identify(task, recording).record()

@@ -3,11 +3,10 @@ of the episode, so the run ends exactly as the in-process run does (every check,
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from graph import npp_run_to_its_end
 from reference import decisions
 
 from npp_ros.run.read import read_run
@@ -21,15 +20,9 @@ TASK, HORIZON, EPSILON, MAX_EPISODES = "lqr_2_1", 100, 2.0, 40
 
 def test_the_path_policy_through_the_graph_gives_the_in_process_run(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
-    command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--horizon", str(HORIZON),
-        "--epsilon", str(EPSILON), "--lipschitz", "analytic", "--certify", "oracle", "--policy", "path",
-        "--max-episodes", str(MAX_EPISODES), "--run-dir", str(run_dir),
-    ]  # fmt: skip
-    done = subprocess.run(command, capture_output=True, text=True, timeout=900)
-    ended = done.returncode == 0 or f"NOT CERTIFIED within {MAX_EPISODES} episodes" in done.stdout + done.stderr
-    logs = "\n".join(f"== {p.name}\n{p.read_text()[-3000:]}" for p in sorted((run_dir / "logs").glob("*.log")))
-    assert ended, f"{done.stdout[-2000:]}\n{done.stderr[-3000:]}\n{logs}"
+    options = ["--task", TASK, "--horizon", str(HORIZON), "--epsilon", str(EPSILON), "--lipschitz", "analytic",
+               "--certify", "oracle", "--policy", "path"]  # fmt: skip
+    npp_run_to_its_end(options, run_dir, MAX_EPISODES)
     graph = read_run(run_dir)
     assert graph.metadata.policy == "path" and graph.episodes
 

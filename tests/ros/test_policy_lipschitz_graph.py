@@ -4,11 +4,10 @@ ends exactly as the in-process run does (its checks, its returns, its choices)."
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from graph import npp_run_to_its_end
 from reference import decisions
 
 from npp_ros.run.read import read_run
@@ -25,15 +24,9 @@ TASK, HORIZON, EPSILON, MAX_EPISODES = "lqr_6_2", 300, 5.0, 60
 
 def test_a_selected_policy_l_through_the_graph_gives_the_in_process_run(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
-    command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--horizon", str(HORIZON),
-        "--epsilon", str(EPSILON), "--lipschitz", "analytic", "--certify", "oracle", "--policy", "open-loop",
-        "--policy-lipschitz", "select", "--max-episodes", str(MAX_EPISODES), "--run-dir", str(run_dir),
-    ]  # fmt: skip
-    done = subprocess.run(command, capture_output=True, text=True, timeout=900)
-    ended = done.returncode == 0 or f"NOT CERTIFIED within {MAX_EPISODES} episodes" in done.stdout + done.stderr
-    logs = "\n".join(f"== {p.name}\n{p.read_text()[-3000:]}" for p in sorted((run_dir / "logs").glob("*.log")))
-    assert ended, f"{done.stdout[-2000:]}\n{done.stderr[-3000:]}\n{logs}"
+    options = ["--task", TASK, "--horizon", str(HORIZON), "--epsilon", str(EPSILON), "--lipschitz", "analytic",
+               "--certify", "oracle", "--policy", "open-loop", "--policy-lipschitz", "select"]  # fmt: skip
+    npp_run_to_its_end(options, run_dir, MAX_EPISODES)
     graph = read_run(run_dir)
     assert graph.metadata.policy_lipschitz == "select" and graph.lipschitz_choices
 
