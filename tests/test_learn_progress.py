@@ -4,6 +4,7 @@ the same s0) prints its count and the seconds since it began, from 0 on."""
 from __future__ import annotations
 
 import io
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +12,7 @@ from pathlib import Path
 from npp_ros.certificate.certifier import Certificate, CertificationSpec
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.progress import Counter
+from npp_ros.run.store import RunStore
 
 ARM = Path(__file__).resolve().parents[1] / "examples" / "two_link_arm" / "task.toml"
 
@@ -65,3 +67,23 @@ def test_npp_learn_says_certified_when_the_certificate_is_issued_before_its_held
     said = run.stderr.index("npp-learn: certified after ")
     assert said < run.stderr.index("held-out: policy rollouts 0/5"), run.stderr
     assert "expert calls (the policy over " in run.stderr
+
+
+def test_a_logs_progress_lines_count_every_check_and_show_every_failed_one(tmp_path: Path) -> None:
+    """Off a terminal, a line per failed check and periodic lines for the passes, each saying how many passed since
+    the line before: no check goes uncounted, and a log does not read as if only the failed ones ran."""
+    run = subprocess.run(
+        [sys.executable, "-m", "npp_ros.cli.learn", "--task", "lqr_2_1", "--horizon", "100", "--epsilon", "2",
+         "--certify", "oracle", "--policy", "open-loop", "--lipschitz", "analytic", "--evaluate", "0",
+         "--run-dir", str(tmp_path)],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    lines = [line for line in run.stderr.splitlines() if line.startswith("episode ")]
+    with RunStore.open(tmp_path / "run.sqlite") as store:
+        rows = store.episodes()
+    failed = [row.episode + 1 for row in rows if not row.checked_gap <= 2.0]
+    shown = [int(line.split()[1]) for line in lines]
+    assert set(failed) <= set(shown)  # every failed check has its line
+    unsaid = [int(m.group(1)) for line in lines if (m := re.search(r"(\d+) more passed since the last line", line))]
+    assert len(lines) + sum(unsaid) == len(rows)  # and every check is counted

@@ -101,20 +101,33 @@ class StatusLine(Observer):
         self.unreachable = ""  # the line, once said
         self._last = 0.0
         self._pending = ""
+        self._passes_unsaid = 0  # passed checks since the last line written (a log's lines count every check)
+
+    def _passed(self, row: EpisodeRow) -> bool:
+        if self.certify == "success":
+            return row.checked_gap == 0
+        return row.checked_gap <= self.epsilon  # inf (no policy yet) and NaN fail
 
     def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
+        """On a terminal, one line rewritten; in a log, a line for every failed check and, at most every ``every``
+        seconds, one for the passes, counting those passed since the last line, so that every check is counted."""
         text = status_text(row, self.epsilon, status, self.condition, self.certify)
         now = time.monotonic()
         line = None
         if self.max_episodes is not None and not self.unreachable:
             line = unreachable_text(status, row.episode + 1, self.max_episodes)
+        passed = self._passed(row)
         if self.tty:
             self.stream.write("\r" + text.ljust(110))
             self.stream.flush()
-        elif now - self._last >= self.every or status.certified or line is not None:
-            self.stream.write(text + "\n")
+        elif not passed or now - self._last >= self.every or status.certified or line is not None:
+            before = self._passes_unsaid
+            said = f" | {before} more passed since the last line" if before else ""
+            self.stream.write(text + said + "\n")
             self.stream.flush()
-            self._last = now
+            self._last, self._passes_unsaid = now, 0
+        else:
+            self._passes_unsaid += 1
         if line is not None:
             self.unreachable = line
             self.stream.write(("\n" if self.tty else "") + self.prefix + line + "\n")
