@@ -211,6 +211,7 @@ def test_what_a_run_on_a_robot_cannot_be_is_refused_before_the_robot_moves() -> 
     for given, reason in (
         ({"certify": "oracle"}, "success claim only"),
         ({"explore": 0.2}, "does not explore"),
+        ({"policy_lipschitz": "select"}, "chooses no policy L from its data"),
     ):
         request = RunRequest(task=TASK, seed=0, horizon=HORIZON, **({"certify": "success"} | given))  # type: ignore[arg-type]
         with pytest.raises(ValueError, match=reason):

@@ -62,6 +62,11 @@ def robot_run_config(config: RunConfig, identity: RobotIdentity) -> RunConfig:
         raise ValueError("a run on a robot is on that one robot: it takes no set of robots (uncertainty 0)")
     if config.explore > 0:
         raise ValueError("a run on a robot does not explore: every state it asks about is a reset of the robot")
+    if config.policy_lipschitz != "claim":
+        raise ValueError(
+            "a run on a robot chooses no policy L from its data (policy_lipschitz claim): each candidate's rollout "
+            "would be an episode of the robot itself"
+        )
     return replace(config, robot_run=identity.record())
 
 
