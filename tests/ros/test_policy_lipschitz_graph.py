@@ -14,7 +14,7 @@ from npp_ros.run.read import read_run
 from npp_ros.run.request import RunRequest, resolve_run
 from npp_ros.run.setup import build_loop
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.long]  # a whole graph run: make test-long
 
 # lqr_6_2 at H = 300, oracle checks, the open-loop policy: the choice at 8 trajectories moves the policy to 10 times
 # the claim's L (a higher mean return from the held-out starts; the task states no success criterion), and the one
