@@ -311,6 +311,7 @@ class NPPLoop:
                 "a policy L chosen from the run's data (policy_lipschitz select) needs the policy's replay"
             )
         self.choices: dict[int, LipschitzChoice] = {}  # the policy's L chosen at each choice point (trajectories)
+        self._acting_lipschitz: LipschitzConstant | None = None  # the current policy's (set where it is built)
         self.prior_count = int(json.loads(config.prior)["trajectories"]) if config.prior else 0
         self.certifier = certifier_for(self.spec, with_policy=self.prior_count > 0)
         self.rows: list[EpisodeRow] = []
@@ -399,7 +400,9 @@ class NPPLoop:
             self.dataset.append(item)
 
     def _new_policy(self) -> NonparametricPolicy:
-        return make_policy(self.policy_data, self.spec, self.control, self.policy_lipschitz)
+        """The policy over its data now, by the L its data's choice point gives (chosen here, in the loop's thread)."""
+        self._acting_lipschitz = self._lipschitz_for(self.policy_data.num_trajectories)
+        return make_policy(self.policy_data, self.spec, self.control, self._acting_lipschitz)
 
     @property
     def policy_spec(self) -> PolicySpec | None:
@@ -408,8 +411,13 @@ class NPPLoop:
 
     @property
     def policy_lipschitz(self) -> LipschitzConstant | None:
-        """The L the policy acts by when the run chose its own (policy_lipschitz select); None: the claim's."""
-        point = choice_point(self.policy_data.num_trajectories) if self.config.policy_lipschitz == "select" else 0
+        """The L the current policy acts by when the run chose its own (policy_lipschitz select); None: the claim's.
+        Read only: another thread (the supervisor's dataset service) may ask while the loop runs an episode."""
+        return self._acting_lipschitz
+
+    def _lipschitz_for(self, count: int) -> LipschitzConstant | None:
+        """The L a policy over ``count`` trajectories acts by: its choice point's, made there if not yet."""
+        point = choice_point(count) if self.config.policy_lipschitz == "select" else 0
         if not point:
             return None
         choice = self._choice_at(point)
