@@ -420,8 +420,7 @@ class NPPLoop:
         point = choice_point(count) if self.config.policy_lipschitz == "select" else 0
         if not point:
             return None
-        choice = self._choice_at(point)
-        return LipschitzConstant(choice.value, "selected", choice.describe())
+        return self._choice_at(point).constant()
 
     def policy_over(self, count: int) -> NonparametricPolicy:
         """The run's policy over its first ``count`` trajectories (an evaluation of an earlier policy), by the L it
@@ -466,9 +465,8 @@ class NPPLoop:
 
     def _policy_grew(self, before: int) -> None:
         """The policy's data grew from ``before`` trajectories: a new choice point gives the policy its new L."""
-        if self.config.policy_lipschitz == "select" and choice_point(self.policy_data.num_trajectories) != choice_point(
-            before
-        ):
+        now = self.policy_data.num_trajectories
+        if self.config.policy_lipschitz == "select" and choice_point(now) != choice_point(before):
             self.policy = self._new_policy()
 
     def _set_policy_prefix(self, count: int) -> None:

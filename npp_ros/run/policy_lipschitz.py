@@ -107,6 +107,10 @@ class LipschitzChoice:
             f"({shown})"
         )
 
+    def constant(self) -> LipschitzConstant:
+        """The chosen L as the policy carries it, with where it came from."""
+        return LipschitzConstant(self.value, "selected", self.describe())
+
     def record(self) -> str:
         """The scores as the run file stores them (JSON)."""
         return json.dumps([[s.lipschitz, s.successes, s.mean_return] for s in self.scores])
@@ -121,11 +125,9 @@ def acted_by(choices: Mapping[int, LipschitzChoice], count: int) -> LipschitzCon
     """The L a run's policy over its first ``count`` trajectories acts by, from the choices it made (None: the
     claim's): the one at that size's choice point; for data the policy never held whole (a test's trajectories held
     back), the last choice made below it."""
-    made = [point for point in choices if point <= choice_point(count)]
-    if not made:
-        return None
-    choice = choices[max(made)]
-    return LipschitzConstant(choice.value, "selected", choice.describe())
+    point = choice_point(count)
+    made = [made for made in choices if made <= point]
+    return choices[max(made)].constant() if made else None
 
 
 def certified_lipschitz(certificate: Certificate) -> LipschitzConstant | None:
@@ -143,6 +145,12 @@ def held_out(data: Dataset, own: tuple[int, ...]) -> Dataset:
     return out
 
 
+def _start_data(data: Dataset, start: HeldOutStart) -> Dataset:
+    """The data a start is rolled out on: without its own answers, or the whole data where it has none among them."""
+    own = tuple(index for index in start.own if index < data.num_trajectories)
+    return held_out(data, own) if own else data
+
+
 def choose_lipschitz(
     data: Dataset,
     starts: Sequence[HeldOutStart],
@@ -155,16 +163,15 @@ def choose_lipschitz(
 
     ``build(data, L)`` makes the run's policy over data with that L. A start whose own answers are all outside
     ``data`` shares the policy over the whole of it; a task without a success criterion is scored by return only."""
-    candidates = [claim * factor for factor in LADDER]
+    own_data = [_start_data(data, start) for start in starts]  # built once, for every candidate alike
     scores = []
-    for lipschitz in candidates:
+    for lipschitz in (claim * factor for factor in LADDER):
         shared = build(data, lipschitz)
         successes, total = 0, 0.0
-        for start in starts:
-            own = tuple(index for index in start.own if index < data.num_trajectories)
-            policy = build(held_out(data, own), lipschitz) if own else shared
-            if len(policy.dataset) == 0:
+        for start, start_data in zip(starts, own_data, strict=True):
+            if len(start_data) == 0:
                 continue
+            policy = shared if start_data is data else build(start_data, lipschitz)
             states, ret = run(start.state, policy, start.robot)
             successes += int(success is not None and success.met(states))
             total += ret
