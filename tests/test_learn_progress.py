@@ -56,14 +56,21 @@ def test_a_certificate_names_its_task_by_label_and_keeps_its_identity() -> None:
     assert certificate.summary().startswith(f"CERTIFICATE ({identity},")
 
 
-def test_npp_learn_says_certified_when_the_certificate_is_issued_before_its_held_out_check(tmp_path: Path) -> None:
+def certify_lqr(run_dir: Path, evaluate: int) -> subprocess.CompletedProcess[str]:
+    """npp-learn on lqr_2_1 at H = 100, oracle checks, the open-loop policy: certified in about 30 episodes, whose
+    checks fail now and then."""
     run = subprocess.run(
         [sys.executable, "-m", "npp_ros.cli.learn", "--task", "lqr_2_1", "--horizon", "100", "--epsilon", "2",
-         "--certify", "oracle", "--policy", "open-loop", "--lipschitz", "analytic", "--evaluate", "5",
-         "--run-dir", str(tmp_path)],
+         "--certify", "oracle", "--policy", "open-loop", "--lipschitz", "analytic", "--evaluate", str(evaluate),
+         "--run-dir", str(run_dir)],
         capture_output=True, text=True,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
+    return run
+
+
+def test_npp_learn_says_certified_when_the_certificate_is_issued_before_its_held_out_check(tmp_path: Path) -> None:
+    run = certify_lqr(tmp_path, evaluate=5)
     said = run.stderr.index("npp-learn: certified after ")
     assert said < run.stderr.index("held-out: policy rollouts 0/5"), run.stderr
     assert "expert calls (the policy over " in run.stderr
@@ -72,13 +79,7 @@ def test_npp_learn_says_certified_when_the_certificate_is_issued_before_its_held
 def test_a_logs_progress_lines_count_every_check_and_show_every_failed_one(tmp_path: Path) -> None:
     """Off a terminal, a line per failed check and periodic lines for the passes, each saying how many passed since
     the line before: no check goes uncounted, and a log does not read as if only the failed ones ran."""
-    run = subprocess.run(
-        [sys.executable, "-m", "npp_ros.cli.learn", "--task", "lqr_2_1", "--horizon", "100", "--epsilon", "2",
-         "--certify", "oracle", "--policy", "open-loop", "--lipschitz", "analytic", "--evaluate", "0",
-         "--run-dir", str(tmp_path)],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    assert run.returncode == 0, run.stderr
+    run = certify_lqr(tmp_path, evaluate=0)
     lines = [line for line in run.stderr.splitlines() if line.startswith("episode ")]
     with RunStore.open(tmp_path / "run.sqlite") as store:
         rows = store.episodes()
