@@ -225,3 +225,17 @@ def test_a_window_of_motion_is_judged_outside_or_not_and_two_in_a_row_find_the_r
     late = pendulum_recording(Robot((), 2), 3.0)  # no noise: the nominal model two steps late reproduces it exactly
     found = judge("pendulum_swingup", 0, record, late.times, late.states, late.commands)
     assert found.outside and "delay 2" in found.said, found
+
+
+def test_npp_deploy_runs_the_window_by_default_only_where_the_set_says_its_robots_read_exact_states() -> None:
+    """monitor_window's default: the window where the set's reads are exact, none where the set declares noise (noise
+    in the regressed states biases the fit, and robots of the set would be found outside); an asked value as asked."""
+    from dataclasses import replace
+
+    from npp_ros.identification.window import AUTO, WINDOW_S, window_seconds
+
+    exact = PENDULUM.uncertainty
+    assert exact.state_noise == 0 and window_seconds(AUTO, exact) == WINDOW_S
+    noisy = replace(exact, state_noise=1e-3)
+    assert window_seconds(AUTO, noisy) == 0.0
+    assert window_seconds(3.0, noisy) == 3.0 and window_seconds(0.0, exact) == 0.0

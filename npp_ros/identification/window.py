@@ -25,11 +25,23 @@ import numpy as np
 from npp_ros.identification.fit import identify
 from npp_ros.identification.recording import Recording
 from npp_ros.policy.dataset import FloatArray
+from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.uncertainty import UncertaintySet
 
-WINDOW_S = 3.0
-EVERY_S = 1.0
+WINDOW_S = 2.0  # two windows of 2 s, 0.5 s apart, end 2.5 s into the motion: a finding by about 3 s
+EVERY_S = 0.5
 IN_A_ROW = 2
+AUTO = -1.0  # npp-deploy's monitor_window default: see window_seconds
+
+
+def window_seconds(asked: float, robots: UncertaintySet) -> float:
+    """The window npp-deploy runs: ``asked`` seconds (0 = none), or for AUTO WINDOW_S where the set's robots read
+    exact states and none where the set declares noise on the reads. That noise sits in the states the fit
+    regresses on and biases it while a policy holds the robot still; the intervals do not widen to say so, and
+    robots of the set are then found outside."""
+    if asked != AUTO:
+        return asked
+    return 0.0 if robots.state_noise > 0 else WINDOW_S
 
 
 @dataclass(frozen=True)
@@ -39,6 +51,12 @@ class WindowVerdict:
     end: float  # the window's last time, seconds
     outside: bool
     said: str
+
+
+def prepare(task: str, seed: int) -> None:
+    """Load what a window's fit needs (MuJoCo, SciPy, the task's model) in a fresh worker, ahead of its first window:
+    a spawned process's imports take seconds, which the first finding must not wait for."""
+    get_task(task).make_plant(seed)
 
 
 def judge(

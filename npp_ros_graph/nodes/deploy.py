@@ -92,7 +92,17 @@ from npp_ros.deployment.state import (
 )
 from npp_ros.deployment.timing import Watchdog
 from npp_ros.identification.identified import check_identified_robot
-from npp_ros.identification.window import MotionWindow, WindowVerdict, judge
+from npp_ros.identification.window import (
+    AUTO,
+    EVERY_S,
+    IN_A_ROW,
+    WINDOW_S,
+    MotionWindow,
+    WindowVerdict,
+    judge,
+    prepare,
+    window_seconds,
+)
 from npp_ros.policy.bounds import NonparametricPolicy, PathEpisode
 from npp_ros.run.read import read_run
 from npp_ros.tasks.uncertainty import UncertaintySet
@@ -134,12 +144,13 @@ PARAMETERS = (
                "episode's s0 and robot drawn again, each check re-run, the certificate issued again) and refuse a run "
                "that differs; seconds to minutes, no expert call; false only for a run made by another npp_ros whose "
                "policy acts otherwise"),
-    Changeable("monitor_window", 0.0, "a run on a set of robots: seconds of the robot's latest motion the set's "
-               "parameters are fitted to, about once a second in a worker process (3 finds a gear of x0.6 or a delay "
-               "of 2 the transition check misses); two windows in a row with no robot of the set inside the fit's "
-               "95% intervals are a model mismatch (on_model_mismatch); 0 = off, the default: noise on the states "
-               "read biases the fit while a policy holds the robot still, and robots inside the set are then found "
-               "outside", 0.0, 60.0),
+    Changeable("monitor_window", AUTO, "a run on a set of robots: seconds of the robot's latest motion the set's "
+               f"parameters are fitted to, every {EVERY_S:g} s in a worker process (finds a gear of x0.6 or a "
+               f"delay of 2 the transition check misses); {IN_A_ROW} windows in a row with no robot of the set "
+               "inside the fit's 95% intervals are a model mismatch (on_model_mismatch); 0 = off; -1, the default: "
+               f"{WINDOW_S:g} s where the set's robots read exact states, off where the set declares noise on the "
+               "reads (that noise biases the fit while a policy holds the robot still, and robots of the set are "
+               "then found outside)", -1.0, 60.0),
     Changeable("identified_robot", "", "this robot identified from its own motion (the JSON npp-identify --out "
                "writes of a recording of it): configure simulates the certified policy at the identified robot and "
                "refuses when the lower bound on its success there is below robot_min_success; empty = no check at "
@@ -540,7 +551,11 @@ class DeployNode(LifecycleNode):
             self.get_logger().warning(provenance)
         self.deployment, self.layout, self.coverage, self.monitor = deployment, layout, coverage, monitor
         self.hold = hold
-        self.window = MotionWindow(settings.monitor_window) if monitor is not None and settings.monitor_window else None
+        seconds = window_seconds(settings.monitor_window, robots)
+        self.window = MotionWindow(seconds) if monitor is not None and seconds > 0 else None
+        if self.window is not None:  # the fits' worker started and loaded now, not at the first window
+            meta = deployment.metadata
+            self._window_judges().submit(prepare, str(meta.task), int(meta.seed))
         self.state.configured(fingerprint, source)
         self.limits = CommandLimits.of_plant(plant, settings.effort_limit)
         self.watchdog.timeout = settings.state_timeout
@@ -774,8 +789,10 @@ class DeployNode(LifecycleNode):
         if resumed or arrived != self._monitor_arrival + 1 or self._target_moved:
             # A state skipped (overtaken, refused), a stale spell or a new target: no one-step transition
             monitor.restart()
-            if self.window is not None:
-                self.window.restart()
+        if self.window is not None and (resumed or self._target_moved):
+            # After a stale spell (the safe command went out, unrecorded) or a new target the window starts afresh;
+            # a skipped state alone does not: the fit takes only rows one control step apart by their stamps.
+            self.window.restart()
         self._monitor_arrival, self._target_moved = arrived, False
         self._watch_window(raw, action, stamp)
         was_outside = monitor.outside
@@ -810,10 +827,14 @@ class DeployNode(LifecycleNode):
         due = window.due() if self._judging is None else None
         if due is None:
             return
-        if self._judges is None:  # spawned, not forked: a worker of its own, apart from the ROS context
-            self._judges = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
         meta = deployment.metadata
-        self._judging = self._judges.submit(judge, str(meta.task), int(meta.seed), str(meta.uncertainty), *due)
+        self._judging = self._window_judges().submit(judge, str(meta.task), int(meta.seed), str(meta.uncertainty), *due)
+
+    def _window_judges(self) -> ProcessPoolExecutor:
+        """The window fits' worker: spawned, not forked, a process of its own apart from the ROS context."""
+        if self._judges is None:
+            self._judges = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        return self._judges
 
     def _mismatch(self, problem: str, *, newly: bool) -> None:
         """The robot was found outside the certified set (by either monitor): stop or warn, as the operator chose."""
