@@ -1,4 +1,5 @@
-"""Arms (task x expert x L x certification) and the settings every (arm, seed) shares."""
+"""Arms (task x expert x L x certification x how the policy acts x the set of robots) and the settings every (arm,
+seed) shares."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import PAPER_POLICY, check_policy_kind
 from npp_ros.run.policy_lipschitz import check_policy_lipschitz
 from npp_ros.run.request import RunRequest
+from npp_ros.run.setup import check_uncertainty
+from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model
 from npp_ros.tasks.registry import Expert, ExpertOptions, OptimizerTask, get_task
 from npp_ros.tasks.sources import short_name
 
@@ -39,10 +42,13 @@ class Arm:
     policy: str = PAPER_POLICY  # how the policy acts at its chosen point (npp_ros.policy.feedback)
     explore: float = 0.0  # > 0: a failed check also asks where the policy went (npp_ros.run.explore)
     policy_lipschitz: str = "claim"  # the policy's L: the claim's, or chosen from the run's data (select)
+    uncertainty: float = 0.0  # > 0: each episode on a robot drawn from the task's set, widened by this (0: exact)
+    expert_model: str = DEFAULT_EXPERT_MODEL  # on a set: what the expert plans on (npp_ros.tasks.nominal_plan)
 
     def __post_init__(self) -> None:
         check_policy_kind(self.policy)
         check_policy_lipschitz(self.policy_lipschitz, self.certify)
+        check_expert_model(self.expert_model, check_uncertainty(self.uncertainty))
         if self.certify not in CERTIFY_MODES:
             raise ValueError(f"unknown certification mode {self.certify!r}; known: {', '.join(CERTIFY_MODES)}")
         if self.rule not in STOPPING_RULES:
@@ -69,14 +75,20 @@ class Arm:
         base = base if self.paper_certification else f"{base}-{self.certify}-{self.rule}"
         base = base if self.policy == PAPER_POLICY else f"{base}-{self.policy}"
         base = base if not self.explore else f"{base}-explore{self.explore:g}"
-        return base if self.policy_lipschitz == "claim" else f"{base}-policyL{self.policy_lipschitz}"
+        base = base if self.policy_lipschitz == "claim" else f"{base}-policyL{self.policy_lipschitz}"
+        base = base if not self.uncertainty else f"{base}-u{self.uncertainty:g}"  # the exact model keeps its names
+        return base if self.expert_model == DEFAULT_EXPERT_MODEL else f"{base}-{self.expert_model}-expert"
 
     @property
     def acts(self) -> str:
-        """How the arm's policy acts, as a suffix of its label ('' for the paper's open-loop policy)."""
+        """How the arm's policy acts and on what, as a suffix of its label ('' for the paper's open-loop policy on
+        the exact model): the table tells arms apart by it."""
         acts = "" if self.policy == PAPER_POLICY else f", {self.policy} policy"
         acts += f", exploring beyond {self.explore:g}" if self.explore else ""
-        return acts + (", the policy's L selected from its data" if self.policy_lipschitz == "select" else "")
+        acts += ", the policy's L selected from its data" if self.policy_lipschitz == "select" else ""
+        acts += f", robots of uncertainty {self.uncertainty:g}" if self.uncertainty else ""
+        return acts + (f", the expert planning on the {self.expert_model} model"
+                       if self.expert_model != DEFAULT_EXPERT_MODEL else "")  # fmt: skip
 
     @property
     def label(self) -> str:
@@ -100,6 +112,10 @@ class ExperimentSettings:
     time_budget: float | None = None  # seconds per expert request (optimizer experts); None = the task's
     stop: str | None = None  # what ends an optimizer expert's request ("iterations" or "time"); None = the task's
     held_out: int = HELD_OUT  # fresh s0 on which each certificate is checked
+    condition: str = "i"  # Theorem 4.1's condition every run certifies
+    gamma: float = 1.0  # the discount of every run's values
+    values: str | None = None  # what an optimizer expert stores as Q_t (window, return-to-go); None = the task's
+    max_iterations: int | None = None  # an optimizer expert's iterations per request; None = the task's
 
     def epsilon_for(self, task: str) -> float:
         return get_task(task).epsilon((self.epsilon or {}).get(task))
@@ -129,6 +145,8 @@ def default_arms(
     policies: Sequence[str] = (PAPER_POLICY,),
     explore: Sequence[float] = (0.0,),
     policy_lipschitz: Sequence[str] = ("claim",),
+    uncertainty: Sequence[float] = (0.0,),
+    expert_models: Sequence[str] = (DEFAULT_EXPERT_MODEL,),
 ) -> list[Arm]:
     """Each task with the experts, L settings and modes it offers among those asked for.
 
@@ -141,7 +159,13 @@ def default_arms(
     lists the rules the sound modes run under, side by side; None is each mode's default rule.
     ``policies`` lists how the policy acts, ``explore`` the exploration radii and ``policy_lipschitz`` the policy's
     L (the claim's, selected), side by side (same seeds, same s0 streams); a surrogate arm takes the claim's only.
+    ``uncertainty`` lists the sets of robots (0: the exact model) and ``expert_models`` what the expert plans on
+    there, side by side; the exact model runs with the default expert model only (another changes nothing there)
+    unless no set is asked for, where the arm refuses it with its reason.
     """
+    on_a_set = any(factor > 0 for factor in uncertainty)
+    robots = [(factor, model) for factor, model in product(uncertainty, expert_models)
+              if factor > 0 or model == DEFAULT_EXPERT_MODEL or not on_a_set]  # fmt: skip
     arms = []
     for task in tasks:
         spec = get_task(task)
@@ -152,26 +176,33 @@ def default_arms(
                     continue
                 if expert == "detuned" and setting == "paper":
                     continue
-                for mode, policy, radius, own in product(modes, policies, explore, policy_lipschitz):
+                for mode, policy, radius, own, (factor, model) in product(
+                    modes, policies, explore, policy_lipschitz, robots
+                ):
                     if own != "claim" and mode in ("paper", "surrogate"):
                         continue  # the surrogate gap speaks of the policy greedy on the claim's L
                     if mode == "paper":
-                        arms.append(Arm(task, expert, setting, policy=policy, explore=radius))
+                        arms.append(Arm(task, expert, setting, policy=policy, explore=radius, uncertainty=factor,
+                                        expert_model=model))  # fmt: skip
                         continue
                     chosen = rules or (DEFAULT_RULES[mode],)
-                    arms += [Arm(task, expert, setting, mode, rule, policy, radius, own) for rule in chosen]
+                    arms += [Arm(task, expert, setting, mode, rule, policy, radius, own, factor, model)
+                             for rule in chosen]  # fmt: skip
     return arms
 
 
 def arm_request(arm: Arm, seed: int, settings: ExperimentSettings) -> RunRequest:
-    """The run request of one (arm, seed): what npp-learn would be asked for the same run."""
-    optimizer = isinstance(get_task(arm.task), OptimizerTask)  # closed-form experts take no budget and no stop
+    """The run request of one (arm, seed): what npp-learn would be asked for the same run. Refuses a bad value
+    (ValueError naming the field), as the request does."""
+    optimizer = isinstance(get_task(arm.task), OptimizerTask)  # closed-form experts take no optimizer options
     return RunRequest(
         task=arm.task, seed=seed, epsilon=(settings.epsilon or {}).get(arm.task), lipschitz=arm.lipschitz,
         certify=arm.certify, rule=arm.rule, policy=arm.policy, explore=arm.explore,  # type: ignore[arg-type]
-        policy_lipschitz=arm.policy_lipschitz,
+        policy_lipschitz=arm.policy_lipschitz, uncertainty=arm.uncertainty, expert_model=arm.expert_model,
+        condition=settings.condition, gamma=settings.gamma,  # type: ignore[arg-type]
         p=settings.p, delta=settings.delta, horizon=settings.horizon, max_episodes=settings.max_episodes[arm.task],
         time_budget=settings.time_budget if optimizer else None, expert_stop=settings.stop if optimizer else None,
+        values=settings.values if optimizer else None, max_iterations=settings.max_iterations if optimizer else None,
     )  # fmt: skip
 
 

@@ -1,9 +1,15 @@
-"""Rollouts from fresh s0: checkpoint evaluations and the held-out check of a certificate."""
+"""Rollouts from fresh s0: checkpoint evaluations and the held-out check of a certificate.
+
+A run on a set of robots drew a robot per episode, and its claim is over (s0, robot): its evaluations and its
+held-out check then draw a fresh robot for each fresh s0 (npp_ros.run.evaluation.held_out_robots, npp-learn's
+draw), the policy and the expert both on it.
+"""
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
@@ -26,11 +32,15 @@ from npp_ros.run.evaluation import (
     VIOLATION_TOLERANCE,
     HeldOutCheck,
     check_policy,
+    check_success,
     policy_rollouts,
 )
 from npp_ros.run.policy_lipschitz import certified_lipschitz
 from npp_ros.run.setup import policy_for
 from npp_ros.tasks.registry import Expert, get_task
+from npp_ros.tasks.uncertainty import Robot
+
+SUCCESS_REFERENCE = "the task's success criterion"  # a success claim's held-out check: no gap, no V_lb
 
 
 @dataclass(frozen=True)
@@ -114,15 +124,20 @@ class Evaluator:
         expert: Expert,
         progress: Callable[[int, int], None] | None = None,
         store: Path | None = None,
+        robots: Sequence[Robot] | None = None,
     ) -> None:
-        """``store``: a file that keeps the expert's returns from the evaluation s0 for a resumed run."""
+        """``store``: a file that keeps the expert's returns from the evaluation s0 for a resumed run. ``robots``
+        (a run on a set of robots): evaluation s0 k is rolled out on robot k, and the expert answers on it."""
         self.settings = settings
         self.expert = expert
+        self.robots = robots
         task = self.task = get_task(arm.task)
         self.plant = task.make_plant(seed)
         self.states = evaluation_states(arm.task, seed, settings.evaluations)
-        self.expert_returns = ExpertReturns(arm, seed, settings, self.states, expert, store).result(progress)
-        if not task.optimal_expert:
+        self.expert_returns = ExpertReturns(arm, seed, settings, self.states, expert, store, robots=robots).result(
+            progress
+        )
+        if not task.optimal_expert or robots is not None:  # no optimum is known on a drawn robot
             self.optimal_returns = np.full(len(self.states), np.nan)
         elif arm.expert == task.experts[0]:
             self.optimal_returns = self.expert_returns
@@ -144,6 +159,7 @@ class Evaluator:
             self.task.value_slope(self.expert),
             chunk=EVALUATION_CHUNK,
             progress=progress,
+            robots=self.robots,
         )
         wall = time.perf_counter() - started
         data = policy.dataset
@@ -176,16 +192,19 @@ def check_certificate(
     progress: Callable[[str, int, int], None] | None = None,
     expert_returns: FloatArray | None = None,
     expert_budget_stops: int = 0,
+    robots: Sequence[Robot] | None = None,
 ) -> HeldOutCheck:
     """The certified policy (the greedy policy over the trajectories it names) on ``count`` fresh s0.
 
     ``progress(phase, done, total)``: phase "policy" (the rollouts), then "expert" (its requests).
 
     The gap is to the exact optimal H-step return where the claim is about V* and the expert is
-    optimal; otherwise (oracle mode, the detuned expert, an optimizer expert) to the expert's own
+    optimal; otherwise (oracle mode, the detuned expert, an optimizer expert, a set of robots) to the expert's own
     H-step return from the same s0. ``expert_returns``: the expert's returns from the held-out s0
     where already asked for (:func:`held_out_states`, in parallel; ``expert_budget_stops`` of them cut
-    by its time budget); else asked here one at a time.
+    by its time budget); else asked here one at a time. ``robots``: held-out s0 k is checked on robot k (a run on a
+    set of robots), the expert planning as the arm's did. A success claim is checked as npp-learn checks it: the
+    share of rollouts that met the task's criterion (``within``; no gap, no V_lb), asking no expert.
     """
     task = get_task(arm.task)
     states = held_out_states(arm.task, seed, count)
@@ -193,13 +212,25 @@ def check_certificate(
     policy = policy_for(
         dataset.prefix(certificate.policy_trajectories), spec, arm.task, seed, certified_lipschitz(certificate)
     )
+    policy_progress = None if progress is None else lambda k, n: progress("policy", k, n)
+    if spec.certify == "success":
+        met = check_success(
+            policy, task, task.make_plant(seed), states, settings.horizon, p=spec.p, delta=spec.delta, robots=robots,
+            progress=policy_progress,
+        )  # fmt: skip
+        return HeldOutCheck(
+            states=met.states, reference=SUCCESS_REFERENCE, within=met.succeeded, fraction=met.fraction,
+            p_value=met.p_value, rejected=met.rejected, below_v_lb=0, gap_q50=math.nan, gap_max=math.nan,
+            wall_time=met.wall_time,
+        )  # fmt: skip
     return check_policy(
         policy, task, task.make_plant(seed), expert, states, settings.horizon,
         epsilon=spec.epsilon, p=spec.p, delta=spec.delta,
         against_expert=compares_with_expert(arm, spec.certify),
-        progress=None if progress is None else lambda k, n: progress("policy", k, n),
+        progress=policy_progress,
         expert_progress=None if progress is None else lambda k, n: progress("expert", k, n),
         expert_returns=expert_returns, expert_budget_stops=expert_budget_stops,
+        robots=robots, expert_model=arm.expert_model,
     )  # fmt: skip
 
 
@@ -211,12 +242,16 @@ def held_out_states(task: str, seed: int, count: int) -> FloatArray:
 
 
 def compares_with_expert(arm: Arm, certify: str) -> bool:
-    """Whether a certificate's claim is about the expert's own returns (oracle mode, a suboptimal expert)."""
-    return certify == "oracle" or arm.expert != get_task(arm.task).experts[0]
+    """Whether a certificate's claim is about the expert's own returns (oracle mode, a suboptimal expert, a set of
+    robots, on which no optimum is known)."""
+    return certify == "oracle" or arm.expert != get_task(arm.task).experts[0] or arm.uncertainty > 0
 
 
 def held_out_asks_expert(arm: Arm, certify: str) -> bool:
-    """Whether the held-out check needs expert requests: it compares with the expert, or the task knows no optimum."""
+    """Whether the held-out check needs expert requests: it compares with the expert, or the task knows no optimum
+    (a success claim's check asks none: it counts the policy's successes)."""
+    if certify == "success":
+        return False
     return compares_with_expert(arm, certify) or not get_task(arm.task).optimal_expert
 
 

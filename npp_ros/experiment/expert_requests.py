@@ -16,13 +16,16 @@ speed either way, and is counted.
 
 With a ``store`` file, every finished chunk is appended to it as one JSON line (its s0 and
 returns), so a resumed command asks only for the s0 still missing.
+
+On a set of robots (a run with uncertainty > 0) s0 k is answered on robot k, as the run's own answers were: the
+expert plans on that robot, or its nominal plan runs on it (npp_ros.tasks.nominal_plan).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +37,9 @@ from distributed import Future, get_client, get_worker, wait
 from npp_ros.experiment.arms import Arm, ExperimentSettings, expert_options, make_expert
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.run.evaluation import budget_stops
+from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, nominal_plan_returns
 from npp_ros.tasks.registry import SPEED_ONLY_OPTIONS, Expert, Plant, Task, get_task
+from npp_ros.tasks.uncertainty import Robot
 
 CHUNK = 10  # s0 per chunk: seconds to a minute of expert work on the swing-up tasks
 HELD_OUT_FILE = "heldout-expert.jsonl"  # a run folder's expert returns from its held-out s0
@@ -74,18 +79,35 @@ def answer(
     horizon: int,
     worker: str = "",
     progress: Callable[[int, int], None] | None = None,
+    robots: Sequence[Robot] | None = None,
+    expert_model: str = DEFAULT_EXPERT_MODEL,
 ) -> ChunkAnswer:
-    """``expert``'s H-step returns from ``states`` (the task's own way: requests, or its controller rolled out)."""
+    """``expert``'s H-step returns from ``states`` (the task's own way: requests, or its controller rolled out); with
+    ``robots``, from s0 k on robot k, planned there or (``expert_model`` nominal) planned on the nominal model."""
     before = budget_stops(expert)
-    returns = task.expert_returns(expert, plant, states, horizon, progress)
+    if robots is not None and expert_model == "nominal":
+        returns = nominal_plan_returns(expert, plant, states, horizon, robots, progress)
+    else:
+        returns = task.expert_returns(expert, plant, states, horizon, progress, robots)
     return ChunkAnswer(first, [float(r) for r in returns], budget_stops(expert) - before, worker)
 
 
-def answer_on_worker(arm: Arm, seed: int, settings: ExperimentSettings, first: int, states: FloatArray) -> ChunkAnswer:
+def answer_on_worker(
+    arm: Arm,
+    seed: int,
+    settings: ExperimentSettings,
+    first: int,
+    states: FloatArray,
+    robots: Sequence[Robot] | None = None,
+) -> ChunkAnswer:
     """One chunk on a Dask worker (its own task, or the run's): the seed's expert and plant built here."""
     task = get_task(arm.task)
     expert = make_expert(arm, seed, settings)
-    return answer(task, expert, task.make_plant(seed), first, states, settings.horizon, f"worker {get_worker().name}")
+    worker = f"worker {get_worker().name}"
+    return answer(
+        task, expert, task.make_plant(seed), first, states, settings.horizon, worker, robots=robots,
+        expert_model=arm.expert_model,
+    )  # fmt: skip
 
 
 class ExpertReturns:
@@ -95,7 +117,7 @@ class ExpertReturns:
     elsewhere; ``result()`` waits for them, or answers them here with ``expert``; ``close()`` keeps
     what finished and drops the rest. ``priority``: the chunks' Dask priority against the runs (0):
     LATER for returns asked for ahead (runs waiting for a worker go first), NOW for returns a
-    started run waits for.
+    started run waits for. ``robots``: s0 k is answered on robot k (a run on a set of robots).
     """
 
     def __init__(
@@ -108,12 +130,16 @@ class ExpertReturns:
         store: Path | None = None,
         chunk: int = CHUNK,
         priority: int = NOW,
+        robots: Sequence[Robot] | None = None,
     ) -> None:
         if chunk < 1:
             raise ValueError(f"a chunk holds at least one s0, got {chunk}")
+        if robots is not None and len(robots) != len(states):
+            raise ValueError(f"one robot per s0: {len(robots)} robots for {len(states)} s0")
         self.arm, self.seed, self.settings, self.expert, self.store, self.chunk, self.priority = (
             arm, seed, settings, expert, store, chunk, priority
         )  # fmt: skip
+        self.robots = None if robots is None else list(robots)
         self.states = np.asarray(states, dtype=np.float64)
         self.returns = np.full(len(self.states), math.nan)
         self.answered = np.zeros(len(self.states), dtype=bool)
@@ -125,10 +151,16 @@ class ExpertReturns:
 
     # ------------------------------------------------------------------ the store
     def _identity(self) -> dict[str, Any]:
-        return {
+        identity = {
             "task": self.arm.task, "seed": int(self.seed), "horizon": int(self.settings.horizon),
             "expert": expert_options(self.arm, self.settings).answer_identity(),
         }  # fmt: skip
+        if self.robots is not None:  # robot k is the k-th held-out draw of the arm's set: named by the set's factor
+            identity |= {"uncertainty": self.arm.uncertainty, "expert_model": self.arm.expert_model}
+        return identity
+
+    def _robots(self, lo: int, hi: int) -> list[Robot] | None:
+        return None if self.robots is None else self.robots[lo:hi]
 
     def _load(self, path: Path) -> None:
         """Takes the stored returns whose s0 are these s0; a torn last line (a crash mid-write) is asked again."""
@@ -202,7 +234,7 @@ class ExpertReturns:
         client = get_client()
         self._futures = {
             (lo, hi): client.submit(
-                answer_on_worker, self.arm, self.seed, self.settings, lo, self.states[lo:hi],
+                answer_on_worker, self.arm, self.seed, self.settings, lo, self.states[lo:hi], self._robots(lo, hi),
                 priority=self.priority, pure=False,
             )
             for lo, hi in self.missing_chunks()
@@ -228,7 +260,10 @@ class ExpertReturns:
             for lo, hi in chunks:
                 done = int(self.answered.sum())
                 step = None if progress is None else (lambda k, _n, done=done: progress(done + k, total))
-                kept(answer(task, self.expert, plant, lo, self.states[lo:hi], self.settings.horizon, "", step))
+                kept(answer(
+                    task, self.expert, plant, lo, self.states[lo:hi], self.settings.horizon, "", step,
+                    self._robots(lo, hi), self.arm.expert_model,
+                ))  # fmt: skip
         return self.returns.copy()
 
     def _answer_with_the_cluster(self, kept: Callable[[ChunkAnswer], None]) -> None:
@@ -245,7 +280,7 @@ class ExpertReturns:
 
         def answer_here(lo: int, hi: int) -> None:
             del pending[(lo, hi)]
-            kept(answer_on_worker(self.arm, self.seed, self.settings, lo, self.states[lo:hi]))
+            kept(answer_on_worker(self.arm, self.seed, self.settings, lo, self.states[lo:hi], self._robots(lo, hi)))
 
         while pending:
             for (lo, hi), future in list(pending.items()):

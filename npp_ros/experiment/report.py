@@ -12,7 +12,7 @@ import numpy as np
 from scipy.stats import binom
 
 from npp_ros.certificate.authoring import LOW_EXPERT_SUCCESS
-from npp_ros.experiment.evaluation import HeldOutCheck
+from npp_ros.experiment.evaluation import SUCCESS_REFERENCE, HeldOutCheck
 from npp_ros.experiment.runs import RunRecord
 from npp_ros.run.records import SuccessCounts
 
@@ -63,14 +63,16 @@ class ResultRow:
 
 
 def held_out_verdict(check: HeldOutCheck | None, p: float, delta: float) -> str:
-    """The certificate's claim against fresh s0: a one-sided binomial test at level delta."""
+    """The certificate's claim against fresh s0: a one-sided binomial test at level delta (of the share within
+    epsilon, or for a success claim of the share that met the task's criterion)."""
     if check is None:
         return "no certificate"
+    measure = "succeeded" if check.reference == SUCCESS_REFERENCE else "within eps"
     if check.rejected:
-        return f"FALSE: {check.fraction:.1%} within eps, claimed >= {p:.0%} (binomial p = {check.p_value:.2g})"
+        return f"FALSE: {check.fraction:.1%} {measure}, claimed >= {p:.0%} (binomial p = {check.p_value:.2g})"
     if check.fraction >= p:
-        return f"held ({check.fraction:.1%} within eps)"
-    return f"below p, not significant ({check.fraction:.1%} within eps)"
+        return f"held ({check.fraction:.1%} {measure})"
+    return f"below p, not significant ({check.fraction:.1%} {measure})"
 
 
 def verdict(certified: bool, fraction: float, rollouts: int, violations: int, p: float, delta: float) -> str:
@@ -100,6 +102,9 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
     last = record.episodes[-1] if record.episodes else None
     check = record.held_out
     success = SuccessCounts.of(record.episodes, policy=record.arm.certify != "surrogate")
+    certified = record.certified_episode is not None
+    judged = verdict(certified, fraction, len(rows), violations, p, delta)
+    judged = SUCCESS_VERDICT if certified and record.arm.certify == "success" else judged
     return ResultRow(
         task=record.arm.task,
         expert=record.arm.expert,
@@ -127,7 +132,7 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
         lower_bound_violations=violations,
         crossed_bounds=sum(row.gap < 0 for row in record.episodes),
         max_visited_slope=max((row.visited_slope for row in rows), default=float("nan")),
-        verdict=verdict(record.certified_episode is not None, fraction, len(rows), violations, p, delta),
+        verdict=judged,
         wall_time_s=record.wall_time,
         held_out_states=check.states if check else 0,
         held_out_fraction=check.fraction if check else float("nan"),
@@ -143,6 +148,7 @@ def result_row(record: RunRecord, p: float, delta: float) -> ResultRow:
 
 
 RESULT_FIELDS = [f.name for f in fields(ResultRow)]
+SUCCESS_VERDICT = "a success claim: see the held-out check"  # it bounds no gap: the evaluations' gaps judge nothing
 
 
 def write_results(rows: Iterable[ResultRow], out_dir: Path) -> list[Path]:
@@ -172,7 +178,10 @@ COLUMN_NOTES = """\
 - certificates table: each certificate's policy (the greedy policy over the trajectories it names) rolled out
   from 1,000 fresh s0 ~ rho (a stream of their own), against the value the certificate speaks of: the exact
   optimal H-step return when it claims V* and the expert is optimal, else the expert's own H-step return from
-  the same s0. "FALSE" when a one-sided binomial test rejects P(gap <= eps) >= p at level delta.
+  the same s0. "FALSE" when a one-sided binomial test rejects P(gap <= eps) >= p at level delta. A success
+  claim is checked on the share of those rollouts that met the task's success criterion (no gap, no V_lb). An
+  arm on a set of robots draws a fresh robot for each fresh s0 (its evaluations too), the policy and the expert
+  both on it, and compares with the expert: no optimum is known on a drawn robot.
 - gap: V^expert(s0) - V^pi(s0), measured H-step returns from the same s0, at the last evaluation (the
   certificate's episode, or the budget). For the detuned expert this is the gap the certificate is about
   (its data bound V^expert, not V*); "gap to optimum" compares with the optimal LQR controller.
@@ -184,7 +193,8 @@ COLUMN_NOTES = """\
   is the sup over the expert's own trajectories; where the policy leaves them the slope can exceed it, and the
   guarantees then rest on an assumption this column shows to be false there.
 - verdict: "held" when within eps >= p and no return fell below V_lb; "FAILED" when a one-sided binomial
-  test rejects P(gap <= eps) >= p at level delta.
+  test rejects P(gap <= eps) >= p at level delta. A success claim bounds no gap: its verdict is the held-out
+  check's.
 - expert success, policy success: how often the expert's answers from s0, and the policy's rollouts in the
   episodes whose check measured them, met the task's success criterion, over the run's episodes (summed over
   the seeds per arm). A certificate is relative to its expert: one over an expert that rarely succeeds says
@@ -207,7 +217,9 @@ def certificate_table(rows: Sequence[ResultRow]) -> str:
         span = f"{int(np.median(episodes))} ({min(episodes)}-{max(episodes)})"
         checked = [r for r in group if r.held_out_states]
         worst = f"{min(r.held_out_fraction for r in checked):.1%}" if checked else "-"
+        worst += " succeeded" if checked and certify == "success" else ""
         below = f"{sum(r.held_out_below_v_lb for r in checked)}/{sum(r.held_out_states for r in checked)}"
+        below = below if certify != "success" else "-"  # a success check measures no return against V_lb
         verdicts: dict[str, int] = {}
         for r in group:
             key = r.held_out_verdict.split(" (")[0].split(":")[0]
@@ -232,7 +244,7 @@ def _arms(rows: Sequence[ResultRow]) -> dict[tuple[str, str, str, str, str, str]
 
 def _expert_cell(row: ResultRow) -> str:
     paper = (row.certify, row.rule) == ("surrogate", "paper")
-    return row.expert if paper else f"{row.expert}, {row.certify} ({row.rule})"
+    return (row.expert if paper else f"{row.expert}, {row.certify} ({row.rule})") + row.acts
 
 
 def _slope_cell(row: ResultRow) -> str:

@@ -24,6 +24,7 @@ from npp_ros.experiment.evaluation import (
 )
 from npp_ros.experiment.expert_requests import EVALUATION_FILE, HELD_OUT_FILE, LATER, ExpertReturns
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.evaluation import held_out_robots
 from npp_ros.run.loop import NPPLoop, Observer
 from npp_ros.run.progress import status_text
 from npp_ros.run.records import EpisodeRow
@@ -83,6 +84,10 @@ def run_arm_seed(
     budget = settings.max_episodes[arm.task]
     progress = _EpisodeProgress(report, key, budget, epsilon, config.spec.condition)
     loop = build_loop(config, expert, store_path=run_dir / RUN_FILE, observers=[progress])
+    # A run on a set of robots claims over (s0, robot): each fresh s0 is checked on a fresh robot, drawn as npp-learn
+    # draws its held-out robots (None on the exact model); the evaluations draw the first of the same robots, each
+    # paired with an evaluation s0 (a stream of its own), so each set of pairs is fresh.
+    held_out_on = held_out_robots(config.uncertainty, seed, settings.held_out)
     held_out_returns: ExpertReturns | None = None
     try:
         may_certify = loop.certificate is not None or loop.next_episode < budget  # else no held-out check follows
@@ -90,7 +95,7 @@ def run_arm_seed(
             # they do not depend on the certificate: on a Dask cluster, idle workers answer them while the run runs
             states = held_out_states(arm.task, seed, settings.held_out)
             held_out_returns = ExpertReturns(
-                arm, seed, settings, states, expert, run_dir / HELD_OUT_FILE, priority=LATER
+                arm, seed, settings, states, expert, run_dir / HELD_OUT_FILE, priority=LATER, robots=held_out_on
             ).start()
         evaluations_path = run_dir / "evaluations.csv"
         done = {row.checkpoint for row in read_evaluations(evaluations_path)}
@@ -108,7 +113,10 @@ def run_arm_seed(
             policy = loop.policy_over(policy_trajectories_at(loop, reached))
             if evaluator is None:
                 asked = lambda k, n: report(f"{key}: the expert from evaluation s0 {k}/{n}")  # noqa: E731
-                evaluator = Evaluator(arm, seed, settings, expert, asked, store=run_dir / EVALUATION_FILE)
+                evaluator = Evaluator(
+                    arm, seed, settings, expert, asked, store=run_dir / EVALUATION_FILE,
+                    robots=held_out_robots(config.uncertainty, seed, settings.evaluations),
+                )  # fmt: skip
             label = f"{key}: evaluating at episode {reached}"
             rows = evaluator.evaluate(reached, policy, lambda k, n, label=label: report(f"{label}: {k}/{n}"))
             append_evaluations(evaluations_path, rows)
@@ -125,8 +133,9 @@ def run_arm_seed(
                 returns = held_out_returns.result(lambda k, n: held_out("expert", k, n))
                 stops = held_out_returns.budget_stops
             check = check_certificate(
-                loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out, held_out, returns, stops
-            )
+                loop.certificate, loop.dataset, arm, seed, settings, expert, settings.held_out, held_out,
+                returns, stops, held_out_on,
+            )  # fmt: skip
             (run_dir / "heldout.json").write_text(json.dumps(asdict(check), indent=2) + "\n")
         return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)
     finally:
