@@ -11,7 +11,10 @@ or an existing one given by its scheduler's address. Each worker returns its run
 process writes the tables and figures from them.
 
 An option not given takes each task's own value: the paper's, or for a task file its keys horizon,
-epsilon, lipschitz, certify and [expert] time_budget and stop.
+epsilon, lipschitz, certify and [expert] time_budget, stop, values and max_iterations.
+
+Every (arm, seed) is made and checked as its npp-learn run would be before any worker starts: a value or a
+combination a task refuses is one line and exit code 2, and nothing is written.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from pathlib import Path
 from distributed import Client, Future, LocalCluster, get_worker
 
 import npp_ros
-from npp_ros.certificate.certifier import CERTIFY_MODES
+from npp_ros.certificate.certifier import CERTIFY_MODES, CONDITIONS
 from npp_ros.cli.args import help_of, nonnegative_int, positive_int, positive_ints, task_name
 from npp_ros.experiment import (
     DEFAULT_CHECKPOINTS,
@@ -48,13 +51,16 @@ from npp_ros.experiment import (
     run_arm_seed,
     write_results,
 )
-from npp_ros.experiment.arms import HELD_OUT
+from npp_ros.experiment.arms import HELD_OUT, arm_request
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_KINDS
 from npp_ros.run.policy_lipschitz import POLICY_LIPSCHITZ_MODES
+from npp_ros.run.request import RunRequest, resolve_run
+from npp_ros.run.setup import build_loop
 from npp_ros.tasks.lqr import TASKS
+from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODELS
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.sources import short_name
-from npp_ros.trajopt.expert import STOP_MODES
+from npp_ros.trajopt.expert import STOP_MODES, VALUE_MODES
 
 
 def parser() -> argparse.ArgumentParser:
@@ -121,6 +127,15 @@ def parser() -> argparse.ArgumentParser:
         help="the policy's L, side by side as arms: " + help_of("policy_lipschitz"),
     )  # fmt: skip
     ap.add_argument(
+        "--uncertainty", nargs="+", type=float, default=[0.0], metavar="FACTOR",
+        help="sets of robots, side by side as arms: " + help_of("uncertainty"),
+    )  # fmt: skip
+    ap.add_argument(
+        "--expert-models", nargs="+", choices=EXPERT_MODELS, default=[DEFAULT_EXPERT_MODEL],
+        help="what the expert plans on, side by side as arms of the runs on a set of robots (the exact model runs "
+        "with the default only): " + help_of("expert_model"),
+    )  # fmt: skip
+    ap.add_argument(
         "--rules",
         nargs="+",
         choices=("sequential", "mixture"),
@@ -138,13 +153,23 @@ def parser() -> argparse.ArgumentParser:
         "--horizon", type=positive_int, default=None,
         help="for every task: " + help_of("horizon") + "; the tasks' own must then agree",
     )  # fmt: skip
+    ap.add_argument(
+        "--condition", choices=CONDITIONS, default="i",
+        help=help_of("condition") + "; npp-experiment checks condition (i)'s claim only",
+    )  # fmt: skip
     ap.add_argument("--p", type=float, default=0.9, help=help_of("p"))
     ap.add_argument("--delta", type=float, default=0.1, help=help_of("delta"))
+    ap.add_argument(
+        "--gamma", type=float, default=1.0,
+        help=help_of("gamma") + "; npp-experiment measures undiscounted H-step returns, so it takes 1 only",
+    )  # fmt: skip
     ap.add_argument(
         "--control-weight", type=float, default=DETUNED_CONTROL_WEIGHT, help="detuned expert: control cost x this"
     )
     ap.add_argument("--time-budget", type=float, default=None, help=help_of("time_budget"))
     ap.add_argument("--expert-stop", choices=STOP_MODES, default=None, help=help_of("expert_stop"))
+    ap.add_argument("--values", choices=VALUE_MODES, default=None, help=help_of("values"))
+    ap.add_argument("--max-iterations", type=positive_int, default=None, help=help_of("max_iterations"))
     ap.add_argument(
         "--held-out", type=positive_int, default=HELD_OUT, help="fresh s0 on which each certificate is checked"
     )
@@ -293,9 +318,24 @@ def common_horizon(tasks: list[str]) -> int:
 
 
 def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
-    """The settings and arms a command line asks for; ValueError names what is wrong."""
+    """The settings and arms a command line asks for; ValueError names what is wrong.
+
+    Each (arm, seed) is then checked as npp-learn checks its run before it starts
+    (:func:`check_runs`), so that what a task refuses is said here, before any worker starts and any file is made.
+    """
     if not 0 < args.p < 1 or not 0 < args.delta < 1:
         raise ValueError("p and delta must lie in (0, 1)")
+    if args.condition != "i":
+        raise ValueError(
+            f"condition ({args.condition}) claims a mean gap, and npp-experiment's evaluations and held-out checks "
+            "test condition (i)'s P(gap <= eps) >= p: run it with npp-learn"
+        )
+    if args.gamma != 1.0:
+        RunRequest(gamma=args.gamma)  # a gamma no run takes is refused as the request refuses it
+        raise ValueError(
+            f"gamma {args.gamma:g}: npp-experiment's evaluations and held-out checks measure undiscounted H-step "
+            "returns, which a discounted claim is not about: run it with npp-learn"
+        )
     settings = ExperimentSettings(
         max_episodes={task: args.max_episodes for task in args.tasks},
         evaluations=args.evaluate,
@@ -308,10 +348,14 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
         time_budget=args.time_budget,
         stop=args.expert_stop,
         held_out=args.held_out,
+        condition=args.condition,
+        gamma=args.gamma,
+        values=args.values,
+        max_iterations=args.max_iterations,
     )
     for task in args.tasks:
         settings.epsilon_for(task)  # a task without the paper's epsilon needs --epsilon
-    return settings, default_arms(
+    arms = default_arms(
         args.tasks,
         args.lipschitz,
         args.experts,
@@ -320,7 +364,30 @@ def plan(args: argparse.Namespace) -> tuple[ExperimentSettings, list[Arm]]:
         args.policies,
         args.explore,
         args.policy_lipschitz,
+        args.uncertainty,
+        args.expert_models,
     )
+    check_runs(arms, args.seeds, settings)
+    return settings, arms
+
+
+def check_runs(arms: list[Arm], seeds: list[int], settings: ExperimentSettings) -> None:
+    """Every (arm, seed)'s run request made, resolved and its loop built, as npp-learn does before its run starts:
+    a value the request refuses, a combination its task refuses (an epsilon it lacks, a set of robots it cannot
+    draw, a checked quantity it cannot measure) is a ValueError here, not a worker's traceback.
+
+    An L measured from the data ('data') is measured by the expert's first answers (seconds each for an optimizer):
+    it is checked as a number here, and measured on the worker."""
+    for arm in arms:
+        for seed in seeds:
+            request = arm_request(arm, seed, settings)
+            if arm.lipschitz == "data":
+                request = RunRequest.of(request, lipschitz="1")
+            try:
+                run = resolve_run(request, kind=arm.expert, control_weight=settings.control_weight)
+                build_loop(run.config, run.expert)
+            except ValueError as exc:
+                raise ValueError(f"{arm.name} seed {seed}: {exc}") from None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,6 +14,7 @@ from rclpy.parameter import Parameter
 import npp_ros
 from npp_ros.cli import experiment, learn
 from npp_ros.cli.args import flag, run_request
+from npp_ros.experiment.arms import arm_request
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.request import EXPERT_FIELDS, FIELD_NAMES, PLANT_FIELDS, RunRequest, request_fields
 from npp_ros_graph.client import npp_run_argv
@@ -32,9 +33,10 @@ GIVEN: dict[str, Any] = {
     "gamma": 1.0, "explore": 0.5, "uncertainty": 1.0, "expert_model": "nominal", "max_episodes": 7, "time_budget": 30.0,
     "expert_stop": "time", "values": "return-to-go", "max_iterations": 4,
 }  # fmt: skip
-# npp-experiment runs these side by side, under its own option names; the rest it does not take (yet).
-EXPERIMENT_NAMES = {"task": "--tasks", "seed": "--seeds", "rule": "--rules", "policy": "--policies"}
-NOT_IN_EXPERIMENT = {"condition", "gamma", "uncertainty", "expert_model", "values", "max_iterations"}
+# npp-experiment runs these side by side, under its own option names; every other field under the request's.
+EXPERIMENT_NAMES = {
+    "task": "--tasks", "seed": "--seeds", "rule": "--rules", "policy": "--policies", "expert_model": "--expert-models"
+}  # fmt: skip
 
 
 def argv_of(request: RunRequest, names: tuple[str, ...] = FIELD_NAMES) -> list[str]:
@@ -63,26 +65,28 @@ def test_every_field_is_an_option_with_the_requests_help(parser: Any) -> None:
         assert helps[field.name] == setting.text(), field.name
 
 
-def test_npp_experiment_takes_the_fields_it_runs_side_by_side_with_the_requests_help() -> None:
+def test_npp_experiment_takes_every_field_with_the_requests_help_and_makes_the_same_request() -> None:
     ap = experiment.parser()
     by_flag = {option: action for action in ap._actions for option in action.option_strings}
     for field, setting in request_fields():
-        if field.name in NOT_IN_EXPERIMENT:
-            continue
         action = by_flag[EXPERIMENT_NAMES.get(field.name, flag(field.name))]
         if field.name not in ("task", "seed"):
             assert setting.text() in (action.help or ""), field.name
     args = ap.parse_args(["--tasks", "pendulum_swingup", "--seeds", "3", "--epsilon", "12.5", "--lipschitz", "data",
                           "--certify", "oracle", "--rules", "mixture", "--policies", "open-loop", "--p", "0.8",
                           "--delta", "0.05", "--horizon", "200", "--explore", "0.5", "--max-episodes", "7",
-                          "--time-budget", "30", "--expert-stop", "time", "--policy-lipschitz", "select"])  # fmt: skip
+                          "--time-budget", "30", "--expert-stop", "time", "--policy-lipschitz", "select",
+                          "--condition", "i", "--gamma", "1", "--uncertainty", "1", "--expert-models", "nominal",
+                          "--values", "return-to-go", "--max-iterations", "4"])  # fmt: skip
     settings, arms = experiment.plan(args)
     assert (settings.p, settings.delta, settings.horizon, settings.time_budget, settings.stop) == (
         0.8, 0.05, 200, 30.0, "time"
     )  # fmt: skip
-    assert [(a.lipschitz, a.certify, a.rule, a.policy, a.explore, a.policy_lipschitz) for a in arms] == [
-        ("data", "oracle", "mixture", "open-loop", 0.5, "select")
-    ]
+    optimizer = (settings.condition, settings.gamma, settings.values, settings.max_iterations)
+    assert optimizer == ("i", 1.0, "return-to-go", 4)
+    assert [(a.lipschitz, a.certify, a.rule, a.policy, a.explore, a.policy_lipschitz, a.uncertainty, a.expert_model)
+            for a in arms] == [("data", "oracle", "mixture", "open-loop", 0.5, "select", 1.0, "nominal")]  # fmt: skip
+    assert arm_request(arms[0], 3, settings) == RunRequest(**GIVEN)  # what npp-learn is asked for the same run
 
 
 def test_npp_run_passes_every_field_to_the_graph() -> None:
