@@ -239,3 +239,18 @@ def test_npp_deploy_runs_the_window_by_default_only_where_the_set_says_its_robot
     noisy = replace(exact, state_noise=1e-3)
     assert window_seconds(AUTO, noisy) == 0.0
     assert window_seconds(3.0, noisy) == 3.0 and window_seconds(0.0, exact) == 0.0
+
+
+def test_a_robot_come_to_rest_is_not_found_outside_for_a_delay_its_stillness_cannot_show() -> None:
+    """A window of a robot of the set come to rest upright under the certified pendulum policy (2 s, 12 s into its
+    motion; a robot drawn from the set, recorded with scripts/monitor_on_robot.py's starts): every delay reproduces
+    its motion to rounding. The fit takes the smallest delay such a tie allows, never a delay outside the set
+    picked by which rounding came out smallest (which found this robot outside)."""
+    from npp_ros.identification.window import judge
+
+    saved = np.load(Path(__file__).parent / "fixtures" / "pendulum_at_rest_window.npz")
+    still = Recording(saved["times"], saved["states"], saved["commands"])
+    found = identify("pendulum_swingup", still, PENDULUM.uncertainty)
+    assert found.delay == 0 and found.verdict == "inside", found.summary()
+    assert not judge("pendulum_swingup", 0, PENDULUM.uncertainty.record(), still.times, still.states,
+                     still.commands).outside  # fmt: skip

@@ -311,7 +311,10 @@ def identify(
     for delay in range(largest + 1):
         controls = np.stack([recording.commands[rows + j - delay] for j in range(steps)], axis=1)
         fits.append(_fit_delay(predictor, starts, controls, reached, delay, say))
-    best = min(fits, key=lambda f: f.score)
+    exact = [f for f in fits if f.exact]
+    # Several delays that each reproduce the motion to rounding (a robot come to rest at an equilibrium, where every
+    # delay and every factor predicts the same) are not told apart by their rounding: the smallest is the robot's.
+    best = min(exact, key=lambda f: f.delay) if len(exact) > 1 else min(fits, key=lambda f: f.score)
     jacobian, residuals = best.jacobian, best.residuals
     result = _combinations(predictor, best.z, jacobian, residuals, confidence)
     z_hat, inside, reaches, reasons = _place(predictor, best.z, result, robots, best.delay)
@@ -349,6 +352,7 @@ class _DelayResult:
     rms: tuple[float, ...]
     jacobian: FloatArray
     residuals: FloatArray
+    exact: bool = False  # the nominal model with this delay reproduces every step to rounding
 
 
 def _fit_delay(
@@ -380,7 +384,9 @@ def _fit_delay(
         rms = np.maximum(np.sqrt(np.mean(nominal.reshape(-1, nominal.shape[-1]) ** 2, axis=0)), 1e-300)
         say(f"delay {delay}: the nominal model reproduces the motion to rounding")
         jac = _central_jacobian(errors, z, np.ones_like(rms))
-        return _DelayResult(delay, z, float(np.sum(np.log(rms))), tuple(rms.tolist()), jac, np.zeros(nominal.size))
+        return _DelayResult(
+            delay, z, float(np.sum(np.log(rms))), tuple(rms.tolist()), jac, np.zeros(nominal.size), exact=True
+        )
     weights = 1.0 / spread(nominal)
     for _ in range(2):
         w = weights

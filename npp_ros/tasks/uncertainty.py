@@ -289,6 +289,7 @@ class ModelParameters:
             "dof_armature": m.dof_armature.copy(),
         }
         self.current: Robot = NOMINAL
+        self._scratch: Any = None
 
     def _index(self, kind: str, name: str) -> int:
         try:
@@ -318,7 +319,9 @@ class ModelParameters:
             return
         for key, value in self.values(robot).items():
             getattr(self.model, key)[:] = value
-        self._mujoco.mj_setConst(self.model, self._mujoco.MjData(self.model))
+        if self._scratch is None:  # mj_setConst's workspace, made once: a new MjData per robot costs as much
+            self._scratch = self._mujoco.MjData(self.model)
+        self._mujoco.mj_setConst(self.model, self._scratch)
         self.current = robot
 
 
