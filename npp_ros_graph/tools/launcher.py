@@ -39,7 +39,7 @@ from npp_ros.run.store import RUN_FILE, WriterLock
 from npp_ros.tasks.registry import get_task
 from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default_run_dir
 from npp_ros_graph.graph.description import node_argv, request_parameters
-from npp_ros_graph.graph.npp_run import parser
+from npp_ros_graph.graph.npp_run import parse_args
 from npp_ros_graph.runtime.diagnostics import WARN, health_of
 from npp_ros_graph.runtime.node import TEARDOWN_S, UNNAMED, leave_if_teardown_hangs, node_name
 from npp_ros_graph.tools.dashboard import start_dashboard
@@ -279,7 +279,7 @@ def _stopped(pid: int) -> bool:
 
 # --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
-    args = parser(__doc__ or "").parse_args(argv)
+    args = parse_args(__doc__ or "", argv)
     try:  # the request's own checks, before any node: a node would refuse the same value in the same words
         request = run_request(args)
     except ValueError as exc:
