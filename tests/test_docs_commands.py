@@ -154,18 +154,33 @@ def test_a_shown_command_parses(
 
 
 # ----------------------------------------------------------------------------- nodes: -p name:=value
-def parameters(argv: tuple[str, ...]) -> tuple[list[str], list[tuple[str, str]]]:
-    """A node's own arguments (before --ros-args) and its ``-p name:=value`` pairs."""
+def parameters(shown: Shown) -> tuple[list[str], list[tuple[str, str]]]:
+    """A node's own arguments (before --ros-args) and its ``-p name:=value`` pairs, with those of a
+    ``--params-file`` the page shows (a yaml block whose first line is ``# FILE``), in the node's section."""
+    argv = shown.argv
     own = list(argv[: argv.index("--ros-args")]) if "--ros-args" in argv else list(argv)
     ros = list(argv[len(own) + 1 :])
     pairs = []
     while ros:
         flag = ros.pop(0)
-        assert flag in ("-p", "--param") and ros, f"{flag!r}: the pages give a node -p name:=value only"
+        assert flag in ("-p", "--param", "--params-file") and ros, f"{flag!r}: a node is shown -p or --params-file"
+        if flag == "--params-file":
+            section = shown_yaml(shown.doc, ros.pop(0)).get(shown.command.replace("-", "_"), {})
+            pairs += [(name, yaml.safe_dump(value).strip().removesuffix("...").strip())
+                      for name, value in section.get("ros__parameters", {}).items()]  # fmt: skip
+            continue
         name, sep, value = ros.pop(0).partition(":=")
         assert sep, f"-p {name}: not name:=value"
         pairs.append((name, value))
     return own, pairs
+
+
+def shown_yaml(doc: Path, name: str) -> dict[str, Any]:
+    """The parameters file a page shows as a yaml block that starts with the line ``# NAME``."""
+    for block in re.findall(r"```yaml\n(.*?)```", doc.read_text(), re.S):
+        if block.splitlines()[0].strip() == f"# {name}":
+            return yaml.safe_load(block)
+    raise AssertionError(f"{doc.name} shows --params-file {name} but no yaml block starting '# {name}'")
 
 
 def allowed(param: Any, text: str) -> bool:
@@ -188,7 +203,7 @@ def allowed(param: Any, text: str) -> bool:
 def test_a_shown_node_gets_only_its_own_parameters(shown: Shown) -> None:
     module = importlib.import_module(console_scripts()[shown.command].partition(":")[0])
     table = {param.name: param for param in getattr(module, "PARAMETERS", ())}
-    own, pairs = parameters(shown.argv)
+    own, pairs = parameters(shown)
     assert not own, f"{shown}: a node takes no arguments before --ros-args"
     for name, value in pairs:
         assert name in table, f"{shown}: {shown.command} has no parameter {name!r}; it has {', '.join(table)}"
