@@ -254,3 +254,21 @@ def test_a_robot_come_to_rest_is_not_found_outside_for_a_delay_its_stillness_can
     assert found.delay == 0 and found.verdict == "inside", found.summary()
     assert not judge("pendulum_swingup", 0, PENDULUM.uncertainty.record(), still.times, still.states,
                      still.commands).outside  # fmt: skip
+
+
+def test_a_window_leaves_out_the_rows_whose_commands_went_out_late() -> None:
+    """A command sent later than the window's least lag by more than late_after missed the step it answers: its row
+    is left out, as a skipped state is; a robot clock offset shared by every row is no lateness."""
+    from npp_ros.identification.window import MotionWindow
+
+    window = MotionWindow(seconds=1.0, every=0.5, in_a_row=2, late_after=0.01)
+    offset = 1000.0  # the robot's clock started elsewhere: every row shares it
+    late = {20, 21, 35}
+    for t in range(51):
+        stamp = 0.02 * t
+        window.add(stamp, np.array([stamp, 0.0]), np.array([0.1 * t]), offset + stamp + (0.015 if t in late else 0.002))
+    due = window.due()
+    assert due is not None and window.late == 3
+    times, states, commands = due
+    assert len(times) == 48 and not any(np.isclose(times, 0.02 * t).any() for t in late)
+    assert np.array_equal(states[:, 0], times) and np.allclose(commands[:, 0], times * 5)

@@ -76,17 +76,27 @@ def judge(
 
 
 class MotionWindow:
-    """The last seconds of (time, state as read, command sent) a deployment saw, and when a window is due."""
+    """The last seconds of (time, state as read, command sent) a deployment saw, and when a window is due.
 
-    def __init__(self, seconds: float = WINDOW_S, every: float = EVERY_S, in_a_row: int = IN_A_ROW) -> None:
-        if not (seconds > 0 and every > 0 and in_a_row >= 1):
+    A command sent late is no evidence: the robot stepped on the one before it (a ros2_control robot holds the latest
+    command), and a fit that reads the late one finds a weaker motor or a longer delay. Each row's lag is the wall
+    time its command went out minus the state's stamp; its least over the window is the robot's clock offset and the
+    transport's own time, and a row whose lag exceeds that by more than ``late_after`` seconds is left out of the
+    window's arrays, as a skipped state is (the fit takes only rows one control step apart)."""
+
+    def __init__(
+        self, seconds: float = WINDOW_S, every: float = EVERY_S, in_a_row: int = IN_A_ROW, late_after: float = np.inf
+    ) -> None:
+        if not (seconds > 0 and every > 0 and in_a_row >= 1 and late_after > 0):
             raise ValueError(
-                f"a window needs seconds > 0, every > 0 and in_a_row >= 1; got {seconds}, {every}, {in_a_row}"
+                f"a window needs seconds > 0, every > 0, in_a_row >= 1 and late_after > 0; got {seconds}, {every}, "
+                f"{in_a_row}, {late_after}"
             )
-        self.seconds, self.every, self.in_a_row = seconds, every, in_a_row
-        self.rows: deque[tuple[float, FloatArray, FloatArray]] = deque()
+        self.seconds, self.every, self.in_a_row, self.late_after = seconds, every, in_a_row, late_after
+        self.rows: deque[tuple[float, FloatArray, FloatArray, float]] = deque()
         self.next_due = -np.inf
         self.verdicts: deque[WindowVerdict] = deque(maxlen=in_a_row)
+        self.late = 0  # rows the last due window left out: their commands went out late
 
     def restart(self) -> None:
         """A break in the motion (a stop, a stale spell): windows start afresh after it."""
@@ -94,8 +104,10 @@ class MotionWindow:
         self.verdicts.clear()
         self.next_due = -np.inf
 
-    def add(self, at: float, state: FloatArray, command: FloatArray) -> None:
-        self.rows.append((float(at), np.array(state, dtype=np.float64), np.array(command, dtype=np.float64)))
+    def add(self, at: float, state: FloatArray, command: FloatArray, sent_at: float | None = None) -> None:
+        """A state stamped ``at`` (the robot's clock) and the command sent for it at wall time ``sent_at``."""
+        lag = 0.0 if sent_at is None else float(sent_at) - float(at)
+        self.rows.append((float(at), np.array(state, dtype=np.float64), np.array(command, dtype=np.float64), lag))
         while self.rows and self.rows[0][0] < at - self.seconds:
             self.rows.popleft()
 
@@ -107,8 +119,11 @@ class MotionWindow:
         if last - first < 0.95 * self.seconds or last < self.next_due:
             return None
         self.next_due = last + self.every
-        times = np.array([row[0] for row in self.rows])
-        return times, np.array([row[1] for row in self.rows]), np.array([row[2] for row in self.rows])
+        least = min(row[3] for row in self.rows)
+        timely = [row for row in self.rows if row[3] - least <= self.late_after]
+        self.late = len(self.rows) - len(timely)
+        times = np.array([row[0] for row in timely])
+        return times, np.array([row[1] for row in timely]), np.array([row[2] for row in timely])
 
     def found(self, verdict: WindowVerdict) -> bool:
         """Take a window's verdict; True when the last ``in_a_row`` windows all found the robot outside."""

@@ -114,6 +114,7 @@ from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_
 
 STOP_SERVICE = "~/stop"
 CLEAR_MISMATCH_SERVICE = "~/clear_model_mismatch"
+LATE_SHARE = 0.5  # of a control step: a command whose lag exceeds the window's least by this is left out of it
 ROBOT_DESCRIPTION = "/robot_description"  # robot_state_publisher's topic (std_msgs/String, transient local)
 TARGET_TOPIC = "~/target"  # a task whose state holds a target: the point to reach (geometry_msgs/PointStamped)
 WAIT_SLICE_S = 0.1  # configure's wait for the description looks again at least this often (and for a stop)
@@ -264,8 +265,10 @@ or `ros2 lifecycle set`). configure is the gate: it fails, with the reason, on
     motion, has a lower confidence bound on its success below robot_min_success (default the certificate's p).
 A seal is a checksum anyone with this code can recompute; a signature is the proof of who certified.
 activate starts commanding; while active the watchdog (state_timeout), the command limits, the coverage check
-and, for a run on a set of robots, the model monitor (on_model_mismatch) watch the robot; deactivate sends the
-safe command and stops. A certificate on a set of robots is an average over the set: it promises nothing for one
+and, for a run on a set of robots, the model monitor watch the robot: each transition checked against the set's
+corners, and the set's parameters fitted to its last seconds of motion (monitor_window); a robot found outside
+stays WARN until cleared and, by default, is stopped (on_model_mismatch). deactivate sends the safe command and
+stops. A certificate on a set of robots is an average over the set: it promises nothing for one
 robot of it.
 
 subscribes  joint_states_topic (sensor_msgs/JointState: names in any order, extra joints ignored)
@@ -552,7 +555,8 @@ class DeployNode(LifecycleNode):
         self.deployment, self.layout, self.coverage, self.monitor = deployment, layout, coverage, monitor
         self.hold = hold
         seconds = window_seconds(settings.monitor_window, robots)
-        self.window = MotionWindow(seconds) if monitor is not None and seconds > 0 else None
+        late_after = LATE_SHARE * plant.dt  # a command later than this missed the robot's step it answers
+        self.window = MotionWindow(seconds, late_after=late_after) if monitor is not None and seconds > 0 else None
         if self.window is not None:  # the fits' worker started and loaded now, not at the first window
             meta = deployment.metadata
             self._window_judges().submit(prepare, str(meta.task), int(meta.seed))
@@ -807,7 +811,7 @@ class DeployNode(LifecycleNode):
         window, deployment = self.window, self.deployment
         if window is None or deployment is None:
             return
-        window.add(stamp, raw, action)
+        window.add(stamp, raw, action, time.time())  # sent just now: the wall clock the robot's stamps follow
         judging = self._judging
         if judging is not None and judging.done():
             self._judging = None
@@ -816,7 +820,8 @@ class DeployNode(LifecycleNode):
             except Exception as exc:  # a worker that died or a fit that failed: said, and the window goes on
                 self._warn("window identification", f"a window's identification failed: {type(exc).__name__}: {exc}")
             else:
-                self._window_said = f"last window (ending {verdict.end:.2f} s): {verdict.said}"
+                late = f"; {window.late} late commands left out" if window.late else ""
+                self._window_said = f"last window (ending {verdict.end:.2f} s{late}): {verdict.said}"
                 if window.found(verdict):
                     problem = (
                         f"the robot identified from its last {window.in_a_row} windows of {window.seconds:g} s of "
