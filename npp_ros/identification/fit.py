@@ -40,6 +40,7 @@ FD_STEP = 1e-5  # central differences in log-scale: residual differences stay fa
 LOG_BOUND = math.log(50.0)  # the fit searches factors in [1/50, 50] of the nominal model
 TIMING_TOLERANCE = 0.25  # a state period further than this share from the control step breaks the chain there
 REFERENCE_ORDER = ("mass", "armature", "gear", "damping", "frictionloss")  # reference parameters, preferred first
+READ_RESOLUTION = 1e-6  # the finest a state entry is taken to be read (rad, m, per s): the noise is never below
 EXTRA_DELAYS = 2  # delay candidates tried beyond the set's largest: a robot outside in its delay shows as one
 
 
@@ -372,9 +373,10 @@ def _fit_delay(
 
     def spread(err: FloatArray) -> FloatArray:
         rms = np.sqrt(np.mean(err.reshape(-1, err.shape[-1]) ** 2, axis=0))
-        # A window in which the nominal model is exact to the last bit (a robot held at rest, no noise) has no
-        # spread: the floor keeps the weights finite, and the fit then reports what it cannot tell.
-        return np.maximum(rms, max(1e-12 * float(rms.max()), 1e-150))
+        # A robot read without noise (a simulated one) is fitted to rounding: a spread that small would make a
+        # direction the motion barely shows (a pendulum's mass beside its armature) look certain. No robot's reads
+        # are finer than READ_RESOLUTION, so the weights never assume they are.
+        return np.maximum(rms, READ_RESOLUTION)
 
     z = np.zeros(p)
     nominal = errors(z[None])[0]
@@ -383,7 +385,7 @@ def _fit_delay(
         # That is the fit, exactly; weights from such errors would make any other factor look certain instead.
         rms = np.maximum(np.sqrt(np.mean(nominal.reshape(-1, nominal.shape[-1]) ** 2, axis=0)), 1e-300)
         say(f"delay {delay}: the nominal model reproduces the motion to rounding")
-        jac = _central_jacobian(errors, z, np.ones_like(rms))
+        jac = _central_jacobian(errors, z, np.full_like(rms, 1.0 / READ_RESOLUTION))  # weighted as any fit's
         return _DelayResult(
             delay, z, float(np.sum(np.log(rms))), tuple(rms.tolist()), jac, np.zeros(nominal.size), exact=True
         )
@@ -437,7 +439,9 @@ def _combinations(
     null = s < NULL_TOLERANCE * s[0]
     basis, kernel = vt[~null], vt[null]  # rows: directions the data sees, and those it does not
     dof = max(len(residuals) - int((~null).sum()), 1)
-    s2 = float(residuals @ residuals) / dof
+    # The residuals are weighted by 1 / max(spread, READ_RESOLUTION): about 1 each where the reads are noisier than
+    # that, below where the fit reproduces them more finely; the noise is taken as at least the resolution.
+    s2 = max(float(residuals @ residuals) / dof, 1.0)
     covariance = s2 * (basis.T / s[~null] ** 2) @ basis  # (J'J)^+ on what the data sees
     t = float(stats.t.ppf(0.5 + confidence / 2, dof))
     refs = _references(names, kernel)
@@ -462,9 +466,8 @@ def _combinations(
         half = t * math.sqrt(max(float(seen @ covariance @ seen), 0.0))
         exponents = tuple((p, n, float(e)) for (p, n), e in zip(names, row, strict=True) if abs(e) > 1e-9)
         labels.append(_label(exponents))
-        combinations.append(
-            Combination(labels[-1], exponents, math.exp(value), math.exp(value - half), math.exp(value + half))
-        )
+        low, high = math.exp(max(value - half, -700.0)), math.exp(min(value + half, 700.0))
+        combinations.append(Combination(labels[-1], exponents, math.exp(value), low, high))
     unidentifiable = tuple(_why(names, direction, float(sv / s[0])) for direction, sv in zip(kernel, s[null],
                                                                                              strict=True))  # fmt: skip
     return _Combinations(tuple(combinations), np.array(rows).reshape(len(rows), len(names)), unidentifiable,
