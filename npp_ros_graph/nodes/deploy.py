@@ -820,7 +820,7 @@ class DeployNode(LifecycleNode):
             except Exception as exc:  # a worker that died or a fit that failed: said, and the window goes on
                 self._warn("window identification", f"a window's identification failed: {type(exc).__name__}: {exc}")
             else:
-                late = f"; {window.late} late commands left out" if window.late else ""
+                late = f"; late commands left out: {window.late}" if window.late else ""
                 self._window_said = f"last window (ending {verdict.end:.2f} s{late}): {verdict.said}"
                 if window.found(verdict):
                     problem = (
