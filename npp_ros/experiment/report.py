@@ -185,7 +185,8 @@ COLUMN_NOTES = """\
 - gap: V^expert(s0) - V^pi(s0), measured H-step returns from the same s0, at the last evaluation (the
   certificate's episode, or the budget). For the detuned expert this is the gap the certificate is about
   (its data bound V^expert, not V*); "gap to optimum" compares with the optimal LQR controller.
-- within eps: the fraction of the N fresh s0 with gap <= epsilon. Condition (i) claims >= p.
+- within eps: the fraction of the N fresh s0 with gap <= epsilon. Condition (i) claims >= p ("-": a success
+  claim, which bounds no gap).
 - returns < V_lb: rollouts whose return fell below V_lb(s0); impossible when L bounds the value's slope
   (Theorem 3.4, B.1 i).
 - V_ub < V_lb at s0: episodes whose bounds crossed, which the data alone show cannot happen with a valid L.
@@ -247,6 +248,11 @@ def _expert_cell(row: ResultRow) -> str:
     return (row.expert if paper else f"{row.expert}, {row.certify} ({row.rule})") + row.acts
 
 
+def _within_cell(certify: str, fraction: float) -> str:
+    """The share of evaluation gaps within epsilon; '-' for a success claim, which bounds no gap."""
+    return "-" if certify == "success" else f"{fraction:.0%}"
+
+
 def _slope_cell(row: ResultRow) -> str:
     above = row.max_visited_slope > row.lipschitz
     return f"**{row.max_visited_slope:.1f} > L**" if above else f"{row.max_visited_slope:.1f}"
@@ -283,7 +289,7 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
         calls = int(np.median([r.oracle_calls for r in group]))
         policy = np.median([r.policy_return_q50 for r in group])
         returns = f"{policy:.0f} / {np.median([r.expert_return_q50 for r in group]):.0f}"
-        worst = min(r.fraction_within_epsilon for r in group)
+        worst = _within_cell(certify, min(r.fraction_within_epsilon for r in group))
         below = sum(r.lower_bound_violations for r in group)
         total = sum(r.rollouts for r in group)
         crossed = sum(r.crossed_bounds for r in group)
@@ -299,7 +305,7 @@ def summary_table(rows: Sequence[ResultRow]) -> str:
         successes = _success_cells(group)
         lines.append(
             f"| {task} | {expert} | {used} ({needed}){bound} | {len(certs)}/{len(group)} | {at} | {calls} "
-            f"| {returns} | {worst:.0%} | {below}/{total} | {crossed} | {ratio} | {successes} | {said} "
+            f"| {returns} | {worst} | {below}/{total} | {crossed} | {ratio} | {successes} | {said} "
             f"| {compute:.0f} |"
         )
     return head + "\n".join(lines) + "\n"
@@ -316,11 +322,12 @@ def markdown_table(rows: Sequence[ResultRow]) -> str:
     for r in rows:
         bound = "" if r.l_is_bound else " **not a bound**"
         cert = str(r.certified_episode) if r.certified_episode is not None else f"none ({r.episodes})"
+        within = _within_cell(r.certify, r.fraction_within_epsilon)
         lines.append(
             f"| {r.task} | {_expert_cell(r)} | {r.lipschitz:.0f} ({r.slope_needed:.0f}){bound} | {r.seed} | {cert} "
             f"| {r.oracle_calls} | {r.dataset_size} | {r.policy_return_q50:.1f} / {r.expert_return_q50:.1f} "
             f"| {r.gap_q50:.1f} / {r.gap_q90:.1f} / {r.gap_max:.1f} "
-            f"| {r.fraction_within_epsilon:.0%} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
+            f"| {within} | {r.gap_to_optimal_q50:.1f} | {r.lower_bound_violations}/{r.rollouts} "
             f"| {r.crossed_bounds} | {_slope_cell(r)} | {_success_cells([r])} | {r.verdict} | {r.wall_time_s:.0f} |"
         )
     return head + "\n".join(lines) + "\n"

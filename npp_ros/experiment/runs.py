@@ -137,7 +137,7 @@ def run_arm_seed(
                 returns, stops, held_out_on,
             )  # fmt: skip
             (run_dir / "heldout.json").write_text(json.dumps(asdict(check), indent=2) + "\n")
-        return read_record(arm, seed, settings, run_dir, loop, expert, lipschitz)
+        return read_record(arm, seed, epsilon, run_dir, loop, expert, lipschitz)
     finally:
         if held_out_returns is not None:
             held_out_returns.close()  # keeps what finished, drops what a run without a certificate asked for
@@ -157,7 +157,7 @@ def policy_trajectories_at(loop: NPPLoop, episodes: int) -> int:
 def read_record(
     arm: Arm,
     seed: int,
-    settings: ExperimentSettings,
+    epsilon: float,
     run_dir: Path,
     loop: NPPLoop,
     expert: Expert,
@@ -170,7 +170,7 @@ def read_record(
         seed=seed,
         lipschitz=lipschitz,
         slope_needed=slope_needed(arm.task, expert),
-        epsilon=settings.epsilon_for(arm.task),
+        epsilon=epsilon,  # the run's (a success claim on a task without one: a stand-in never read)
         episodes=list(loop.rows),
         evaluations=evaluations,
         certified_episode=loop.certificate.episodes if loop.certificate else None,
