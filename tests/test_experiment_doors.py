@@ -4,13 +4,16 @@ a set of robots on fresh (s0, robot) draws, as npp-learn does."""
 
 from __future__ import annotations
 
+import csv
+import shlex
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from npp_ros.cli import experiment
+from npp_ros.cli import experiment, learn
+from npp_ros.cli.args import run_request
 from npp_ros.experiment.arms import Arm, ExperimentSettings, arm_request, default_arms, make_expert
 from npp_ros.experiment.evaluation import compares_with_expert, held_out_asks_expert, held_out_states
 from npp_ros.experiment.expert_requests import ExpertReturns
@@ -18,6 +21,7 @@ from npp_ros.experiment.report import held_out_verdict
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset
 from npp_ros.run.evaluation import HeldOutCheck, check_policy, held_out_robots
+from npp_ros.run.request import resolve_run
 from npp_ros.run.setup import uncertainty_record
 from npp_ros.tasks.registry import get_task
 
@@ -123,3 +127,30 @@ def test_the_held_out_answers_asked_ahead_on_robots_are_the_ones_npp_learns_chec
     assert replace(mine, **same) == replace(learns, **same)
     exact = ExpertReturns(replace(arm, uncertainty=0.0, expert_model="robot"), 0, settings, states, expert).result()
     assert not np.array_equal(asked, exact)  # the robots changed the answers
+
+
+def readme_commands(path: Path) -> list[list[str]]:
+    """The npp-experiment commands of a page's shell blocks (continuations joined, comments dropped)."""
+    text = path.read_text().split("```bash\n", 1)[1].split("```", 1)[0].replace("\\\n", " ")
+    lines = [line.split("#", 1)[0].split() for line in text.splitlines()]
+    return [line[1:] for line in lines if line and line[0].endswith("npp-experiment")]
+
+
+def test_the_robust_certificates_commands_make_the_runs_its_rows_were_made_by() -> None:
+    """Each row of results/robust-certificates was one npp-learn run; the page's npp-experiment commands plan an arm
+    whose run is the same run (RunConfig.identity: every setting that decides its answers) within the same budget."""
+    folder = REPO / "results" / "robust-certificates"
+    made = {}
+    for row in csv.DictReader((folder / "results.csv").open()):
+        if row["seed"] == "0":
+            args = learn.parser().parse_args(shlex.split(row["command"])[1:])
+            made[row["arm"]] = (resolve_run(run_request(args)).config.identity(), args.max_episodes)
+    planned = {}
+    for argv in readme_commands(folder / "README.md"):
+        args = experiment.parser().parse_args([*argv, "--seeds", "0"])  # seed 0 is every row's
+        settings, arms = experiment.plan(args)
+        for arm in arms:
+            run = resolve_run(arm_request(arm, 0, settings), kind=arm.expert, control_weight=settings.control_weight)
+            planned[arm.name] = (run.config.identity(), settings.max_episodes[arm.task])
+    for name, run in made.items():
+        assert run in planned.values(), f"{name}: no npp-experiment arm makes its run"
