@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
-import signal
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -42,7 +41,8 @@ from npp_ros.bench.report import write_report
 from npp_ros.run.evaluation import held_out_initial_states
 from npp_ros.run.read import read_run
 from npp_ros.tasks.uncertainty import Robot
-from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
+from npp_ros_graph.bench.loop import interrupt_on_signals, reserved_domain, spawn, stop, wait_for
+from npp_ros_graph.graph.description import parameter_args
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
 from npp_ros_graph.transport.topics import SERVICE_QOS
 
@@ -91,10 +91,6 @@ class MonitorNode(Node):
                 self.seen[status.name] = self.seen.get(status.name, 0) + 1
 
 
-def params(values: dict[str, str]) -> list[str]:
-    return [arg for name, value in values.items() for arg in ("-p", f"{name}:={value}")]
-
-
 def busy() -> None:  # a load process: one core's worth of work until killed
     while True:
         pass
@@ -132,14 +128,13 @@ class Bench:
             raise RuntimeError(f"npp-deploy refused {label}: {health.doing if health else '?'}")
 
     def start_robot(self, name: str, robot: Robot, s0: Any) -> None:
-        """A fresh npp-robot that is ``robot`` (a YAML-quoted record: a ROS parameter reads JSON as a mapping)."""
+        """A fresh npp-robot that is ``robot``, at ``s0``, held until the first command."""
         values = {
-            "task": self.task, "seed": str(self.seed), "robot": f"'{robot.record()}'",
-            "publish_description": "nominal", "start_on_command": "true",
-            "initial_state": ",".join(repr(float(x)) for x in s0),
+            "task": self.task, "seed": self.seed, "robot": robot.record(), "publish_description": "nominal",
+            "start_on_command": True, "initial_state": ",".join(repr(float(x)) for x in s0),
         }  # fmt: skip
         log = self.args.logs / f"npp-robot-{name.replace(' ', '-')}.log"
-        self.robot = spawn(["npp_ros_graph.nodes.robot", "--ros-args", *params(values)], self.env, log)
+        self.robot = spawn(["npp_ros_graph.nodes.robot", "--ros-args", *parameter_args(values)], self.env, log)
         self.wait(lambda: self.node.reset.service_is_ready(), START_TIMEOUT_S, "npp-robot's reset service")
 
     def stop_robot(self) -> None:
@@ -151,8 +146,8 @@ class Bench:
 
     def start_deploy(self, run_dir: Path) -> float:
         """npp-deploy configured against the first robot's description; the seconds configure took."""
-        values = {"run_dir": str(run_dir), "monitor_window": f"{self.args.window:g}", "on_model_mismatch": "warn"}
-        self.deploy = spawn(["npp_ros_graph.nodes.deploy", "--ros-args", *params(values)], self.env,
+        values = {"run_dir": str(run_dir), "monitor_window": float(self.args.window), "on_model_mismatch": "warn"}
+        self.deploy = spawn(["npp_ros_graph.nodes.deploy", "--ros-args", *parameter_args(values)], self.env,
                             self.args.logs / "npp-deploy.log")  # fmt: skip
         self.wait(lambda: self.node.change.service_is_ready(), START_TIMEOUT_S, "npp-deploy's lifecycle services")
         started = time.monotonic()
@@ -238,10 +233,6 @@ def markdown(out: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def interrupted(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -277,8 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         proc.start()
     watched: list[Watched] = []
     with reserved_domain() as env:
-        signal.signal(signal.SIGINT, interrupted)
-        signal.signal(signal.SIGTERM, interrupted)
+        interrupt_on_signals()  # the nodes are deactivated before they are stopped
         bench = Bench(args, env)
         bench.task, bench.seed = str(run.metadata.task), seed
         try:

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import statistics
 import sys
 import time
@@ -53,7 +52,8 @@ from npp_ros.run.evaluation import held_out_initial_states
 from npp_ros.run.read import read_run
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.task_file import target_origin
-from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
+from npp_ros_graph.bench.loop import interrupt_on_signals, reserved_domain, spawn, stop, wait_for
+from npp_ros_graph.graph.description import parameter_args
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
 from npp_ros_graph.transport.topics import CONTROL_QOS, JOINT_STATES, SERVICE_QOS
 
@@ -146,12 +146,12 @@ class Trial:
         """npp-robot and npp-deploy as processes; npp-deploy configured (the gate) and activated, waiting."""
         logs = self.args.logs
         logs.mkdir(parents=True, exist_ok=True)
-        robot = {"task": TASK, "start_on_command": "true"}
+        robot = {"task": TASK, "start_on_command": True}
         deploy = {"run_dir": str(run_dir), "safe_effort": "gravity"}
-        self.procs["npp-robot"] = spawn(["npp_ros_graph.nodes.robot", "--ros-args", *params(robot)], self.env,
+        self.procs["npp-robot"] = spawn(["npp_ros_graph.nodes.robot", "--ros-args", *parameter_args(robot)], self.env,
                                         logs / "npp-robot.log")  # fmt: skip
-        self.procs["npp-deploy"] = spawn(["npp_ros_graph.nodes.deploy", "--ros-args", *params(deploy)], self.env,
-                                         logs / "npp-deploy.log")  # fmt: skip
+        deploy_argv = ["npp_ros_graph.nodes.deploy", "--ros-args", *parameter_args(deploy)]
+        self.procs["npp-deploy"] = spawn(deploy_argv, self.env, logs / "npp-deploy.log")
         self.wait(lambda: self.node.reset.service_is_ready(), START_TIMEOUT_S, "npp-robot's reset service")
         self.wait(lambda: self.node.change.service_is_ready(), START_TIMEOUT_S, "npp-deploy's lifecycle services")
         started = time.monotonic()
@@ -211,10 +211,6 @@ class Trial:
             self.executor.remove_node(self.node)
             self.node.destroy_node()
             self.executor.shutdown()
-
-
-def params(values: dict[str, str]) -> list[str]:
-    return [arg for name, value in values.items() for arg in ("-p", f"{name}:={value}")]
 
 
 def counts(health: Health | None, names: tuple[str, ...]) -> dict[str, int]:
@@ -466,10 +462,6 @@ def markdown(out: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def interrupted(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -497,10 +489,7 @@ def main(argv: list[str] | None = None) -> int:
           f"(the certified policy on the model)", flush=True)  # fmt: skip
     reaches: list[Reach] = []
     with reserved_domain() as env:
-        # Ctrl-C and SIGTERM raise here, in place of rclpy's handler, which would shut the ROS context down first:
-        # with it still up, npp-deploy is deactivated (its safe command) before both processes are stopped.
-        signal.signal(signal.SIGINT, interrupted)
-        signal.signal(signal.SIGTERM, interrupted)
+        interrupt_on_signals()  # the nodes are deactivated before they are stopped
         trial = Trial(args, env)
         try:
             trial.start(args.run.resolve())

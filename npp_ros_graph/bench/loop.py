@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -169,6 +170,17 @@ def lockstep(executor: SingleThreadedExecutor, driver: Driver, steps: int, s0: n
         u = np.asarray(driver.answer.effort, dtype=np.float64)
         x = A @ x + B @ u if u.shape[0] == B.shape[1] else x
     return steps / (time.perf_counter() - t)
+
+
+def interrupt_on_signals() -> None:
+    """Ctrl-C and SIGTERM raise KeyboardInterrupt here, in place of rclpy's handler, which would shut the ROS context
+    down first: a script that drives nodes can then still deactivate them (their safe command) before it stops them."""
+
+    def interrupted(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, interrupted)
+    signal.signal(signal.SIGTERM, interrupted)
 
 
 def spawn(module_args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:

@@ -107,6 +107,9 @@ def node_argv(role: str, parameters: Mapping[str, Any], namespace: str = "") -> 
     argv = [sys.executable, "-m", NODES[role].module, "--ros-args"]
     if namespace:
         argv += ["-r", f"__ns:={namespace}"]
-    for name, value in parameters.items():
-        argv += ["-p", f"{name}:={ros_literal(value)}"]
-    return argv
+    return argv + parameter_args(parameters)
+
+
+def parameter_args(parameters: Mapping[str, Any]) -> list[str]:
+    """``-p name:=VALUE`` for each parameter, each value a literal of its own type (ros_literal)."""
+    return [arg for name, value in parameters.items() for arg in ("-p", f"{name}:={ros_literal(value)}")]
