@@ -2,7 +2,7 @@
 
 import sys
 
-from npp_ros_graph.tools.launcher import main
+from npp_ros_graph.tools.run import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -51,7 +51,7 @@ from npp_ros.run.request import RunRequest
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros_graph.graph.description import run_options
-from npp_ros_graph.graph.npp_run import option_names
+from npp_ros_graph.graph.npp_run_options import option_names
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
 from npp_ros_graph.runtime.node import publishers_of, release
 from npp_ros_graph.runtime.reports import RunReports
@@ -63,7 +63,7 @@ from npp_ros_graph.transport.convert import (
     trajectory_from_response,
 )
 from npp_ros_graph.transport.expert_api import BUSY, EXPERT_SERVICE, NOT_READY, PLANT_QOS, PLANT_TOPIC, SERVICE_QOS
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal, SealError
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal, SealError
 from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, LATCHED_READER_QOS, REPORT_HISTORY_QOS, REPORT_QOS
 
 Message = GapReport | EpisodeResult | CertificateMsg  # a report as the supervisor sends it
@@ -77,7 +77,7 @@ STOP_GRACE_S = 60.0  # npp-run gives each node this long for its ordered teardow
 STOP_TIMEOUT_S = STOP_GRACE_S + 15.0  # npp-run's own stop: its nodes' grace, then its own teardown
 ATTEMPT_S = 5.0  # an unanswered expert request is sent again (Fast DDS drops a new client's first responses)
 START_OPTIONS = ("task", "seed", "run_dir", "domain_id")  # npp-run's options that start() takes by name
-LAUNCHER = "npp_ros_graph.tools.launcher"
+LAUNCHER = "npp_ros_graph.tools.run"
 _CLIENTS = itertools.count(1)  # numbers the default node names of a process's clients
 
 

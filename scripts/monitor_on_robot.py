@@ -41,7 +41,7 @@ from npp_ros.bench.report import write_report
 from npp_ros.run.evaluation import held_out_initial_states
 from npp_ros.run.read import read_run
 from npp_ros.tasks.uncertainty import Robot
-from npp_ros_graph.bench.loop import interrupt_on_signals, reserved_domain, spawn, stop, wait_for
+from npp_ros_graph.bench.ros_loop import interrupt_on_signals, reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.graph.description import parameter_args
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
 from npp_ros_graph.transport.topics import SERVICE_QOS

@@ -1,5 +1,5 @@
 """Whether a robot outside the certified set is found under the certified policy's own commands: the transition
-monitor npp-deploy runs (npp_ros.deployment.monitor) against identification on a sliding window of the same motion
+monitor npp-deploy runs (npp_ros.deployment.model_monitor) against identification on a sliding window of the same motion
 (npp_ros.identification.fit), robot by robot, in process.
 
     .venv/bin/python scripts/monitor_windows.py --run RUN_DIR --out results/monitor-windows [--seconds 30]
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from npp_ros.deployment.monitor import ModelMonitor
+from npp_ros.deployment.model_monitor import ModelMonitor
 from npp_ros.identification.fit import identify
 from npp_ros.identification.recording import record_motion
 from npp_ros.run.read import read_run

@@ -51,8 +51,8 @@ from npp_ros.deployment.joints import describe_point, stored_state
 from npp_ros.run.evaluation import held_out_initial_states
 from npp_ros.run.read import read_run
 from npp_ros.tasks.rollout import rollout
-from npp_ros.tasks.task_file import target_origin
-from npp_ros_graph.bench.loop import interrupt_on_signals, reserved_domain, spawn, stop, wait_for
+from npp_ros.tasks.task_file.loader import target_origin
+from npp_ros_graph.bench.ros_loop import interrupt_on_signals, reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.graph.description import parameter_args
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
 from npp_ros_graph.transport.topics import CONTROL_QOS, JOINT_STATES, SERVICE_QOS

@@ -24,7 +24,7 @@ import numpy as np
 
 from npp_ros.policy.dataset import Dataset
 from npp_ros.policy.lipschitz import estimate_global
-from npp_ros.tasks.pendulum import PAPER_LIPSCHITZ, PendulumExpert, sample_initial_state
+from npp_ros.tasks.builtin.pendulum import PAPER_LIPSCHITZ, PendulumExpert, sample_initial_state
 from npp_ros.trajopt.expert import ExpertSolution, replay_rewards, time_trajectories, window_values
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from npp_ros.policy.dataset import Dataset
-from npp_ros.tasks.lqr import LQRExpert, episode_rng, sample_initial_state
+from npp_ros.tasks.builtin.lqr import LQRExpert, episode_rng, sample_initial_state
 
 # The gate remembers runs it derived again in the user's cache folder: each test session gets its own (node processes
 # started by the tests inherit it), so no test finds another session's agreements, nor writes the user's.

@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from npp_ros.tasks.acrobot import AcrobotExpert, AcrobotPlant, SwingUpController, sample_initial_state
+from npp_ros.tasks.builtin.acrobot import AcrobotExpert, AcrobotPlant, SwingUpController, sample_initial_state
 from npp_ros.trajopt.dynamics import MujocoDynamics
 
 HANGING = np.array([np.pi, 0.0, 0.0, 0.0])

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from npp_ros.policy.dataset import Trajectory
-from npp_ros.tasks.answer_check import AnswerCheck, AnswerError
 from npp_ros.tasks.registry import ExpertOptions, get_task
+from npp_ros_graph.nodes.supervisor.answer_check import AnswerCheck, AnswerError
 
 CASES = [
     ("lqr_2_1", 1000, ExpertOptions()),

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from npp_ros.tasks.cartpole import CartpoleExpert, CartpolePlant, represent, sample_initial_state
+from npp_ros.tasks.builtin.cartpole import CartpoleExpert, CartpolePlant, represent, sample_initial_state
 
 
 @pytest.fixture(scope="module")

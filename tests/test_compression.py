@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.compression import compression_report, index_report, kept_masks
 from npp_ros.policy.dataset import Dataset
-from npp_ros.tasks.lqr import PAPER_LIPSCHITZ, LQRExpert, sample_initial_state
+from npp_ros.tasks.builtin.lqr import PAPER_LIPSCHITZ, LQRExpert, sample_initial_state
 
 
 def assert_policies_identical(compressed: NonparametricPolicy, full: NonparametricPolicy, states: np.ndarray) -> None:

@@ -30,9 +30,9 @@ def test_importing_every_core_module_loads_no_ros() -> None:
 
 
 def test_importing_the_plant_loads_no_compiled_index() -> None:
-    """npp_ros.tasks.lqr and the loop's records are light: numba and the kd-tree load only with the policy."""
+    """npp_ros.tasks.builtin.lqr and the loop's records are light: numba and the kd-tree load only with the policy."""
     code = (
-        "import sys, npp_ros.tasks.lqr\n"
+        "import sys, npp_ros.tasks.builtin.lqr\n"
         "print(','.join(sorted(m for m in sys.modules if m.startswith(('numba', 'npp_ros.policy.kdtree')))))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -13,7 +13,7 @@ from deploy_runs import REACH, SEED, make_reach_run
 
 from npp_ros.deployment.gate import Acceptance, load_deployment
 from npp_ros.deployment.joints import JointLayout, NoTarget, RobotStateError, TargetRefused, stored_state
-from npp_ros.deployment.monitor import ModelMonitor
+from npp_ros.deployment.model_monitor import ModelMonitor
 from npp_ros.deployment.state import DeploymentState, Level
 from npp_ros.run.setup import plant_fingerprint
 from npp_ros.tasks.registry import get_task

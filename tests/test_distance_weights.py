@@ -14,7 +14,7 @@ from npp_ros.policy.dataset import Dataset, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.run.setup import task_control_space
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import TaskFileError
+from npp_ros.tasks.task_file.loader import TaskFileError
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 WEIGHTS = (1.0, 10.0, 0.5, 2.0)

@@ -15,7 +15,7 @@ from npp_ros.certificate.certifier import DEFAULT_RULES
 from npp_ros.experiment import Arm, ExperimentSettings, default_arms, read_evaluations, verdict
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.builtin.lqr import DetunedLQRExpert, LQRExpert, LQRPlant, episode_rng, sample_initial_state
 from npp_ros.tasks.rollout import rollout
 
 EXPERIMENT = [sys.executable, "-m", "npp_ros.cli.experiment"]

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.setup import build_config, build_loop
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import LQRExpert, LQRPlant
+from npp_ros.tasks.builtin.lqr import LQRExpert, LQRPlant
 from npp_ros.tasks.rollout import rollout
 
 HORIZON = 100

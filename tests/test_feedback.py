@@ -10,7 +10,7 @@ import pytest
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
 from npp_ros.policy.feedback import ControlSpace, wrap_angle
-from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.builtin.lqr import LQRExpert
 from npp_ros.tasks.registry import control_space, get_task
 
 SPACE = ControlSpace.of(2, (0,), [-1.0], [1.0])  # a pendulum's: angle wrapped, torque in [-1, 1]

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset
 from npp_ros.policy.kdtree import BoundIndex, _build, _exceeds, _search
-from npp_ros.tasks.lqr import LQRExpert, sample_initial_state
+from npp_ros.tasks.builtin.lqr import LQRExpert, sample_initial_state
 
 
 def grid_or_normal(rng: np.random.Generator, count: int, dim: int, grid: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ from npp_ros.run.loop import Observer
 from npp_ros.run.records import EpisodeRow, RunFileError
 from npp_ros.run.setup import build_config, build_loop, lipschitz_checks, resolve_lipschitz
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.builtin.lqr import LQRExpert
 
 # Episodes of 300 steps: lqr_2_1 seed 0 certifies after some 370 episodes, as it does at the task's 1000 steps
 # (about 420), in a quarter of the time.

@@ -12,7 +12,7 @@ from npp_ros.certificate.mixture import SCREEN_PASSES, checks_to_certify, log_mi
 from npp_ros.run.records import EpisodeRow, RunFileError
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.builtin.lqr import LQRExpert
 
 HORIZON = 200  # short episodes keep the run to seconds; with them seed 0 needs two verifications
 

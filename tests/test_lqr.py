@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from npp_ros.policy.dataset import DatasetError
-from npp_ros.tasks.lqr import (
+from npp_ros.tasks.builtin.lqr import (
     LQRExpert,
     LQRPlant,
     UnknownTaskError,

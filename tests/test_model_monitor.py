@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from npp_ros.deployment.monitor import ModelMonitor, hull_distance
+from npp_ros.deployment.model_monitor import ModelMonitor, hull_distance
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.uncertainty import Robot, RobotEffects, UncertaintySet, as_robot, model_elements
 

@@ -13,8 +13,8 @@ from npp_ros.deployment.commands import gravity_hold, safe_command
 from npp_ros.deployment.joints import JointLayout, NoTarget
 from npp_ros.deployment.robot_model import mjcf_fingerprint, model_mjcf
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import FilePlant, GravityHold, TaskFileError, target_origin
-from npp_ros.tasks.task_file_cost import TermCost
+from npp_ros.tasks.task_file.cost import TermCost
+from npp_ros.tasks.task_file.loader import FilePlant, GravityHold, TaskFileError, target_origin
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "panda_reach"
 ARM_JOINTS = 7

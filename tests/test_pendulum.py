@@ -11,7 +11,7 @@ import pytest
 from npp_ros.policy.dataset import DatasetError, Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant, LipschitzWarning
 from npp_ros.run.setup import build_config, build_loop, lipschitz_checks
-from npp_ros.tasks.pendulum import (
+from npp_ros.tasks.builtin.pendulum import (
     PAPER_LIPSCHITZ,
     PendulumExpert,
     PendulumPlant,
@@ -197,7 +197,7 @@ def test_importing_the_plants_loads_no_numba() -> None:
     import sys
 
     code = (
-        "import sys, npp_ros.tasks.pendulum, npp_ros.tasks.cartpole; "
+        "import sys, npp_ros.tasks.builtin.pendulum, npp_ros.tasks.builtin.cartpole; "
         "print(any(m.startswith('numba') for m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()

@@ -21,7 +21,7 @@ from npp_ros.run.records import SuccessCounts
 from npp_ros.run.request import success_lipschitz_choice
 from npp_ros.run.setup import build_config, build_loop
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import LQR_2_1, LQRExpert
+from npp_ros.tasks.builtin.lqr import LQR_2_1, LQRExpert
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, WithinBand

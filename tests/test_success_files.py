@@ -15,7 +15,7 @@ from npp_ros.run.records import SUCCESS_COLUMNS
 from npp_ros.run.seal import SEAL_TABLE
 from npp_ros.run.store import FORMAT_VERSION, RunStore
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import TaskFileError
+from npp_ros.tasks.task_file.loader import TaskFileError
 from tests.test_storage import META, row, trajectory
 from tests.test_storage_gains import make_version_2
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import HASH_MARK, TaskFileError, load_task_file
+from npp_ros.tasks.task_file.loader import HASH_MARK, TaskFileError, load_task_file
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "two_link_arm"
 LEARN = [str(Path(sys.executable).parent / "npp-learn")]

@@ -10,7 +10,7 @@ import pytest
 from dm_control.utils.rewards import tolerance
 
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import TaskFileError, load_task_file
+from npp_ros.tasks.task_file.loader import TaskFileError, load_task_file
 
 MODEL = """<mujoco model="point_mass_like">
   <option timestep="0.02"/>

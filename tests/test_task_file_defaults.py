@@ -16,7 +16,7 @@ from npp_ros.policy.dataset import Dataset
 from npp_ros.run.request import RunRequest, resolve_run
 from npp_ros.run.setup import build_config, build_loop, data_slope, resolve_lipschitz
 from npp_ros.tasks.registry import ExpertOptions, get_task
-from npp_ros.tasks.task_file import TaskFileError, load_task_file
+from npp_ros.tasks.task_file.loader import TaskFileError, load_task_file
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "two_link_arm"
 HORIZON = 10

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import TaskFileError
+from npp_ros.tasks.task_file.loader import TaskFileError
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import TaskFileError
-from npp_ros.tasks.task_file_schema import EXPERT_KEYS
+from npp_ros.tasks.task_file.loader import TaskFileError
+from npp_ros.tasks.task_file.schema import EXPERT_KEYS
 from npp_ros.trajopt.receding import PLANNER_KEYS, PlannerSettings
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from npp_ros.tasks.registry import ExpertOptions
-from npp_ros.tasks.task_file import FileTask, TaskFileError, load_task_file
+from npp_ros.tasks.task_file.loader import FileTask, TaskFileError, load_task_file
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "two_link_arm"
 SUBSTEPS = 3

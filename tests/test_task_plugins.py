@@ -66,7 +66,7 @@ def test_a_plugin_cannot_replace_a_built_in_task(plugin_on_path: Path) -> None:
 def test_the_listing_says_where_each_task_comes_from(plugin_on_path: Path) -> None:
     lines = describe_tasks().splitlines()
     row = {line.split()[0]: line for line in lines[1:] if line.startswith("  ") and not line.startswith("  ignored")}
-    assert "built-in" in row["lqr_2_1"] and "npp_ros.tasks.lqr:LQR_2_1" in row["lqr_2_1"]
+    assert "built-in" in row["lqr_2_1"] and "npp_ros.tasks.builtin.lqr:LQR_2_1" in row["lqr_2_1"]
     assert ORIGIN in row["demo_pendulum"] and "DOES NOT LOAD" not in row["demo_pendulum"]
     assert ORIGIN in row["demo_broken"] and "DOES NOT LOAD: ModuleNotFoundError" in row["demo_broken"]
     assert any(line.startswith("  ignored: task 'lqr_2_1'") for line in lines)

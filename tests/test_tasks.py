@@ -7,7 +7,7 @@ import pytest
 
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.setup import build_config, build_loop, initial_state_fn, resolve_lipschitz
-from npp_ros.tasks import lqr
+from npp_ros.tasks.builtin import lqr
 from npp_ros.tasks.registry import TASK_NAMES, ExpertOptions, UnknownTaskError, by_task, episode_rng, get_task
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.builtin.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
 from npp_ros.tasks.registry import ExpertOptions, get_task
 from npp_ros.tasks.rollout import rollout
 from npp_ros.trajopt.dynamics import MujocoDynamics
@@ -190,7 +190,7 @@ def test_time_trajectories_reports_seconds_per_request(optimizer: ILQR) -> None:
 
 def test_batched_fd_equals_mjd_transition_fd() -> None:
     """The RK4 path (one-step rollouts in C) takes the same centred differences as mjd_transitionFD."""
-    from npp_ros.tasks.pendulum import PendulumPlant
+    from npp_ros.tasks.builtin.pendulum import PendulumPlant
 
     dyn = MujocoDynamics(PendulumPlant())
     rng = np.random.default_rng(0)
@@ -207,8 +207,8 @@ SHORT = 200  # steps: enough for the pole to come up from some s0, cheap enough 
 
 def swingup_expert(task: str, values: str, **kwargs: object) -> OptimizingExpert:
     """A swing-up expert whose requests stop by their iteration cap (a budget never reached)."""
-    from npp_ros.tasks.cartpole import CartpoleExpert
-    from npp_ros.tasks.pendulum import PendulumExpert
+    from npp_ros.tasks.builtin.cartpole import CartpoleExpert
+    from npp_ros.tasks.builtin.pendulum import PendulumExpert
 
     make = PendulumExpert if task == "pendulum" else CartpoleExpert
     options = {"horizon": SHORT, "time_budget": 600.0, "max_iterations": 5, "values": values} | kwargs
@@ -275,7 +275,7 @@ def test_fewer_replays_give_the_same_answer_bit_for_bit(task: str, values: str, 
     """The expert's two replays answer exactly what one replay per purpose answers: states, actions,
     values, W_x and the kept-warm-start decision. A heavy torque cost makes iLQR's answer replay
     worse than the warm start from (0.5, 0.5), so the warm start is kept (the cases marked kept)."""
-    from npp_ros.tasks.pendulum import SwingUpCost
+    from npp_ros.tasks.builtin.pendulum import SwingUpCost
 
     extra = {"cost": SwingUpCost(control_weight=100.0)} if kept else {}
     expert, reference = swingup_expert(task, values, **extra), swingup_expert(task, values, **extra)

@@ -13,11 +13,11 @@ import pytest
 
 from npp_ros.cli import learn
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run.nominal_plan import REFERENCE, nominal_plan_returns, tracked_on_robot
 from npp_ros.run.read import read_run
 from npp_ros.run.records import RunFileError
 from npp_ros.run.setup import NominalPlanExpert, PrivilegedExpert, build_config, build_loop
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.nominal_plan import REFERENCE, nominal_plan_returns, tracked_on_robot
 from npp_ros.tasks.registry import ExpertOptions, control_space, get_task
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.uncertainty import (
@@ -290,7 +290,7 @@ def task_file_with(tmp_path: Path, table: str) -> Path:
 
 
 def test_the_pendulum_example_declares_the_swing_ups_set() -> None:
-    from npp_ros.tasks.task_file import load_task_file
+    from npp_ros.tasks.task_file.loader import load_task_file
 
     task = load_task_file(str(EXAMPLE))
     assert task.uncertainty.describe().startswith("mass of pole x [0.8, 1.2]; gear of torque x [0.8, 1.2]")
@@ -298,8 +298,8 @@ def test_the_pendulum_example_declares_the_swing_ups_set() -> None:
 
 
 def test_a_task_files_named_elements_and_bad_keys(tmp_path: Path) -> None:
-    from npp_ros.tasks.task_file import load_task_file
-    from npp_ros.tasks.task_file_reader import TaskFileError
+    from npp_ros.tasks.task_file.loader import load_task_file
+    from npp_ros.tasks.task_file.reader import TaskFileError
 
     table = '[uncertainty]\ngear = { range = [0.9, 1.1], names = ["torque"] }\nstate_noise = 0.01\n'
     task = load_task_file(str(task_file_with(tmp_path, table)))

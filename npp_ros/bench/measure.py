@@ -29,7 +29,7 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.compression import compression_report, index_report
 from npp_ros.policy.dataset import Dataset, FloatArray
 from npp_ros.policy.kdtree import BoundIndex
-from npp_ros.tasks.lqr import LQRExpert, sample_initial_state
+from npp_ros.tasks.builtin.lqr import LQRExpert, sample_initial_state
 from npp_ros.tasks.registry import ExpertOptions, get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.batch_steps import default_threads

@@ -4,7 +4,7 @@ The LQR cases of npp-bench are 4-D and 12-D; a 7-joint arm's state (the Panda re
 target, their velocities) is 20 entries. This part of npp-bench (``--only queries``) stores up to 10^6 of them,
 the states a run meets: a run folder's expert data first (``--query-run``, read with ``read_run``), then states
 of rollouts on the task's plant from s0 ~ rho under the torques that hold the arm where it is plus small noise
-(:class:`~npp_ros.tasks.task_file.GravityHold`), each point valued by its rollout's own return-to-go, so that
+(:class:`~npp_ros.tasks.task_file.loader.GravityHold`), each point valued by its rollout's own return-to-go, so that
 V_lb's max over Q_i - L|s - s_i| is decided by values and distances both, not by distance alone.
 
 At each size it times, on queries near fresh rollouts (states no point of the index holds): the index build,
@@ -37,7 +37,7 @@ from npp_ros.run.setup import data_slope
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.tasks.task import Task
-from npp_ros.tasks.task_file import GravityHold
+from npp_ros.tasks.task_file.loader import GravityHold
 
 DEFAULT_QUERY_TASK = "examples/panda_reach/task.toml"
 DEFAULT_QUERY_SIZES = (10_000, 100_000, 1_000_000)

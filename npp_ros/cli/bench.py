@@ -81,8 +81,8 @@ from npp_ros.bench.report import (
 )
 from npp_ros.bench.throughput import throughput_section, worker_counts
 from npp_ros.cli.args import TASK_HELP, positive_int, task_name
+from npp_ros.tasks.builtin.lqr import PAPER_LIPSCHITZ
 from npp_ros.tasks.expert_pool import default_workers
-from npp_ros.tasks.lqr import PAPER_LIPSCHITZ
 
 
 # ----------------------------------------------------------------------------- main

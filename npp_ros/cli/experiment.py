@@ -53,11 +53,11 @@ from npp_ros.experiment import (
 )
 from npp_ros.experiment.arms import HELD_OUT, arm_request
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_KINDS
+from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODELS
 from npp_ros.run.policy_lipschitz import POLICY_LIPSCHITZ_MODES
 from npp_ros.run.request import RunRequest, resolve_run
 from npp_ros.run.setup import build_loop
-from npp_ros.tasks.lqr import TASKS
-from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODELS
+from npp_ros.tasks.builtin.lqr import TASKS
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros.trajopt.expert import STOP_MODES, VALUE_MODES

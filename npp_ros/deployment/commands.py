@@ -64,7 +64,7 @@ def safe_command(
 def gravity_hold(plant: Plant) -> Callable[[FloatArray], FloatArray]:
     """The efforts that hold the plant's measured pose at rest under its model's gravity (the task file's
     GravityHold), for :func:`safe_command`; a plant without a MuJoCo model has none."""
-    from npp_ros.tasks.task_file import GravityHold
+    from npp_ros.tasks.task_file.loader import GravityHold
 
     model = getattr(getattr(plant, "physics", None), "model", None)
     if model is None:

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.vectors import MAX_MAGNITUDE
 from npp_ros.tasks.registry import Plant
-from npp_ros.tasks.task_file import target_origin
+from npp_ros.tasks.task_file.loader import target_origin
 
 _MJ_JOINT_SLIDE, _MJ_JOINT_HINGE = 2, 3  # MuJoCo joint types with one position and one velocity
 

@@ -11,7 +11,7 @@ the robot's compiled model with the certified one:
   a parameter the model sets to zero must stay zero (a scale cannot move it);
 - every other dynamics array (``COMPARED``) equal to ``RELATIVE_TOLERANCE``.
 
-A description cannot show a delay or the noise on states; those the monitor watches (monitor.py). An
+A description cannot show a delay or the noise on states; those the monitor watches (model_monitor.py). An
 exact-model certificate still needs the exact model's fingerprint (gate.py): this module is only asked for
 a run that names a set.
 """

@@ -13,10 +13,10 @@ import numpy as np
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import PAPER_POLICY, check_policy_kind
+from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model
 from npp_ros.run.policy_lipschitz import check_policy_lipschitz
 from npp_ros.run.request import RunRequest
 from npp_ros.run.setup import check_uncertainty
-from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model
 from npp_ros.tasks.registry import Expert, ExpertOptions, OptimizerTask, get_task
 from npp_ros.tasks.sources import short_name
 
@@ -43,7 +43,7 @@ class Arm:
     explore: float = 0.0  # > 0: a failed check also asks where the policy went (npp_ros.run.explore)
     policy_lipschitz: str = "claim"  # the policy's L: the claim's, or chosen from the run's data (select)
     uncertainty: float = 0.0  # > 0: each episode on a robot drawn from the task's set, widened by this (0: exact)
-    expert_model: str = DEFAULT_EXPERT_MODEL  # on a set: what the expert plans on (npp_ros.tasks.nominal_plan)
+    expert_model: str = DEFAULT_EXPERT_MODEL  # on a set: what the expert plans on (npp_ros.run.nominal_plan)
 
     def __post_init__(self) -> None:
         check_policy_kind(self.policy)

@@ -18,7 +18,7 @@ With a ``store`` file, every finished chunk is appended to it as one JSON line (
 returns), so a resumed command asks only for the s0 still missing.
 
 On a set of robots (a run with uncertainty > 0) s0 k is answered on robot k, as the run's own answers were: the
-expert plans on that robot, or its nominal plan runs on it (npp_ros.tasks.nominal_plan).
+expert plans on that robot, or its nominal plan runs on it (npp_ros.run.nominal_plan).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from distributed import Future, get_client, get_worker, wait
 from npp_ros.experiment.arms import Arm, ExperimentSettings, expert_options, make_expert
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.run.evaluation import budget_stops
-from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, nominal_plan_returns
+from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, nominal_plan_returns
 from npp_ros.tasks.registry import SPEED_ONLY_OPTIONS, Expert, Plant, Task, get_task
 from npp_ros.tasks.uncertainty import Robot
 

@@ -1,6 +1,6 @@
 """Identification on a sliding window of a commanded robot's motion: whether the robot it drives is one of the set.
 
-The transition monitor (npp_ros.deployment.monitor) asks of each step whether some robot of the set explains it;
+The transition monitor (npp_ros.deployment.model_monitor) asks of each step whether some robot of the set explains it;
 under the certified policy's own smooth commands a moderately wrong robot (a gear of x0.6, a delay of 2) explains
 each step well enough. Fitting the set's parameters to the last few seconds of motion asks the question of all of
 them together: a window is *outside* when no robot of the set lies within the identified combinations' intervals

@@ -26,7 +26,7 @@ from scipy.stats import binom
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, nominal_plan_returns
+from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, nominal_plan_returns
 from npp_ros.tasks.registry import Expert, Plant, StopsAtTimeBudget, Task
 from npp_ros.tasks.rollout import rollout, rollout_batch
 from npp_ros.tasks.success import SuccessCriterion
@@ -214,7 +214,7 @@ def check_policy(
 
     ``robots`` (a run under model uncertainty): s0 k is checked on robot k, the policy's rollout and the expert's
     answer both, so the check is of the claim over (s0, theta); a held-out check of such a claim must draw both.
-    ``expert_model`` (npp_ros.tasks.nominal_plan): the expert plans on robot k, or on the nominal model with its plan
+    ``expert_model`` (npp_ros.run.nominal_plan): the expert plans on robot k, or on the nominal model with its plan
     then run on robot k, as the run's own answers were. ``kept``: the expert's answers are kept there as they
     arrive and taken from there where an earlier check of the same run asked for the same s0.
     """

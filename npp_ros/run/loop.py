@@ -65,6 +65,7 @@ from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.spec import PolicySpec
+from npp_ros.run.nominal_plan import REFERENCE
 from npp_ros.run.policy_lipschitz import (
     LipschitzChoice,
     acted_by,
@@ -82,7 +83,6 @@ from npp_ros.run.records import (
     state_tuple,
 )
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.nominal_plan import REFERENCE
 from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.tasks.uncertainty import Robot, describe_robots
 

@@ -31,9 +31,9 @@ from npp_ros.policy.feedback import POLICY_HELP, POLICY_KINDS, PolicyKind
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.explore import EXPLORE_HELP, check_radius
 from npp_ros.run.loop import RunConfig
+from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODEL_HELP, EXPERT_MODELS, check_expert_model
 from npp_ros.run.policy_lipschitz import POLICY_LIPSCHITZ_HELP, POLICY_LIPSCHITZ_MODES, check_policy_lipschitz
 from npp_ros.run.setup import build_config, check_uncertainty, resolve_lipschitz
-from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODEL_HELP, EXPERT_MODELS, check_expert_model
 from npp_ros.tasks.registry import Expert, ExpertOptions, Task, by_task, check_horizon, get_task
 from npp_ros.tasks.uncertainty import UNCERTAINTY_HELP
 from npp_ros.trajopt.expert import STOP_HELP, STOP_MODES, TIME_BUDGET_HELP, VALUE_MODES, check_stop

@@ -40,10 +40,10 @@ from npp_ros.policy.lipschitz import (
 )
 from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
+from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, stores_window_values, tracked_on_robot
 from npp_ros.run.policy_lipschitz import check_policy_lipschitz
 from npp_ros.run.records import EpisodeRow, RunFileError, RunMetadata, SuccessCounts, expert_settings
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, stores_window_values, tracked_on_robot
 from npp_ros.tasks.registry import (
     Expert,
     ExpertOptions,
@@ -156,7 +156,7 @@ def build_config(
     ``explore`` > 0 the radius beyond which a failed check also asks where the policy went (npp_ros.run.explore),
     ``uncertainty`` > 0 the task's uncertainty set, its ranges' distance from the nominal model multiplied by this
     (1: the set the task declares; 0: the exact model), a robot drawn from it per episode (:func:`robot_fn`),
-    ``expert_model`` the model the expert plans on then (npp_ros.tasks.nominal_plan), ``policy_lipschitz`` the L the
+    ``expert_model`` the model the expert plans on then (npp_ros.run.nominal_plan), ``policy_lipschitz`` the L the
     policy chooses by (the claim's, or selected from the run's data: npp_ros.run.policy_lipschitz).
 
     ``options`` are the expert's (None: the task's, with this gamma) and ``expert`` the run's expert built with them
@@ -237,7 +237,7 @@ def robot_fn(config: RunConfig) -> Callable[[int], Robot] | None:
 
 
 class NominalPlanExpert:
-    """The oracle of a run whose expert plans on the nominal model (npp_ros.tasks.nominal_plan): the expert (in
+    """The oracle of a run whose expert plans on the nominal model (npp_ros.run.nominal_plan): the expert (in
     process, or the graph's expert service) is asked for a nominal plan, which then runs on the episode's robot on
     a local copy of the plant; that rollout is the answer. The same here and in the supervisor."""
 

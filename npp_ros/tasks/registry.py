@@ -8,7 +8,7 @@ module re-exports). Nothing outside a task's own module names its plant or exper
 Adding a task is one module (plant, expert and one :class:`Task` instance, usually an
 :class:`OptimizerTask` around an :class:`~npp_ros.trajopt.expert.OptimizingExpert`) and one line in
 :data:`REGISTRY`, or, outside npp_ros, an entry point in the group ``npp_ros.tasks`` of any installed
-package, or a task file (``.toml``, npp_ros.tasks.task_file); npp_ros.tasks.sources reads those. The
+package, or a task file (``.toml``, npp_ros.tasks.task_file.loader); npp_ros.tasks.sources reads those. The
 registry holds import paths, so listing the names loads no plant, and a task module may import this one.
 Every command lists the same tasks: :data:`TASK_NAMES` (help texts, :func:`by_task`) are the built-in
 ones, :func:`task_names` and :func:`describe_tasks` add the plug-ins.
@@ -33,14 +33,14 @@ from npp_ros.tasks.task import UnknownTaskError as UnknownTaskError
 from npp_ros.tasks.task import check_horizon as check_horizon
 from npp_ros.tasks.task import control_space as control_space
 from npp_ros.tasks.task import episode_rng as episode_rng
-from npp_ros.tasks.task_file import load_task_file
+from npp_ros.tasks.task_file.loader import load_task_file
 
 REGISTRY: dict[str, str] = {
-    "lqr_2_1": "npp_ros.tasks.lqr:LQR_2_1",
-    "lqr_6_2": "npp_ros.tasks.lqr:LQR_6_2",
-    "pendulum_swingup": "npp_ros.tasks.pendulum:SWINGUP",
-    "cartpole_swingup": "npp_ros.tasks.cartpole:SWINGUP",
-    "acrobot_swingup": "npp_ros.tasks.acrobot:SWINGUP",
+    "lqr_2_1": "npp_ros.tasks.builtin.lqr:LQR_2_1",
+    "lqr_6_2": "npp_ros.tasks.builtin.lqr:LQR_6_2",
+    "pendulum_swingup": "npp_ros.tasks.builtin.pendulum:SWINGUP",
+    "cartpole_swingup": "npp_ros.tasks.builtin.cartpole:SWINGUP",
+    "acrobot_swingup": "npp_ros.tasks.builtin.acrobot:SWINGUP",
 }
 """Task name -> "module:attribute" of its :class:`Task`: npp_ros's own tasks, all of them."""
 

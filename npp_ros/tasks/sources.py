@@ -13,7 +13,7 @@
   listed as ignored. An entry point that names a built-in task with the built-in's own target is
   that task, registered once (an install of npp_ros made while its pyproject.toml still declared its
   acrobot as an entry point has one).
-- Task files: a path ending in ``.toml`` (npp_ros.tasks.task_file), accepted wherever a name is.
+- Task files: a path ending in ``.toml`` (npp_ros.tasks.task_file.loader), accepted wherever a name is.
 
 :func:`merge` joins the plug-ins to the built-in tasks; npp_ros.tasks.registry holds the built-in
 table (``REGISTRY``) and the lookup every command and node uses.
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from npp_ros.tasks.task import Task, UnknownTaskError
-from npp_ros.tasks.task_file_schema import HASH_MARK
+from npp_ros.tasks.task_file.schema import HASH_MARK
 
 ENTRY_POINT_GROUP = "npp_ros.tasks"
 TASK_FILE_SUFFIX = ".toml"

@@ -58,7 +58,7 @@ from npp_ros.run.read import read_run
 from npp_ros.run.request import RunRequest, resolve_run
 from npp_ros.run.setup import build_loop, plant_fingerprint
 from npp_ros.tasks.registry import Task, get_task
-from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
+from npp_ros_graph.bench.ros_loop import reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, health_of
 from npp_ros_graph.transport.convert import float64_array, stamp
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES, SERVICE_QOS

@@ -72,7 +72,7 @@ from npp_ros.deployment.joints import JointLayout, stored_state
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.uncertainty import MAX_ACTION_DELAY, PARAMETERS, Robot, UncertaintySet, as_robot, model_elements
 from npp_ros_graph.bench.deploy import transition
-from npp_ros_graph.bench.loop import reserved_domain, spawn, stop, wait_for
+from npp_ros_graph.bench.ros_loop import reserved_domain, spawn, stop, wait_for
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, WARN, Health, health_of
 from npp_ros_graph.transport.topics import CONTROL_QOS, FORWARD_COMMANDS, JOINT_STATES
 

@@ -14,7 +14,7 @@ greedy action, clamped to the actuator limits, in the controller's joint order. 
 cannot act on is refused with its reason and does not count as fresh. A watchdog thread sends the
 safe command when no fresh command went out for `state_timeout` seconds, and commanding resumes when
 usable states flow again; its decision and the fresh commands are serialized, so a safe command never
-follows a fresh answer. For a run certified on a set of robots, the model monitor (npp_ros.deployment.monitor)
+follows a fresh answer. For a run certified on a set of robots, the model monitor (npp_ros.deployment.model_monitor)
 checks each transition against the set after the command went out: WARN while the robot's transitions leave
 it, and with on_model_mismatch stop, a stop.
 
@@ -78,7 +78,7 @@ from npp_ros.deployment.joints import (
     parse_names,
     stored_state,
 )
-from npp_ros.deployment.monitor import ModelMonitor
+from npp_ros.deployment.model_monitor import ModelMonitor
 from npp_ros.deployment.robot_model import DescriptionError, described_fingerprint, mjcf_fingerprint
 from npp_ros.deployment.robot_set import robots_of
 from npp_ros.deployment.signing import load_public_keys

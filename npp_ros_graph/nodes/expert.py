@@ -43,8 +43,8 @@ from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, run_node
 from npp_ros_graph.transport.convert import robot_from_field, state_layout, trajectory_to_response
 from npp_ros_graph.transport.expert_api import robot_refusal
+from npp_ros_graph.transport.message_seal import RunSeal, SealError
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help, request_params
-from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
     BUSY,
     EXPERT_SERVICE,

@@ -48,8 +48,8 @@ from npp_ros_graph.transport.convert import (
     state_from_joint_state,
     trajectory_from_msg,
 )
+from npp_ros_graph.transport.message_seal import RunSeal, SealError
 from npp_ros_graph.transport.parameters import declare_settings
-from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
     ACTION,
     CONTROL_QOS,

@@ -40,8 +40,8 @@ from npp_ros_graph.transport.convert import (
     stamp,
     state_to_joint_state,
 )
+from npp_ros_graph.transport.message_seal import RunSeal, SealError
 from npp_ros_graph.transport.parameters import Param, StartupError, declare_settings, parameter_help
-from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
     ACTION,
     CONTROL_QOS,

@@ -26,7 +26,7 @@ from npp_interfaces.srv import GetTrajectories
 from rclpy.node import Node
 from rclpy.task import Future
 
-from npp_ros_graph.transport.seal import KEY_ENV, SEPARATOR, RunSeal, SealError
+from npp_ros_graph.transport.message_seal import KEY_ENV, SEPARATOR, RunSeal, SealError
 from npp_ros_graph.transport.topics import DATASET_SERVICE, SERVICE_QOS
 
 ASK_EVERY_S = 1.0  # while reports wait, the supervisor is asked at most this often

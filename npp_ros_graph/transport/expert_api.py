@@ -30,7 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal, SealError
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal, SealError
 from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, LATCHED_READER_QOS, NOT_READY, PLANT, SERVICE_QOS
 
 PLANT_TOPIC = PLANT

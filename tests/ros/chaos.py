@@ -98,7 +98,7 @@ class ChaosRun:
     def _start(self) -> float:
         """Start npp-run; while the nodes of the last start still linger on the domain (a killed node's
         participant stays until its lease ends) it refuses, and is started again. The start's time."""
-        cmd = [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", "lqr_2_1", "--seed", "0",
+        cmd = [sys.executable, "-m", "npp_ros_graph.tools.run", "--task", "lqr_2_1", "--seed", "0",
                "--horizon", str(self.horizon), "--run-dir", str(self.run_dir), "--max-episodes", "1000"]  # fmt: skip
         while True:
             out = open(self.run_dir.parent / f"{self.run_dir.name}-npp-run.out", "ab")

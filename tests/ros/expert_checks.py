@@ -9,7 +9,7 @@ import numpy as np
 from npp_interfaces.srv import ExpertTrajectory
 from rclpy.client import Client
 
-from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.builtin.lqr import LQRExpert
 
 if TYPE_CHECKING:
     from tests.ros.conftest import RosClient

@@ -67,7 +67,7 @@ def alive(pid: int) -> bool:
 def npp_run_to_its_end(options: list[str], run_dir: Path, max_episodes: int, timeout: float = 900.0) -> None:
     """npp-run with ``options`` into ``run_dir`` until it ends, certified or not within ``max_episodes`` (both end a
     run); anything else fails the test with the run's output and its nodes' logs."""
-    command = [sys.executable, "-m", "npp_ros_graph.tools.launcher", *options, "--max-episodes", str(max_episodes),
+    command = [sys.executable, "-m", "npp_ros_graph.tools.run", *options, "--max-episodes", str(max_episodes),
                "--run-dir", str(run_dir)]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
     ended = done.returncode == 0 or f"NOT CERTIFIED within {max_episodes} episodes" in done.stdout + done.stderr

@@ -14,7 +14,7 @@ from npp_ros.run.loop import NPPLoop, RunResult
 from npp_ros.run.records import EpisodeRow
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.builtin.lqr import LQRExpert
 
 # Restart and fault tests certify on the paper's surrogate gap: its decisions do not depend on the
 # policy's rollouts, so a killed sim or a restarted policy cannot change them and a faulted run

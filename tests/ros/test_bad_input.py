@@ -45,9 +45,9 @@ from sensor_msgs.msg import JointState
 
 from npp_ros.run.setup import build_config, resolve_lipschitz
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import LQRExpert, LQRPlant
+from npp_ros.tasks.builtin.lqr import LQRExpert, LQRPlant
 from npp_ros_graph.graph.description import NODES
-from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.message_seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
     CERTIFICATE,

@@ -13,7 +13,8 @@ from pathlib import Path
 
 def test_the_quick_bench_runs_the_policy_node_and_the_bare_ping_pong_in_lockstep(tmp_path: Path) -> None:
     out = tmp_path / "ros.json"
-    command = [sys.executable, "-m", "npp_ros_graph.bench.loop", "--quick", "--json", str(out), "--logs", str(tmp_path)]
+    bench = "npp_ros_graph.bench.ros_loop"
+    command = [sys.executable, "-m", bench, "--quick", "--json", str(out), "--logs", str(tmp_path)]
     run = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     cases = json.loads(out.read_text())["cases"]

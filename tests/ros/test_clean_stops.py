@@ -42,7 +42,7 @@ NOISE = re.compile(r"\[FATAL\]|Traceback|context is invalid|Exception in '|\[ERR
 
 def npp_run(run_dir: Path, domain: int, *extra: str, out: Path) -> subprocess.Popen[bytes]:
     """npp-run in a process group of its own, as a terminal runs a command: a Ctrl-C reaches the whole group."""
-    command = [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
+    command = [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(run_dir), "--domain-id",
                str(domain), "--horizon", str(HORIZON), "--epsilon", str(EPSILON), *extra]  # fmt: skip
     with out.open("wb") as fh:
         return subprocess.Popen(command, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)

@@ -17,7 +17,7 @@ from npp_ros.policy.dataset import DatasetError, Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.records import EpisodeOutcome, EpisodeRow, GapRecord
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
-from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.builtin.lqr import LQRExpert
 from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.tools.dashboard import Hub, episode_entry, load_run
 from npp_ros_graph.transport.convert import (

@@ -45,10 +45,10 @@ from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.spec import PolicySpec
 from npp_ros.run.setup import policy_for
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import LQRPlant
+from npp_ros.tasks.builtin.lqr import LQRPlant
 from npp_ros.tasks.rollout import rollout
 from npp_ros_graph.transport.convert import float64_array, policy_spec_to_msg
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
     CERTIFICATE,

@@ -168,7 +168,7 @@ def test_npp_run_refuses_a_dashboard_port_in_use_before_starting_any_node(tmp_pa
         taken.listen()
         port = taken.getsockname()[1]
         run = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(tmp_path / "run"),
+            [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(tmp_path / "run"),
              "--dashboard", str(port)],
             capture_output=True, text=True, timeout=300,
         )  # fmt: skip

@@ -14,9 +14,9 @@ from npp_interfaces.msg import PlantDescription
 from npp_interfaces.srv import ExpertTrajectory
 from rclpy.client import Client
 
-from npp_ros.tasks.lqr import LQRExpert, LQRPlant
+from npp_ros.tasks.builtin.lqr import LQRExpert, LQRPlant
 from npp_ros.tasks.uncertainty import Robot
-from npp_ros_graph.transport.seal import RunSeal, SealError
+from npp_ros_graph.transport.message_seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import EXPERT_SERVICE, LATCHED_QOS, PLANT
 
 if TYPE_CHECKING:

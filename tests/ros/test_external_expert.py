@@ -16,10 +16,10 @@ from npp_interfaces.msg import Certificate
 from npp_interfaces.srv import ExpertTrajectory
 
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.lqr import LQRExpert
+from npp_ros.tasks.builtin.lqr import LQRExpert
 from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.transport.expert_api import robot_refusal
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import CERTIFICATE, EXPERT_SERVICE, LATCHED_READER_QOS
 
 if TYPE_CHECKING:

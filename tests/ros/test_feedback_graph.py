@@ -38,7 +38,7 @@ ITERATIONS = 10
 def test_the_cartpole_certifies_through_the_graph_with_the_feedback_policy(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
     command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--horizon", str(HORIZON),
+        sys.executable, "-m", "npp_ros_graph.tools.run", "--task", TASK, "--horizon", str(HORIZON),
         "--epsilon", str(EPSILON), "--lipschitz", str(LIPSCHITZ), "--policy", "feedback",
         "--max-episodes", str(MAX_EPISODES), "--run-dir", str(run_dir), "--time-budget", str(BUDGET),
         "--max-iterations", str(ITERATIONS),

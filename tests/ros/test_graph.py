@@ -33,7 +33,7 @@ def test_graph_certifies_lqr_2_1_with_the_same_numbers_as_in_process(tmp_path: P
         [
             sys.executable,
             "-m",
-            "npp_ros_graph.tools.launcher",
+            "npp_ros_graph.tools.run",
             "--run-dir",
             str(run_dir),
             "--max-episodes",

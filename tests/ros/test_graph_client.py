@@ -14,7 +14,7 @@ import npp_ros
 from npp_ros.certificate.certifier import Certificate
 from npp_ros.run.records import EpisodeOutcome, GapRecord
 from npp_ros_graph import GraphClient, GraphError
-from npp_ros_graph.transport.seal import KEY_ENV
+from npp_ros_graph.transport.message_seal import KEY_ENV
 
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "tutorials" / "graph-client.md"
 

@@ -23,7 +23,7 @@ HORIZON = 200  # with it, seed 0 needs two verifications: the first gives up, th
 def test_graph_and_in_process_loop_give_the_same_mixture_certificate(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
     run = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--rule", "mixture",
+        [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(run_dir), "--rule", "mixture",
          "--horizon", str(HORIZON), "--max-episodes", "1000"],
         capture_output=True, text=True, timeout=1500,
     )  # fmt: skip

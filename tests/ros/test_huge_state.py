@@ -23,7 +23,7 @@ from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.spec import PolicySpec
 from npp_ros_graph.transport.convert import policy_spec_to_msg, trajectory_to_msg
-from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.message_seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
     CONTROL_QOS,

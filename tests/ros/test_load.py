@@ -29,9 +29,9 @@ from npp_ros.policy.dataset import Dataset
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.spec import PolicySpec
-from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.builtin.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
 from npp_ros_graph.transport.convert import policy_spec_to_msg, trajectory_to_msg
-from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.message_seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
     BUSY,

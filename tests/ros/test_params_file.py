@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from npp_ros_graph.graph.description import NODES
-from npp_ros_graph.graph.npp_run import parse_args
-from npp_ros_graph.tools.launcher import run_request
+from npp_ros_graph.graph.npp_run_options import parse_args
+from npp_ros_graph.tools.run import run_request
 
 
 def write(path: Path, text: str) -> Path:

@@ -40,7 +40,7 @@ EXPLORE = 0.3  # failed checks also ask where the policy left the data: the supe
 def test_pendulum_graph_gives_the_in_process_dataset_and_decisions(tmp_path: Path, ros_domain: int) -> None:
     run_dir = tmp_path / "graph"
     command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--horizon", str(HORIZON),
+        sys.executable, "-m", "npp_ros_graph.tools.run", "--task", TASK, "--horizon", str(HORIZON),
         "--epsilon", str(EPSILON), "--max-episodes", str(EPISODES), "--run-dir", str(run_dir),
         "--time-budget", str(BUDGET), "--max-iterations", str(ITERATIONS), "--explore", str(EXPLORE),
     ]  # fmt: skip

@@ -21,7 +21,7 @@ from graph import alive, children
 
 from npp_ros_graph.graph.description import NODES as GRAPH_NODES
 from npp_ros_graph.graph.description import ROLES
-from npp_ros_graph.tools.launcher import SECOND_GRAPH_WINDOW_S
+from npp_ros_graph.tools.run import SECOND_GRAPH_WINDOW_S
 
 START_TIMEOUT_S = 180.0  # four Python processes importing rclpy and MuJoCo on a shared 2-core machine
 GONE_TIMEOUT_S = 30.0  # the children get SIGTERM at once; a loaded machine may take a while to run them
@@ -33,7 +33,7 @@ def npp_run(run_dir: Path, domain: int, *extra: str, log: Path, sigint_ignored: 
 
     ``sigint_ignored``: started as a script's background job starts it, with SIGINT ignored."""
     command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id", str(domain),
+        sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(run_dir), "--domain-id", str(domain),
         "--horizon", "50", "--epsilon", "0.001", "--max-episodes", "100000", *extra,
     ]  # fmt: skip
     ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if sigint_ignored else None
@@ -145,17 +145,17 @@ def test_a_refusing_node_is_named_with_its_reason_and_each_start_has_its_log(tmp
     run_dir = tmp_path / "run"
     with domain_id() as domain:
         first = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
+            [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(run_dir), "--domain-id",
              str(domain), "--task", "pendulum_swingup", "--lipschitz", "analytic"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
         second = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
+            [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(run_dir), "--domain-id",
              str(domain), "--task", "cartpole_swingup", "--lipschitz", "analytic", "--epsilon", "130"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
         before = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
+            [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(run_dir), "--domain-id",
              str(domain), "--epsilon", "-1"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
@@ -193,7 +193,7 @@ def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_d
         with domain_id() as other:
             started = time.monotonic()
             same_folder = subprocess.run(
-                [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--domain-id",
+                [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(run_dir), "--domain-id",
                  str(other), "--horizon", "50"],
                 capture_output=True, text=True, timeout=600,
             )  # fmt: skip
@@ -212,7 +212,7 @@ def test_a_second_npp_run_is_refused_before_starting_nodes(tmp_path: Path, ros_d
         wait_until(lambda: time.monotonic() - first_started > SECOND_GRAPH_WINDOW_S, 120, "the first run's window")
         started = time.monotonic()
         same_domain = subprocess.run(
-            [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(tmp_path / "other"), "--domain-id",
+            [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(tmp_path / "other"), "--domain-id",
              str(domain), "--horizon", "50"],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip

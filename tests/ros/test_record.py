@@ -160,7 +160,7 @@ def test_a_closed_bag_has_its_summary_and_refuses_to_be_overwritten(tmp_path: Pa
 def recorded_run(ros_domain: int, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """npp-run --record --dashboard: the four nodes, the recorder and the dashboard, to a certificate."""
     run_dir = tmp_path_factory.mktemp("recorded") / "run"
-    command = [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--run-dir", str(run_dir), "--record"]
+    command = [sys.executable, "-m", "npp_ros_graph.tools.run", "--run-dir", str(run_dir), "--record"]
     run = subprocess.run([*command, "--dashboard", "0", *RUN_ARGS], capture_output=True, text=True, timeout=1200)
     logs = "\n".join(f"== {p.name}\n{p.read_text()[-3000:]}" for p in sorted((run_dir / "logs").glob("*.log")))
     assert run.returncode == 0, f"{run.stderr[-3000:]}\n{logs}"

@@ -26,7 +26,7 @@ from reference import assert_same_run, uninterrupted_run
 
 from npp_ros.run.records import RunFileError
 from npp_ros.run.store import RunStore
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal
 
 if TYPE_CHECKING:
     from tests.ros.conftest import Launcher, RosClient
@@ -59,7 +59,7 @@ def test_a_replayed_run_enters_nothing_of_a_second_run_with_the_same_key(
 ) -> None:
     key = RunSeal.new_key()
     first = subprocess.run(
-        [sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", "lqr_2_1", "--horizon", str(HORIZON),
+        [sys.executable, "-m", "npp_ros_graph.tools.run", "--task", "lqr_2_1", "--horizon", str(HORIZON),
          "--run-dir", str(tmp_path / "first"), "--epsilon", "100", "--record"],
         capture_output=True, text=True, timeout=TIMEOUT, env={**os.environ, KEY_ENV: key},
     )  # fmt: skip

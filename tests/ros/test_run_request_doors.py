@@ -18,7 +18,7 @@ from npp_ros.experiment.arms import arm_request
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run.request import EXPERT_FIELDS, FIELD_NAMES, PLANT_FIELDS, RunRequest, request_fields
 from npp_ros_graph.client import npp_run_argv
-from npp_ros_graph.graph import npp_run
+from npp_ros_graph.graph import npp_run_options
 from npp_ros_graph.graph.description import request_parameters, run_options
 from npp_ros_graph.nodes.expert import PARAMETERS as EXPERT_PARAMETERS
 from npp_ros_graph.nodes.sim import PARAMETERS as SIM_PARAMETERS
@@ -55,7 +55,7 @@ def test_every_field_has_one_help_text_and_the_given_values_are_a_request() -> N
         assert setting.text(), field.name
 
 
-@pytest.mark.parametrize("parser", [learn.parser, npp_run.parser], ids=["npp-learn", "npp-run"])
+@pytest.mark.parametrize("parser", [learn.parser, npp_run_options.parser], ids=["npp-learn", "npp-run"])
 def test_every_field_is_an_option_with_the_requests_help(parser: Any) -> None:
     ap: argparse.ArgumentParser = parser()
     request = RunRequest(**GIVEN)
@@ -137,5 +137,5 @@ def test_graph_client_start_gives_npp_run_every_field(tmp_path) -> None:
     request = RunRequest(**GIVEN)
     options = {k: v for k, v in run_options(request).items() if k not in ("task", "seed")}
     argv = npp_run_argv(request.task, request.seed, tmp_path, None, options)
-    args = npp_run.parser().parse_args(argv[argv.index("--task") :])
+    args = npp_run_options.parser().parse_args(argv[argv.index("--task") :])
     assert run_request(args) == request

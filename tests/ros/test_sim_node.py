@@ -18,10 +18,10 @@ from rclpy.client import Client
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 
-from npp_ros.tasks.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
+from npp_ros.tasks.builtin.lqr import LQRExpert, LQRPlant, episode_rng, sample_initial_state
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.uncertainty import Robot
-from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.message_seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
     CONTROL_QOS,

@@ -15,9 +15,9 @@ from typing import TYPE_CHECKING
 import pytest
 from npp_interfaces.msg import PlantDescription
 
-from npp_ros.tasks.lqr import LQRPlant
+from npp_ros.tasks.builtin.lqr import LQRPlant
 from npp_ros_graph.transport.convert import plant_description
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import LATCHED_QOS, PLANT
 
 if TYPE_CHECKING:

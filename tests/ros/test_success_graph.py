@@ -24,7 +24,7 @@ def test_npp_run_warns_before_the_certificate_when_the_expert_never_succeeds(tmp
     task_file.write_text((EXAMPLE / "task.toml").read_text() + NEVER)
     run_dir = tmp_path / "run"
     command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", str(task_file), "--horizon", str(HORIZON),
+        sys.executable, "-m", "npp_ros_graph.tools.run", "--task", str(task_file), "--horizon", str(HORIZON),
         "--epsilon", str(EPSILON), "--max-episodes", "60", "--time-budget", "60", "--run-dir", str(run_dir),
     ]  # fmt: skip
     run = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=REPO)

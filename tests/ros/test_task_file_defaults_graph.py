@@ -21,7 +21,7 @@ HORIZON = 20
 
 def npp_run(task_file: Path, run_dir: Path, *extra: str) -> subprocess.CompletedProcess[str]:
     command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", str(task_file), "--horizon", str(HORIZON),
+        sys.executable, "-m", "npp_ros_graph.tools.run", "--task", str(task_file), "--horizon", str(HORIZON),
         "--max-episodes", "2", "--run-dir", str(run_dir), *extra,
     ]  # fmt: skip
     return subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=REPO)

@@ -16,7 +16,7 @@ from npp_interfaces.srv import ExpertTrajectory
 
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.registry import get_task
-from npp_ros.tasks.task_file import HASH_MARK
+from npp_ros.tasks.task_file.loader import HASH_MARK
 from npp_ros_graph.transport.topics import EXPERT_SERVICE, LATCHED_READER_QOS, PLANT
 
 if TYPE_CHECKING:
@@ -31,7 +31,7 @@ def test_npp_run_certifies_the_example_arm_from_its_task_file(tmp_path: Path, ro
     """The README's command at a short horizon: 50 steps, epsilon 8 (of at most 55 per episode)."""
     run_dir = tmp_path / "arm"
     command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", "examples/two_link_arm/task.toml",
+        sys.executable, "-m", "npp_ros_graph.tools.run", "--task", "examples/two_link_arm/task.toml",
         "--horizon", "50", "--epsilon", "8", "--max-episodes", "400", "--time-budget", "60", "--run-dir", str(run_dir),
     ]  # fmt: skip
     run = subprocess.run(command, capture_output=True, text=True, timeout=900, cwd=REPO)

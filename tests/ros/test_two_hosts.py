@@ -28,8 +28,8 @@ import pytest
 from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
 from npp_ros.run.store import RunStore
-from npp_ros_graph.tools.launcher import child_setup
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.tools.run import child_setup
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal
 
 pytestmark = pytest.mark.slow
 

@@ -44,7 +44,7 @@ def test_a_run_under_uncertainty_gives_the_in_process_robots_returns_and_checks(
     supervisor as in process."""
     run_dir = tmp_path / "graph"
     command = [
-        sys.executable, "-m", "npp_ros_graph.tools.launcher", "--task", TASK, "--seed", str(SEED),
+        sys.executable, "-m", "npp_ros_graph.tools.run", "--task", TASK, "--seed", str(SEED),
         "--horizon", str(HORIZON), "--epsilon", str(EPSILON), "--lipschitz", str(LIPSCHITZ),
         "--max-episodes", str(EPISODES), "--run-dir", str(run_dir), "--time-budget", str(BUDGET),
         "--max-iterations", str(ITERATIONS), "--uncertainty", "1", "--certify", certify, "--expert-model", expert_model,

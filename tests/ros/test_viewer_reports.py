@@ -27,7 +27,7 @@ import pytest
 from domain_coordinator import domain_id
 
 from npp_ros.run.store import RunStore
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal
 
 pytestmark = pytest.mark.slow
 
@@ -75,7 +75,7 @@ def test_a_replayed_certificate_is_not_shown_as_the_live_runs(tmp_path: Path, ro
     with domain_id() as domain:
         keyless["ROS_DOMAIN_ID"] = str(domain)
         keyed = {**keyless, KEY_ENV: RunSeal.new_key()}
-        run = [PYTHON, "-m", "npp_ros_graph.tools.launcher", "--domain-id", str(domain), "--horizon", str(HORIZON)]
+        run = [PYTHON, "-m", "npp_ros_graph.tools.run", "--domain-id", str(domain), "--horizon", str(HORIZON)]
         first = subprocess.run([*run, "--run-dir", str(tmp_path / "first"), "--epsilon", "300", "--record"],
                                capture_output=True, text=True, timeout=TIMEOUT_S, env=keyed)  # fmt: skip
         assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]

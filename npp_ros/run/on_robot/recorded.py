@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 
 from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
+from npp_ros.run.nominal_plan import tracked_answer
 from npp_ros.run.on_robot.episodes import RobotEpisodes
 from npp_ros.run.on_robot.link import Reading, RobotFault
 from npp_ros.run.records import RobotEpisode
-from npp_ros.tasks.nominal_plan import tracked_answer
 
 
 class RecordMismatch(Exception):

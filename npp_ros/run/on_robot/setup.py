@@ -11,15 +11,15 @@ from pathlib import Path
 
 from npp_ros.policy.dataset import Dataset
 from npp_ros.run.loop import NPPLoop, Observer, Oracle, RunConfig
+from npp_ros.run.nominal_plan import stores_window_values
 from npp_ros.run.on_robot.episodes import DEFAULT_MAX_FAULTS, RobotEpisodes
-from npp_ros.run.on_robot.expert import RobotPlanOracle
 from npp_ros.run.on_robot.identity import RobotIdentity
 from npp_ros.run.on_robot.link import RobotLink
 from npp_ros.run.on_robot.recorded import RecordedRobot, StoredRobotAnswers
+from npp_ros.run.on_robot.robot_expert import RobotPlanOracle
 from npp_ros.run.read import read_run
 from npp_ros.run.setup import initial_state_fn, task_control_space, value_basis
 from npp_ros.run.store import RunStore
-from npp_ros.tasks.nominal_plan import stores_window_values
 from npp_ros.tasks.registry import Expert, get_task
 
 

@@ -35,10 +35,10 @@ from npp_ros.run.records import UnrecordedSettings
 from npp_ros.run.request import FIELD_NAMES, PLANT_FIELDS, RunRequest, resolve_run
 from npp_ros.run.setup import build_loop, initial_state_fn, robot_fn
 from npp_ros.run.store import RUN_FILE, RunStore
-from npp_ros.tasks.answer_check import AnswerCheck
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.uncertainty import Robot
-from npp_ros_graph.nodes.supervisor.expert import RosExpert
+from npp_ros_graph.nodes.supervisor.answer_check import AnswerCheck
+from npp_ros_graph.nodes.supervisor.expert_client import RosExpert
 from npp_ros_graph.nodes.supervisor.reporter import GraphReporter
 from npp_ros_graph.nodes.supervisor.rollouts import RolloutHandshake, RosRollouts
 from npp_ros_graph.runtime.diagnostics import WARN, DiagnosticsReporter, Health
@@ -46,8 +46,8 @@ from npp_ros_graph.runtime.mailbox import Mailbox
 from npp_ros_graph.runtime.node import publishers_of, request_stop, run_node
 from npp_ros_graph.runtime.reports import report_context
 from npp_ros_graph.transport.convert import policy_spec_to_msg, trajectory_to_msg
+from npp_ros_graph.transport.message_seal import RunSeal, SealError
 from npp_ros_graph.transport.parameters import Param, declare_settings, parameter_help, request_params
-from npp_ros_graph.transport.seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import (
     CERTIFICATE,
     DATASET_SERVICE,

@@ -20,7 +20,7 @@ from npp_ros.run.progress import unreachable_text
 from npp_ros.run.records import EpisodeRow, append_episode_log
 from npp_ros.tasks.registry import task_label
 from npp_ros_graph.transport.convert import certificate_to_msg, episode_result, gap_report
-from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.message_seal import RunSeal
 
 GAP_COLUMNS = ["episode", "gap", "v_lb", "v_ub", "epsilon", "oracle_called", "dataset_size", "oracle_calls", "quiet"]
 

@@ -22,7 +22,7 @@ from npp_ros.run.loop import EpisodeInterrupted
 from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.runtime.deadlines import RESEND_S, call_with_deadline
 from npp_ros_graph.transport.convert import float64_array, robot_to_field
-from npp_ros_graph.transport.seal import RunSeal, SealError
+from npp_ros_graph.transport.message_seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import RESET_SERVICE
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from npp_ros.tasks.pendulum import SWINGUP, PendulumPlant
+from npp_ros.tasks.builtin.pendulum import SWINGUP, PendulumPlant
 
 NAME = "demo_pendulum"
 

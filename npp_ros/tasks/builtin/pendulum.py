@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -32,14 +33,13 @@ from scipy.linalg import solve_discrete_are
 
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import wrap_angle
+from npp_ros.tasks.builtin.swingup import SwingUpExpert
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.tasks.uncertainty import SWINGUP_UNCERTAINTY
-from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
 
 TASK = "pendulum_swingup"
-DEFAULT_HORIZON = 1000
 PAPER_LIPSCHITZ = 4300.0
 """The paper's L for this task (Appendix B, with a PPO expert). Not a bound: with 0/1 rewards every
 H-step return is an integer, so a value is a staircase in s0 and no finite L bounds its slope
@@ -172,7 +172,7 @@ class EnergyShapingController:
 
 
 # ----------------------------------------------------------------------------- the expert
-class PendulumExpert(OptimizingExpert):
+class PendulumExpert(SwingUpExpert):
     """The TrajectoryOptimizer of Algorithm 1 for the swing-up: iLQR on the plant's own model.
 
     Each request: roll the energy-shaping controller out from s0 (warm start), refine with
@@ -187,32 +187,19 @@ class PendulumExpert(OptimizingExpert):
     budget, in 0.13-1.96 s (median 0.90 s).
     """
 
-    def __init__(
-        self,
-        seed: int = 0,
-        horizon: int = DEFAULT_HORIZON,
-        time_budget: float | None = None,
-        max_iterations: int = 50,
-        cost: SwingUpCost | None = None,
-        values: str = DEFAULT_VALUES,
-        stop: str = DEFAULT_STOP,
-    ) -> None:
-        plant = PendulumPlant(seed)  # its own instance: replays never disturb the caller's plant
-        super().__init__(
-            plant,
-            cost if cost is not None else SwingUpCost(),
-            EnergyShapingController(plant),
-            represent,
-            horizon=horizon,
-            time_budget=time_budget,
-            max_iterations=max_iterations,
-            values=values,
-            stop=stop,
-        )
-        self.seed = int(seed)
-        self.task = TASK
+    plant_class = PendulumPlant
+    max_iterations_cap = 50
+    reward_lipschitz_note = "is infinite: the reward is 1 within 8 degrees of upright, else 0"
+
+    def make_warm_start(self, plant: PendulumPlant) -> EnergyShapingController:
+        return EnergyShapingController(plant)
+
+    def default_cost(self, warm_start: EnergyShapingController) -> SwingUpCost:
+        return SwingUpCost()
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
         self.reward_lipschitz = math.inf
-        self.reward_lipschitz_detail = "is infinite: the reward is 1 within 8 degrees of upright, else 0"
         self.no_lipschitz_bound = (
             "with the 0/1 reward every H-step return is a whole number, so the expert's value is a staircase "
             "in s0 and no finite L bounds its slope (scripts/pendulum_expert_report.py finds a step)"

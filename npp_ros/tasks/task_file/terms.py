@@ -6,7 +6,7 @@ A term is dm_control.utils.rewards.tolerance of one quantity: ``joint_position``
 ``tolerance(physics.control(), ...).mean()``). A term's ``floor`` lifts its value to floor + (1 - floor) x
 tolerance, dm_control's ``(4 + small_control) / 5`` with floor 0.8. The reward combines the terms as a
 weighted sum or a product, computed from the physics after each step with the applied (clamped) control, as
-dm_control's suite does. The same terms give the iLQR expert its smooth cost (npp_ros.tasks.task_file_cost).
+dm_control's suite does. The same terms give the iLQR expert its smooth cost (npp_ros.tasks.task_file.cost).
 The expert's own cost (``[[expert.terms]]``) may also use ``energy``: the model's mechanical energy (MuJoCo's
 potential plus kinetic) less that of a named pose at rest, which an underactuated swing-up must pump before
 it can catch. No reward is paid for energy.
@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.tasks.task_file_model import model_ids, named_objects
-from npp_ros.tasks.task_file_reader import Reader
+from npp_ros.tasks.task_file.model import model_ids, named_objects
+from npp_ros.tasks.task_file.reader import Reader
 
 QUANTITIES = ("joint_position", "joint_velocity", "site_position", "site_distance", "control")
 COST_QUANTITIES = ("energy",)  # the expert's cost only: no reward is paid for energy
@@ -33,7 +33,7 @@ COMBINES = ("sum", "product")
 REWARD_KEYS = {"combine", "terms", "function"}
 TERM_KEYS = {*QUANTITIES, *COST_QUANTITIES, "axis", "bounds", "margin", "sigmoid", "value_at_margin", "weight", "floor",
              "hessian"}  # fmt: skip
-# How the expert's cost takes a distance's curvature (npp_ros.tasks.task_file_cost.TermCost): "distance", the
+# How the expert's cost takes a distance's curvature (npp_ros.tasks.task_file.cost.TermCost): "distance", the
 # Gauss-Newton Hessian of the scalar distance (rank one), or "offset", that of the offset vector (rank three).
 DISTANCE_HESSIANS = ("distance", "offset")
 AXES = ("x", "y", "z")

@@ -17,7 +17,7 @@ within 2 cm of the target and slower than 5 cm/s).
 Every run judges the expert's answers and the policy's rollouts on it, and the certificate states both counts
 (npp_ros.tasks.success). A site's position is computed from the stored state by the model's kinematics, so it
 is the same on the expert's answers, the policy's rollouts and any replay. Every refusal names its key
-(npp_ros.tasks.task_file_reader).
+(npp_ros.tasks.task_file.reader).
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ import numpy as np
 
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.success import SuccessCriterion, WithinBand, steps_for
-from npp_ros.tasks.task_file_model import in_model_order, model_ids, named_objects
-from npp_ros.tasks.task_file_reader import Reader
+from npp_ros.tasks.task_file.model import in_model_order, model_ids, named_objects
+from npp_ros.tasks.task_file.reader import Reader
 
 SUCCESS_KEYS = {"joint", "site", "axis", "distance", "speed", "within", "last_seconds", "description"}
 SUCCESS_QUANTITIES = ("joint", "site", "distance", "speed")

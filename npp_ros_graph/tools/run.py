@@ -39,13 +39,13 @@ from npp_ros.run.store import RUN_FILE, WriterLock
 from npp_ros.tasks.registry import get_task
 from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default_run_dir
 from npp_ros_graph.graph.description import node_argv, request_parameters
-from npp_ros_graph.graph.npp_run import parse_args
+from npp_ros_graph.graph.npp_run_options import parse_args
 from npp_ros_graph.runtime.diagnostics import WARN, health_of
 from npp_ros_graph.runtime.node import TEARDOWN_S, UNNAMED, leave_if_teardown_hangs, node_name
 from npp_ros_graph.tools.dashboard import start_dashboard
 from npp_ros_graph.tools.monitor import certificate_line, gap_line
 from npp_ros_graph.tools.record import start_recorder
-from npp_ros_graph.transport.seal import KEY_ENV, RunSeal
+from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import GAP, PLANT
 
 DISCOVERY_S = 2.0  # listened for before starting: discovery on one machine takes well under a second
@@ -236,7 +236,7 @@ def _started_by(lock: Path) -> str:
         pid = int(lock.read_text().split()[0])
         parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
         argv = Path(f"/proc/{parent}/cmdline").read_bytes().decode(errors="replace").split("\0")[:-1]
-        if any("npp_ros_graph.tools.launcher" in a or a.endswith("npp-run") for a in argv[:3]):
+        if any("npp_ros_graph.tools.run" in a or a.endswith("npp-run") for a in argv[:3]):
             return f" (its npp-run: pid {parent}, {shlex.join(argv)[:200]})"
     return ""
 

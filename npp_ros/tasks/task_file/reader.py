@@ -1,6 +1,6 @@
 """A task file's values read with their types checked: every refusal names the file and the dotted key.
 
-The modules that read a task file (npp_ros.tasks.task_file_schema, _model, _terms) share one
+The modules that read a task file (npp_ros.tasks.task_file.schema, _model, _terms) share one
 :class:`Reader` per file, so every problem is one line: ``task file PATH: KEY: PROBLEM``.
 """
 

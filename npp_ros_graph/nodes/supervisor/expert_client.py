@@ -14,11 +14,11 @@ from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.task import Future
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
-from npp_ros.tasks.answer_check import AnswerCheck
 from npp_ros.tasks.uncertainty import Robot, as_robot
+from npp_ros_graph.nodes.supervisor.answer_check import AnswerCheck
 from npp_ros_graph.runtime.deadlines import RESEND_S, call_with_deadline
 from npp_ros_graph.transport.convert import float64_array, robot_to_field, trajectory_from_response
-from npp_ros_graph.transport.seal import RunSeal, SealError
+from npp_ros_graph.transport.message_seal import RunSeal, SealError
 from npp_ros_graph.transport.topics import BUSY, EXPERT_SERVICE, NOT_READY
 
 RETRY_PAUSE_S = 0.25  # first pause between expert attempts; doubles each time, capped at expert_timeout

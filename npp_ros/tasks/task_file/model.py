@@ -1,7 +1,7 @@
 """The MuJoCo model a task file names, read against the file: its timestep, joints, actuators and rho.
 
 Each function reads one part of the file (``model``, ``control_timestep``, ``[state]``, ``actuators``,
-``[rho]``) and checks it against the compiled model, refusing with the key (npp_ros.tasks.task_file_reader).
+``[rho]``) and checks it against the compiled model, refusing with the key (npp_ros.tasks.task_file.reader).
 The stored state is [qpos, qvel] of every joint, so the model may hold hinge and slide joints only.
 """
 
@@ -14,7 +14,7 @@ import numpy as np
 
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.suite_plant import substeps_per_control_step
-from npp_ros.tasks.task_file_reader import Reader
+from npp_ros.tasks.task_file.reader import Reader
 
 STATE_KEYS = {"joints", "wrap", "invariant", "target", "weights"}
 WEIGHT_KEYS = {"position", "velocity"}
@@ -100,7 +100,7 @@ def read_state(
 ) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...], tuple[str, ...]]:
     """``[state]``: the model's joints, every one in its order, the qpos indices stored wrapped, those of the
     joints declared invariant (their position changes neither dynamics nor reward; checked on the model at load,
-    npp_ros.tasks.task_file.check_invariance), and the target's joints (:func:`read_target`)."""
+    npp_ros.tasks.task_file.loader.check_invariance), and the target's joints (:func:`read_target`)."""
     import mujoco
 
     joints = model_ids(model, "joint")
@@ -165,7 +165,7 @@ def read_target(reader: Reader, state: dict[str, Any], model: Any, joints: dict[
     """``state.target``: three slide joints, along the world's x, y and z in that order, of one body of the world
     that nothing touches and gravity does not pull (``gravcomp="1"``, no collision): a point the task is about
     (a reach's target), part of the state, that no torque moves (checked by stepping at load,
-    npp_ros.tasks.task_file.check_target). A robot has no such joints: a deployment reads the point from a topic."""
+    loader.check_target). A robot has no such joints: a deployment reads the point from a topic."""
     import mujoco
 
     if "target" not in state:

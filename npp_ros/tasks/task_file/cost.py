@@ -1,6 +1,6 @@
 """The iLQR expert's smooth cost for a task file: each tolerance term as a quadratic penalty outside its bounds.
 
-The reward's tolerance terms (npp_ros.tasks.task_file_terms) are flat far from their bounds (a Gaussian
+The reward's tolerance terms (npp_ros.tasks.task_file.terms) are flat far from their bounds (a Gaussian
 tolerance is), which gives a gradient-based optimiser nothing to follow; the expert minimises instead
 0.5 w ((q - clip(q, bounds)) / margin)^2 per term, zero exactly where the term's tolerance is 1. The values
 it stores are the true rewards replayed on the plant, as for every iLQR expert.
@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.tasks.task_file_terms import Term, mechanical_energy
+from npp_ros.tasks.task_file.terms import Term, mechanical_energy
 
 DEFAULT_CONTROL_WEIGHT = 1e-3  # 0.5 w |u|^2 on every control, the file's expert.control_weight
 DEFAULT_VELOCITY_WEIGHT = 1e-4  # 0.5 w |qvel|^2 on every state, the file's expert.velocity_weight

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from npp_ros.tasks.task_file_reader import Reader
+from npp_ros.tasks.task_file.reader import Reader
 from npp_ros.tasks.uncertainty import EXACT, PARAMETERS, ScaleRange, UncertaintySet
 
 UNCERTAINTY_KEYS = {*PARAMETERS, "action_delay", "state_noise"}

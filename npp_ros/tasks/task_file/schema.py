@@ -1,9 +1,9 @@
 """A task file read into a TaskDefinition, section by section, every key checked.
 
 :func:`parse` reads the TOML, then each part in the file's order: the model and its timestep
-(npp_ros.tasks.task_file_model), the run's defaults (horizon, epsilon, L, certification mode),
-``[state]``, ``actuators``, ``[rho]``, ``[reward]`` (npp_ros.tasks.task_file_terms), ``[expert]`` and
-``[success]`` (npp_ros.tasks.task_file_success), ``[uncertainty]`` (npp_ros.tasks.task_file_uncertainty).
+(npp_ros.tasks.task_file.model), the run's defaults (horizon, epsilon, L, certification mode),
+``[state]``, ``actuators``, ``[rho]``, ``[reward]`` (npp_ros.tasks.task_file.terms), ``[expert]`` and
+``[success]`` (npp_ros.tasks.task_file.success), ``[uncertainty]`` (npp_ros.tasks.task_file.uncertainty).
 The first problem is refused with one line naming the file and the key (TaskFileError).
 """
 
@@ -24,8 +24,8 @@ from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import DEFAULT_POLICY, POLICY_KINDS, wrap_angle
 from npp_ros.tasks.success import SuccessCriterion
 from npp_ros.tasks.task import DEFAULT_HORIZON, check_horizon
-from npp_ros.tasks.task_file_cost import DEFAULT_CONTROL_WEIGHT, DEFAULT_VELOCITY_WEIGHT
-from npp_ros.tasks.task_file_model import (
+from npp_ros.tasks.task_file.cost import DEFAULT_CONTROL_WEIGHT, DEFAULT_VELOCITY_WEIGHT
+from npp_ros.tasks.task_file.model import (
     load_model,
     read_actuators,
     read_rho,
@@ -33,10 +33,10 @@ from npp_ros.tasks.task_file_model import (
     read_timestep,
     read_weights,
 )
-from npp_ros.tasks.task_file_reader import Reader, TaskFileError
-from npp_ros.tasks.task_file_success import read_success
-from npp_ros.tasks.task_file_terms import FunctionReward, Term, TermReward, read_reward, read_terms
-from npp_ros.tasks.task_file_uncertainty import read_uncertainty
+from npp_ros.tasks.task_file.reader import Reader, TaskFileError
+from npp_ros.tasks.task_file.success import read_success
+from npp_ros.tasks.task_file.terms import FunctionReward, Term, TermReward, read_reward, read_terms
+from npp_ros.tasks.task_file.uncertainty import read_uncertainty
 from npp_ros.tasks.uncertainty import EXACT, UncertaintySet
 from npp_ros.trajopt.expert import DEFAULT_VALUES, STOP_MODES, VALUE_MODES
 from npp_ros.trajopt.ilqr import check_time_budget

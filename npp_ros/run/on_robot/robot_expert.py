@@ -12,9 +12,9 @@ from __future__ import annotations
 
 from npp_ros.policy.dataset import FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
+from npp_ros.run.nominal_plan import plan_law, tracked_answer, tracked_steps
 from npp_ros.run.on_robot.episodes import RobotEpisodes
 from npp_ros.run.setup import PrivilegedExpert
-from npp_ros.tasks.nominal_plan import plan_law, tracked_answer, tracked_steps
 from npp_ros.tasks.task import Expert
 from npp_ros.tasks.uncertainty import Robot
 

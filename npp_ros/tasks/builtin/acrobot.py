@@ -24,22 +24,23 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import wrap_angle
+from npp_ros.tasks.builtin.swingup import SwingUpExpert
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.tasks.uncertainty import SWINGUP_UNCERTAINTY
 from npp_ros.trajopt.dynamics import MujocoDynamics
-from npp_ros.trajopt.expert import DEFAULT_STOP, OptimizingExpert, replay_rewards
+from npp_ros.trajopt.expert import replay_rewards
 from npp_ros.trajopt.ilqr import ILQR, QuadraticCost
 
 TASK = "acrobot_swingup"
-DEFAULT_HORIZON = 1000
 DEFAULT_TIME_BUDGET = 10.0
 TARGET_RADIUS = 0.2
 CONTROL_TIMESTEP = 0.01  # dm_control's acrobot: one RK4 step per control step (the plant checks it)
@@ -274,7 +275,7 @@ def held_upright(states: FloatArray, degrees: float = 8.0) -> bool:
     return bool(np.degrees(links.max()) <= degrees)
 
 
-class AcrobotExpert(OptimizingExpert):
+class AcrobotExpert(SwingUpExpert):
     """Receding-horizon iLQR plan on :class:`EnergyShapingCost`, polished over the whole horizon.
 
     A request: OptimizingExpert's own, with the plan (see :meth:`plan`) as its warm actions: the
@@ -292,21 +293,19 @@ class AcrobotExpert(OptimizingExpert):
 
     time_stop_budget_s = DEFAULT_TIME_BUDGET
 
-    def __init__(
-        self,
-        seed: int = 0,
-        horizon: int = DEFAULT_HORIZON,
-        time_budget: float | None = None,
-        max_iterations: int = 3,
-        values: str = "window",
-        stop: str = DEFAULT_STOP,
-    ) -> None:
-        plant = AcrobotPlant(seed)
-        controller = SwingUpController(plant)
-        super().__init__(
-            plant, EnergyShapingCost(controller.links), controller, represent,
-            horizon=horizon, time_budget=time_budget, max_iterations=max_iterations, values=values, stop=stop,
-        )  # fmt: skip
+    plant_class = AcrobotPlant
+    max_iterations_cap = 3
+    values_convention = "window"
+
+    def make_warm_start(self, plant: AcrobotPlant) -> SwingUpController:
+        return SwingUpController(plant)
+
+    def default_cost(self, warm_start: SwingUpController) -> EnergyShapingCost:
+        return EnergyShapingCost(warm_start.links)
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        controller = self.warm_start
         self.controller = controller
         self.planner = RecedingHorizonPlanner(self.optimizer, controller)
         # The plans tried, in order (see plan): (energy deficit at the handover or None, window steps,
@@ -315,9 +314,6 @@ class AcrobotExpert(OptimizingExpert):
         self.plan_seconds = 0.0
         # The polish always runs its few iterations: a request then stops by convergence or the cap, not the clock.
         self.min_iterations = self.max_iterations
-        self.seed = int(seed)
-        self.task = TASK
-        self.reward_lipschitz_detail = "not computed for the smooth swing-up reward"
 
     def warm_actions(self, x0: FloatArray, steps: int) -> FloatArray:
         """The plan's actions, clamped as a rollout applies them (the plan's seconds are timed apart)."""

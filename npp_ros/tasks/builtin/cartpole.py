@@ -27,15 +27,14 @@ from scipy.linalg import solve_discrete_are
 
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import wrap_angle
+from npp_ros.tasks.builtin.swingup import SwingUpExpert
 from npp_ros.tasks.registry import OptimizerTask
 from npp_ros.tasks.success import SuccessCriterion, UprightAngles, steps_for
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.tasks.uncertainty import SWINGUP_UNCERTAINTY
 from npp_ros.trajopt.dynamics import MujocoDynamics
-from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES, OptimizingExpert
 
 TASK = "cartpole_swingup"
-DEFAULT_HORIZON = 1000
 CONTROL_TIMESTEP = 0.01  # dm_control's cartpole: one RK4 step per control step (the plant checks it)
 UPRIGHT_DEGREES = 12.0
 SUCCESS = SuccessCriterion(
@@ -165,7 +164,7 @@ class EnergyPumpingController:
         return np.array([min(max(u, -self.umax), self.umax)])
 
 
-class CartpoleExpert(OptimizingExpert):
+class CartpoleExpert(SwingUpExpert):
     """iLQR expert for the cartpole swing-up, warm-started by :class:`EnergyPumpingController`.
 
     The cap of 15 iterations keeps a request as long as under the earlier 5 s budget:
@@ -175,31 +174,14 @@ class CartpoleExpert(OptimizingExpert):
     (median 1.17 s).
     """
 
-    def __init__(
-        self,
-        seed: int = 0,
-        horizon: int = DEFAULT_HORIZON,
-        time_budget: float | None = None,
-        max_iterations: int = 15,
-        cost: CartpoleCost | None = None,
-        values: str = DEFAULT_VALUES,
-        stop: str = DEFAULT_STOP,
-    ) -> None:
-        plant = CartpolePlant(seed)
-        super().__init__(
-            plant,
-            cost if cost is not None else CartpoleCost(),
-            EnergyPumpingController(plant),
-            represent,
-            horizon=horizon,
-            time_budget=time_budget,
-            max_iterations=max_iterations,
-            values=values,
-            stop=stop,
-        )
-        self.seed = int(seed)
-        self.task = TASK
-        self.reward_lipschitz_detail = "not computed for the smooth swing-up reward"
+    plant_class = CartpolePlant
+    max_iterations_cap = 15
+
+    def make_warm_start(self, plant: CartpolePlant) -> EnergyPumpingController:
+        return EnergyPumpingController(plant)
+
+    def default_cost(self, warm_start: EnergyPumpingController) -> CartpoleCost:
+        return CartpoleCost()
 
 
 SWINGUP = OptimizerTask(

@@ -47,7 +47,7 @@ from std_msgs.msg import UInt32
 from npp_ros.policy.dataset import Dataset
 from npp_ros.policy.spec import PolicySpec
 from npp_ros.run.store import new_run_id
-from npp_ros.tasks.lqr import LQRExpert, sample_initial_state
+from npp_ros.tasks.builtin.lqr import LQRExpert, sample_initial_state
 from npp_ros.tasks.registry import control_space
 from npp_ros_graph.runtime.node import run_node
 from npp_ros_graph.transport.convert import (
@@ -59,7 +59,7 @@ from npp_ros_graph.transport.convert import (
     state_to_joint_state,
     trajectory_to_msg,
 )
-from npp_ros_graph.transport.seal import RunSeal
+from npp_ros_graph.transport.message_seal import RunSeal
 from npp_ros_graph.transport.topics import (
     ACTION,
     CONTROL_QOS,
@@ -217,7 +217,7 @@ def measure_case(task: str, trajectories: int, args: argparse.Namespace, env: di
     procs = []
     try:
         for name in partners:
-            cmd = ["npp_ros_graph.bench.loop", "--echo"] if name == "pingpong" else ["npp_ros_graph.nodes.policy"]
+            cmd = ["npp_ros_graph.bench.ros_loop", "--echo"] if name == "pingpong" else ["npp_ros_graph.nodes.policy"]
             child_env = {**env, "NPP_BENCH_ACTION_DIM": str(data.action_dim)}
             procs.append(
                 spawn([*cmd, "--ros-args", "-r", f"__ns:=/bench_{name}"], child_env, logs / f"{task}-{name}.log")

@@ -40,7 +40,7 @@ describes every key. In short::
     planner = "ilqr"               # or "receding", "sampling": windows first (npp_ros.trajopt.receding: window,
                                    # commit, window_iterations, restarts; samples, knots, noise, sample_rounds)
 
-    [success]                      # optional: when an episode did the task (npp_ros.tasks.task_file_success)
+    [success]                      # optional: when an episode did the task (npp_ros.tasks.task_file.success)
     distance = ["fingertip", "target"]   # or joint = NAME, site = NAME with axis = "x", "y" or "z", or speed = SITE
     within = [0.0, 0.02]
     last_seconds = 0.5             # several bands: one [[success]] table each, all must hold
@@ -48,15 +48,15 @@ describes every key. In short::
 Quantities: ``joint_position``, ``joint_velocity`` (a joint), ``site_position`` (a site, with
 ``axis`` x, y or z), ``site_distance`` (two sites), ``control`` (an actuator). The reward is
 computed from the physics after each step with the applied (clamped) control, as dm_control's
-suite does (npp_ros.tasks.task_file_terms).
+suite does (npp_ros.tasks.task_file.terms).
 
-The expert optimises a smooth surrogate of the reward (npp_ros.tasks.task_file_cost): each term
+The expert optimises a smooth surrogate of the reward (npp_ros.tasks.task_file.cost): each term
 costs 0.5 w ((q - clip(q, bounds)) / margin)^2, zero exactly where its tolerance is 1; the values it
 stores are the true rewards replayed on the plant, as for every iLQR expert. ``[[expert.terms]]``
 replaces the reward's terms as that cost, and may add ``energy = { joint = position, ... }``: the
 mechanical energy less that pose's at rest, which an underactuated swing-up must pump; a distance
 term there may take ``hessian = "offset"`` (the Gauss-Newton Hessian of the offset vector, not of the
-scalar distance: npp_ros.tasks.task_file_cost.TermCost).
+scalar distance: npp_ros.tasks.task_file.cost.TermCost).
 
 Agreement: the task's name is the file's absolute path and its content's SHA-256
 (``/abs/task.toml#sha256=...``); the sim publishes that name, and the expert and the supervisor
@@ -66,8 +66,8 @@ compiled model is compared by its fingerprint, as for every task.
 A bad file is refused with one line naming the file, the key and the problem (:class:`TaskFileError`).
 
 This module makes the task (plant, expert, Task) from a file's definition; reading the file is
-npp_ros.tasks.task_file_schema, with the model's parts in task_file_model, the reward in
-task_file_terms and every refusal's wording in task_file_reader.
+schema.py beside it, with the model's parts in model.py, the reward in terms.py and every refusal's wording in
+reader.py.
 """
 
 from __future__ import annotations
@@ -84,10 +84,10 @@ from npp_ros.certificate.choices import EPSILON_FLAG
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.tasks.suite_plant import SuitePlant, substeps_per_control_step
 from npp_ros.tasks.task import DEFAULT_OPTIONS, Expert, ExpertOptions, OptimizerTask, check_horizon
-from npp_ros.tasks.task_file_cost import TermCost
-from npp_ros.tasks.task_file_reader import TaskFileError as TaskFileError  # re-exported: what a bad file raises
-from npp_ros.tasks.task_file_schema import DEFAULT_MAX_ITERATIONS, HASH_MARK, TaskDefinition, parse
-from npp_ros.tasks.task_file_terms import TermReward
+from npp_ros.tasks.task_file.cost import TermCost
+from npp_ros.tasks.task_file.reader import TaskFileError as TaskFileError  # re-exported: what a bad file raises
+from npp_ros.tasks.task_file.schema import DEFAULT_MAX_ITERATIONS, HASH_MARK, TaskDefinition, parse
+from npp_ros.tasks.task_file.terms import TermReward
 from npp_ros.trajopt.expert import DEFAULT_STOP, DEFAULT_VALUES
 from npp_ros.trajopt.receding import PlannerSettings, PlanningExpert
 
