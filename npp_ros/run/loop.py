@@ -65,7 +65,8 @@ from npp_ros.policy.dataset import Dataset, FloatArray, Trajectory
 from npp_ros.policy.feedback import ControlSpace
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.spec import PolicySpec
-from npp_ros.run.nominal_plan import REFERENCE
+from npp_ros.run import defaults
+from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, REFERENCE
 from npp_ros.run.policy_lipschitz import (
     LipschitzChoice,
     acted_by,
@@ -84,6 +85,7 @@ from npp_ros.run.records import (
 )
 from npp_ros.run.store import RunStore
 from npp_ros.tasks.success import SuccessCriterion
+from npp_ros.tasks.task import DEFAULT_HORIZON
 from npp_ros.tasks.uncertainty import Robot, describe_robots
 
 if TYPE_CHECKING:
@@ -171,17 +173,18 @@ class RunConfig:
     state_dim: int
     action_dim: int
     spec: CertificationSpec
-    horizon: int = 1000
-    gamma: float = 1.0
+    horizon: int = DEFAULT_HORIZON
+    gamma: float = defaults.GAMMA
     plant_fingerprint: str = ""  # the compiled model's SHA-256 (Plant.model_sha256): which plant the data are of
-    explore: float = 0.0  # > 0: after a failed check, also ask where the policy's rollout leaves the data this far
+    # > 0: after a failed check, also ask where the policy's rollout leaves the data this far
+    explore: float = defaults.EXPLORE
     # The L the policy chooses its data point by: the claim's ("claim") or chosen from the run's data ("select",
     # npp_ros.run.policy_lipschitz).
-    policy_lipschitz: str = "claim"
+    policy_lipschitz: str = defaults.POLICY_LIPSCHITZ
     # The set of robots the run draws from (UncertaintySet.record(), its elements named): '' = the exact model.
     uncertainty: str = ""
     # Under uncertainty, the model the expert plans on: each episode's robot, or the nominal one (nominal_plan).
-    expert_model: str = "robot"
+    expert_model: str = DEFAULT_EXPERT_MODEL
     # A run whose plant is a robot (npp_ros.run.on_robot.identity.RobotIdentity.record()): which robot, which model
     # the expert plans on, where its starts come from; '' = a run on the task's model.
     robot_run: str = ""

@@ -29,6 +29,7 @@ from npp_ros.certificate.certifier import (
 from npp_ros.certificate.choices import LIPSCHITZ_CHOICES, LIPSCHITZ_HELP, check_gamma, parse_lipschitz
 from npp_ros.policy.feedback import POLICY_HELP, POLICY_KINDS, PolicyKind
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run import defaults
 from npp_ros.run.explore import EXPLORE_HELP, check_radius
 from npp_ros.run.loop import RunConfig
 from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, EXPERT_MODEL_HELP, EXPERT_MODELS, check_expert_model
@@ -114,8 +115,10 @@ class RunRequest:
     """Every setting of a run; None is the task's value. Refuses a bad value (ValueError naming the field) when
     made, with the checks the run's own types use, so that a door refuses it before anything starts."""
 
-    task: str = field(default="lqr_2_1", metadata=spelled(TASK_HELP, TASK))
-    seed: int = field(default=0, metadata=spelled("task seed: the plant's and the initial-state stream's", INDEX))
+    task: str = field(default=defaults.TASK, metadata=spelled(TASK_HELP, TASK))
+    seed: int = field(
+        default=defaults.SEED, metadata=spelled("task seed: the plant's and the initial-state stream's", INDEX)
+    )
     epsilon: float | None = field(default=None, metadata=spelled(_epsilon_help, NUMBER))
     lipschitz: str | LipschitzConstant | None = field(
         default=None, metadata=spelled(_lipschitz_help, LIPSCHITZ, choices=LIPSCHITZ_CHOICES)
@@ -126,29 +129,37 @@ class RunRequest:
     rule: StoppingRule | None = field(default=None, metadata=spelled(RULE_HELP, CHOICE, choices=STOPPING_RULES))
     policy: PolicyKind | None = field(default=None, metadata=spelled(_policy_help, CHOICE, choices=POLICY_KINDS))
     policy_lipschitz: str = field(
-        default="claim", metadata=spelled(POLICY_LIPSCHITZ_HELP, CHOICE, choices=POLICY_LIPSCHITZ_MODES)
+        default=defaults.POLICY_LIPSCHITZ,
+        metadata=spelled(POLICY_LIPSCHITZ_HELP, CHOICE, choices=POLICY_LIPSCHITZ_MODES),
     )
-    condition: Condition = field(default="i", metadata=spelled("Theorem 4.1 condition", CHOICE, choices=CONDITIONS))
+    condition: Condition = field(
+        default=defaults.CONDITION, metadata=spelled("Theorem 4.1 condition", CHOICE, choices=CONDITIONS)
+    )
     p: float = field(
-        default=0.9,
+        default=defaults.P,
         metadata=spelled("condition (i): share of initial states within epsilon, in (0, 1)", NUMBER, low=0.0, high=1.0),
     )
     delta: float = field(
-        default=0.1,
+        default=defaults.DELTA,
         metadata=spelled("the claim holds with probability >= 1 - delta, in (0, 1)", NUMBER, low=0.0, high=1.0),
     )
     horizon: int | None = field(
         default=None, metadata=spelled("episode length H; default: the task's (1000; a task file's key horizon)", COUNT)
     )
     gamma: float = field(
-        default=1.0, metadata=spelled("discount, in (0, 1]; 1 = undiscounted H-step values", NUMBER, low=0.0, high=1.0)
+        default=defaults.GAMMA,
+        metadata=spelled("discount, in (0, 1]; 1 = undiscounted H-step values", NUMBER, low=0.0, high=1.0),
     )
-    explore: float = field(default=0.0, metadata=spelled(EXPLORE_HELP, NUMBER, metavar="RADIUS", low=0.0))
-    uncertainty: float = field(default=0.0, metadata=spelled(UNCERTAINTY_HELP, NUMBER, metavar="FACTOR", low=0.0))
+    explore: float = field(default=defaults.EXPLORE, metadata=spelled(EXPLORE_HELP, NUMBER, metavar="RADIUS", low=0.0))
+    uncertainty: float = field(
+        default=defaults.UNCERTAINTY, metadata=spelled(UNCERTAINTY_HELP, NUMBER, metavar="FACTOR", low=0.0)
+    )
     expert_model: str = field(
         default=DEFAULT_EXPERT_MODEL, metadata=spelled(EXPERT_MODEL_HELP, CHOICE, choices=EXPERT_MODELS)
     )
-    max_episodes: int = field(default=1000, metadata=spelled("stop uncertified after this many episodes", COUNT, low=1))
+    max_episodes: int = field(
+        default=defaults.MAX_EPISODES, metadata=spelled("stop uncertified after this many episodes", COUNT, low=1)
+    )
     time_budget: float | None = field(default=None, metadata=spelled(TIME_BUDGET_HELP, NUMBER))
     expert_stop: str | None = field(
         default=None, metadata=spelled(f"{STOP_HELP}; default: the task's", CHOICE, choices=STOP_MODES)

@@ -38,6 +38,7 @@ from npp_ros.policy.lipschitz import (
     estimate_global,
     steepest_pair,
 )
+from npp_ros.run import defaults
 from npp_ros.run.explore import PolicyReplay, RolloutExplorer, check_radius
 from npp_ros.run.loop import EpisodeDriver, NPPLoop, Observer, Oracle, RunConfig, make_policy
 from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model, stores_window_values, tracked_on_robot
@@ -136,22 +137,23 @@ def build_config(
     lipschitz: LipschitzConstant,
     epsilon: float,
     *,
-    condition: Condition = "i",
-    p: float = 0.9,
-    delta: float = 0.1,
-    horizon: int = 1000,
-    gamma: float = 1.0,
+    condition: Condition = defaults.CONDITION,  # type: ignore[assignment]
+    p: float = defaults.P,
+    delta: float = defaults.DELTA,
+    horizon: int | None = None,
+    gamma: float = defaults.GAMMA,
     certify: CheckedQuantity | None = None,
     rule: StoppingRule | None = None,
     policy: PolicyKind = DEFAULT_POLICY,
-    explore: float = 0.0,
-    uncertainty: float = 0.0,
+    explore: float = defaults.EXPLORE,
+    uncertainty: float = defaults.UNCERTAINTY,
     expert_model: str = DEFAULT_EXPERT_MODEL,
     options: ExpertOptions | None = None,
     expert: Expert | None = None,
-    policy_lipschitz: str = "claim",
+    policy_lipschitz: str = defaults.POLICY_LIPSCHITZ,
 ) -> RunConfig:
-    """The run's config; ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
+    """The run's config; every default is the request's (npp_ros.run.defaults); ``horizon`` None is the task's,
+    ``certify`` None is the task's default (rollout on lqr, oracle for optimizer experts),
     ``rule`` None the default rule of that checked quantity (DEFAULT_RULES), ``policy`` how the policy acts,
     ``explore`` > 0 the radius beyond which a failed check also asks where the policy went (npp_ros.run.explore),
     ``uncertainty`` > 0 the task's uncertainty set, its ranges' distance from the nominal model multiplied by this
@@ -167,6 +169,7 @@ def build_config(
     Refuses a bad combination (ValueError) when the run is defined, not episodes later.
     """
     definition = get_task(task)
+    horizon = definition.default_horizon if horizon is None else horizon
     certify = certify or definition.default_certify
     spec = CertificationSpec(
         condition, epsilon, p, delta, lipschitz, definition.initial_state_diameter,

@@ -47,6 +47,7 @@ from npp_ros.certificate.mixture import MixtureCertifier, certifier_for
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.lipschitz import LipschitzConstant
+from npp_ros.run import defaults
 from npp_ros.tasks.registry import Plant, Task
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.tasks.uncertainty import Robot, RobotEffects, UncertaintySet, as_robot
@@ -99,7 +100,7 @@ class ClaimSettings:
     p_r: float
     m: int
     c: int
-    delta: float = 0.1
+    delta: float = defaults.DELTA  # the run's own level unless the claim names another
     rule: StoppingRule = DEFAULT_RULE
 
     def __post_init__(self) -> None:
