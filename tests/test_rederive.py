@@ -19,7 +19,7 @@ from npp_ros.run.read import read_run
 from npp_ros.run.rederive import rederive
 from npp_ros.run.seal import SEAL_TABLE, write_seal
 from npp_ros.run.setup import build_config, build_loop
-from npp_ros.run.store import trajectory_digest
+from npp_ros.run.trajectory_checksum import trajectory_digest
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.task import ExpertOptions
 

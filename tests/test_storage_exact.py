@@ -18,7 +18,8 @@ from hypothesis.extra.numpy import arrays
 from npp_ros.policy.dataset import Trajectory
 from npp_ros.run.records import RunFileError
 from npp_ros.run.seal import write_seal
-from npp_ros.run.store import RunStore, SignedZeroChecksum, trajectory_digest
+from npp_ros.run.store import RunStore
+from npp_ros.run.trajectory_checksum import SignedZeroChecksum, trajectory_digest
 from tests.test_storage import META, row
 
 FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64) | st.sampled_from([0.0, -0.0, 5e-324, -5e-324])

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from test_storage import META, fill, row, trajectory
 
-from npp_ros.run import store as storage
+from npp_ros.run import write_safety
 from npp_ros.run.records import RunFileError, RunMetadata
 from npp_ros.run.store import RunStore
 
@@ -38,7 +38,7 @@ def record(store: RunStore, first: int, count: int, steps: int = 1000) -> None:
 @pytest.fixture
 def no_waiting(monkeypatch: pytest.MonkeyPatch) -> None:
     """Writers give up at once instead of after 30 s: any wait on a reader fails the test at once."""
-    monkeypatch.setattr(storage, "BUSY_TIMEOUT_S", 0.0)
+    monkeypatch.setattr(write_safety, "BUSY_TIMEOUT_S", 0.0)
 
 
 @pytest.fixture

@@ -34,16 +34,16 @@ a rollback journal, so a finished run is one self-contained file (copy it, read 
 read-only media) exactly as older npp_ros wrote them; those open and resume unchanged.
 
 One writer per run file: the writer holds an exclusive ``flock`` on ``run.lock`` beside it
-(pid and command line inside), which the OS drops when the writer exits or dies. A second
+(pid and command line inside; ``writer_lock.py``), which the OS drops when the writer exits or dies. A second
 writer is refused up front, naming the first; readers take no lock. The file is created
 atomically (schema built in a temporary file, then renamed), so a full disk or a kill during
 creation never leaves an empty run.sqlite that blocks the folder. A failed write says what ran
-out (disk full, folder not writable) and where; the rollback never hides the cause.
+out (disk full, folder not writable) and where; the rollback never hides the cause (``write_safety.py``).
 
 Loading reads everything inside one read transaction (one snapshot), so a commit by a live
 writer between two reads is never mistaken for damage. Loading verifies the format version,
-the dimensions, every trajectory's row count and its SHA-256 (over its gains too, where it has them), so
-a damaged or foreign file is refused with a clear error instead of loading partially.
+the dimensions, every trajectory's row count and its SHA-256 (over its gains too, where it has them;
+``trajectory_checksum.py``), so a damaged or foreign file is refused with a clear error instead of loading partially.
 
 Files of version 2 (before gains were stored) open unchanged for reading, their trajectories without
 gains (``gains_note`` says so); the first write upgrades them in place to version 3, in one transaction
@@ -54,18 +54,11 @@ already there. Nullable columns leave the version at 3: an older npp_ros reads s
 
 from __future__ import annotations
 
-import errno
-import fcntl
-import glob
-import hashlib
 import json
 import math
 import os
 import secrets
-import shlex
-import shutil
 import sqlite3
-import sys
 import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
@@ -75,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from npp_ros.policy.dataset import Dataset, DatasetError, FloatArray, Trajectory
+from npp_ros.policy.dataset import Dataset, DatasetError, Trajectory
 from npp_ros.run.policy_lipschitz import LipschitzChoice
 from npp_ros.run.records import (
     EPISODE_COLUMNS,
@@ -87,7 +80,21 @@ from npp_ros.run.records import (
     RunFileError,
     RunMetadata,
 )
-from npp_ros.run.seal import SealCheck, check_seal, write_seal
+from npp_ros.run.seal import SealCheck, check_seal
+from npp_ros.run.trajectory_checksum import SignedZeroChecksum, signed_zeros_behind, trajectory_digest
+from npp_ros.run.write_safety import (
+    SQLITE_BUSY,
+    SQLITE_LOCKED,
+    connect,
+    holds_nothing,
+    make_folder,
+    primary_code,
+    remove_leftovers,
+    sync_folder,
+    transaction,
+    write_error,
+)
+from npp_ros.run.writer_lock import WriterLock
 
 RUN_FILE = "run.sqlite"  # a run folder's run file: every writer and reader names it by this
 
@@ -96,60 +103,6 @@ FORMAT_VERSION = 3  # 2: certification mode, stopping rule, checked gap and test
 READABLE_VERSIONS = (2, 3)
 # Meta keys that are not the run's metadata (RunConfig.metadata()): the file's own, and what the run adds.
 _FILE_KEYS = ("format", "format_version", "created", "certificate", "run_id")
-
-# How long a write waits for another connection's write transaction (a user's sqlite3 shell
-# writing to the file, say) before it gives up. Readers never make a writer wait (WAL).
-BUSY_TIMEOUT_S = 30.0
-
-# SQLite primary result codes that name the cause of a failed write.
-_SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_READONLY, _SQLITE_IOERR, _SQLITE_FULL = 5, 6, 8, 10, 13
-
-
-def _digest_arrays(trajectory: Trajectory) -> tuple[FloatArray, ...]:
-    arrays = (trajectory.states, trajectory.actions, trajectory.values)
-    return arrays if trajectory.gains is None else (*arrays, trajectory.gains)
-
-
-def trajectory_digest(trajectory: Trajectory) -> str:
-    """SHA-256 of the trajectory's numbers as the file stores them; a trajectory without gains has the digest older
-    files recorded.
-
-    SQLite keeps a REAL -0.0 as +0.0, so the digest is of each value plus 0.0 (which turns -0.0 into +0.0 and
-    leaves every other finite number as it is): what is digested is exactly what is read back. Values are finite
-    (Trajectory.validated), so no NaN payload reaches the file."""
-    h = hashlib.sha256()
-    for arr in _digest_arrays(trajectory):
-        h.update((np.ascontiguousarray(arr, dtype="<f8") + 0.0).tobytes())
-    return h.hexdigest()
-
-
-# Files written before the digest was of stored values digested a -0.0 as itself. A trajectory of such a file whose
-# digest fails is searched for the zeros that were negative: each one alone, and each pair up to this many zeros.
-SIGNED_ZERO_PAIRS_UP_TO = 200
-
-
-class SignedZeroChecksum(UserWarning):
-    """A trajectory of an older file verified once its signed zeros were found (said, then read as stored)."""
-
-
-def signed_zeros_behind(trajectory: Trajectory, digest: str) -> int | None:
-    """How many of the trajectory's zeros, stored as +0.0, were -0.0 when an older writer took ``digest`` (1 or 2);
-    None when no such reading of them gives ``digest`` (the trajectory is damaged)."""
-    flat = np.concatenate([np.ascontiguousarray(a, dtype="<f8").ravel() + 0.0 for a in _digest_arrays(trajectory)])
-    zeros = np.flatnonzero(flat == 0.0)
-
-    def matches(*where: int) -> bool:
-        flipped = flat.copy()
-        flipped[list(where)] = -0.0
-        return hashlib.sha256(flipped.tobytes()).hexdigest() == digest
-
-    if any(matches(int(i)) for i in zeros):
-        return 1
-    if len(zeros) <= SIGNED_ZERO_PAIRS_UP_TO:
-        for a in range(len(zeros)):
-            if any(matches(int(zeros[a]), int(b)) for b in zeros[a + 1 :]):
-                return 2
-    return None
 
 
 def gain_columns(state_dim: int, action_dim: int) -> list[str]:
@@ -175,19 +128,13 @@ class RunStore:
         self.format_version = FORMAT_VERSION
 
     # ---------------------------------------------------------------- opening
-    @staticmethod
-    def _connect(path: Path) -> sqlite3.Connection:
-        conn = sqlite3.connect(str(path), isolation_level=None, timeout=BUSY_TIMEOUT_S)
-        conn.execute("PRAGMA synchronous=FULL")
-        return conn
-
     @classmethod
     def create(cls, path: str | Path, metadata: RunMetadata) -> RunStore:
         path = Path(path)
-        _make_folder(path.parent)
+        make_folder(path.parent)
         lock = WriterLock.acquire(path)
         try:
-            if not _holds_nothing(path):
+            if not holds_nothing(path):
                 raise RunFileError(f"{path} already exists; open it to resume, or choose a new path")
             return cls._create_locked(path, metadata, lock)
         except BaseException:
@@ -198,26 +145,26 @@ class RunStore:
     def _create_locked(cls, path: Path, metadata: RunMetadata, lock: WriterLock) -> RunStore:
         """Build the schema in a temporary file and rename it into place: the run file either
         does not exist or is complete, whatever happens meanwhile (disk full, a kill)."""
-        _remove_leftovers(path)
+        remove_leftovers(path)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.new")
         conn: sqlite3.Connection | None = None
         try:
-            conn = cls._connect(tmp)
+            conn = connect(tmp)
             conn.execute("PRAGMA journal_mode=DELETE")
             cls._write_schema(conn, metadata, path)
             conn.close()
             conn = None
             os.replace(tmp, path)
-            _sync_folder(path.parent)
+            sync_folder(path.parent)
         except BaseException as exc:
             if conn is not None:
                 conn.close()
             for leftover in (tmp, tmp.with_name(tmp.name + "-journal")):
                 leftover.unlink(missing_ok=True)
             if isinstance(exc, (OSError, sqlite3.Error)):
-                raise _write_error(exc, path) from exc
+                raise write_error(exc, path) from exc
             raise
-        store = cls(path, cls._connect(path), metadata, lock)
+        store = cls(path, connect(path), metadata, lock)
         try:
             store._use_wal()
         except BaseException:
@@ -232,7 +179,7 @@ class RunStore:
         k_cols = ", ".join(
             f"{k} REAL NOT NULL DEFAULT 0" for k in gain_columns(metadata.state_dim, metadata.action_dim)
         )
-        with _transaction(conn, path):
+        with transaction(conn, path):
             conn.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
             conn.execute(
                 "CREATE TABLE trajectories (id INTEGER PRIMARY KEY, episode INTEGER, "
@@ -264,10 +211,10 @@ class RunStore:
         path = Path(path)
         if not path.is_file():
             raise RunFileError(f"run file {path} does not exist")
-        if _holds_nothing(path):
+        if holds_nothing(path):
             raise RunFileError(f"{path} is not a readable npp_ros run file: it is empty, no run was stored in it")
         try:
-            conn = cls._connect(path)
+            conn = connect(path)
             check = conn.execute("PRAGMA quick_check").fetchone()[0]
             if check != "ok":
                 raise RunFileError(f"{path} is damaged (SQLite quick_check: {check})")
@@ -296,10 +243,10 @@ class RunStore:
     def open_or_create(cls, path: str | Path, metadata: RunMetadata) -> RunStore:
         """Resume an existing file made for the same run, or start a new one; as its one writer."""
         path = Path(path)
-        _make_folder(path.parent)
+        make_folder(path.parent)
         lock = WriterLock.acquire(path)
         try:
-            if _holds_nothing(path):  # absent, or empty (an older npp_ros died creating it)
+            if holds_nothing(path):  # absent, or empty (an older npp_ros died creating it)
                 return cls._create_locked(path, metadata, lock)
             store = cls.open(path)
         except BaseException:
@@ -315,7 +262,7 @@ class RunStore:
             store._upgrade()
             store._record_meta(store.metadata.unrecorded(metadata))
             if store._meta_value("run_id") is None:  # a file from before runs had an identity gets one now
-                with _transaction(store._conn, store.path):
+                with transaction(store._conn, store.path):
                     store._conn.execute("INSERT INTO meta VALUES ('run_id', ?)", (new_run_id(),))
             return store
         except BaseException:
@@ -357,7 +304,7 @@ class RunStore:
         if self.format_version == FORMAT_VERSION and not missing and not later:
             return
         meta = self.metadata
-        with _transaction(self._conn, self.path):
+        with transaction(self._conn, self.path):
             if self.format_version != FORMAT_VERSION:
                 self._conn.execute("ALTER TABLE trajectories ADD COLUMN feedback INTEGER NOT NULL DEFAULT 0")
                 self._conn.execute("ALTER TABLE episodes ADD COLUMN explored INTEGER NOT NULL DEFAULT 0")
@@ -389,12 +336,12 @@ class RunStore:
         try:
             mode = self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
         except sqlite3.Error as exc:
-            if _primary_code(exc) in (_SQLITE_BUSY, _SQLITE_LOCKED):
+            if primary_code(exc) in (SQLITE_BUSY, SQLITE_LOCKED):
                 raise RunFileError(
                     f"{self.path} is held by a reader inside a transaction opened before this run started "
                     "(a sqlite3 shell after BEGIN?); end that transaction (COMMIT) and start again"
                 ) from exc
-            raise _write_error(exc, self.path) from exc
+            raise write_error(exc, self.path) from exc
         # A file system without shared memory keeps the rollback journal: still crash-safe,
         # but there a long read transaction can make a commit wait.
         self._wal = mode == "wal"
@@ -427,7 +374,7 @@ class RunStore:
         if len(explored) != row.explored or (explored and trajectory is None):
             raise ValueError("an episode row counts the trajectories it explored, after the one from s0")
         self._writable()
-        with _transaction(self._conn, self.path):
+        with transaction(self._conn, self.path):
             if trajectory is not None:
                 self._insert_trajectory(row.trajectory, row.episode, trajectory)
             for k, extra in enumerate(explored, start=1):
@@ -468,7 +415,7 @@ class RunStore:
     def set_policy_return(self, episode: int, policy_return: float, policy_success: bool | None = None) -> None:
         """The policy's return (and its success) of an episode it drove after the episode was stored."""
         self._writable()
-        with _transaction(self._conn, self.path):
+        with transaction(self._conn, self.path):
             self._conn.execute(
                 "UPDATE episodes SET policy_return = ?, policy_success = ? WHERE episode = ?",
                 (policy_return, _encode(policy_success), episode),
@@ -480,7 +427,7 @@ class RunStore:
         self._writable()
         if self._conn.execute("SELECT COUNT(*) FROM episodes").fetchone()[0] or self.num_trajectories():
             raise RunFileError(f"{self.path}: a run's first trajectories come before anything else it stores")
-        with _transaction(self._conn, self.path):
+        with transaction(self._conn, self.path):
             for index, trajectory in enumerate(trajectories):
                 self._insert_trajectory(index, None, trajectory)
 
@@ -490,7 +437,7 @@ class RunStore:
         if episode.role not in RobotEpisode.ROLES:
             raise ValueError(f"a robot episode is one of {', '.join(RobotEpisode.ROLES)}, got {episode.role!r}")
         self._writable()
-        with _transaction(self._conn, self.path):
+        with transaction(self._conn, self.path):
             self._conn.execute(ROBOT_EPISODES_SCHEMA)
             expected = self._conn.execute("SELECT COUNT(*) FROM robot_episodes").fetchone()[0]
             if episode.id != expected:
@@ -517,7 +464,7 @@ class RunStore:
         """The policy's L chosen at a choice point (npp_ros.run.policy_lipschitz): kept, so that the run, its gate and
         its readers act by the L it chose, whatever machine reads it."""
         self._writable()
-        with _transaction(self._conn, self.path):
+        with transaction(self._conn, self.path):
             self._conn.execute(LIPSCHITZ_CHOICES_SCHEMA)
             self._conn.execute(
                 "INSERT INTO lipschitz_choices VALUES (?, ?, ?, ?)",
@@ -533,14 +480,14 @@ class RunStore:
 
     def set_certificate(self, certificate: Mapping[str, Any]) -> None:
         self._writable()
-        with _transaction(self._conn, self.path):
+        with transaction(self._conn, self.path):
             self._conn.execute("INSERT OR REPLACE INTO meta VALUES ('certificate', ?)", (json.dumps(certificate),))
 
     def _record_meta(self, values: Mapping[str, Any]) -> None:
         """Add metadata a file made by an older npp_ros lacks (never changes a recorded value)."""
         if not values:
             return
-        with _transaction(self._conn, self.path):
+        with transaction(self._conn, self.path):
             self._conn.executemany("INSERT INTO meta VALUES (?, ?)", [(k, json.dumps(v)) for k, v in values.items()])
         for name, value in values.items():
             setattr(self.metadata, name, value)
@@ -672,193 +619,6 @@ def _encode(value: Any) -> Any:
     if isinstance(value, bool):
         return int(value)
     return value
-
-
-@contextmanager
-def _transaction(conn: sqlite3.Connection, path: Path) -> Iterator[None]:
-    """One write transaction, sealed before it commits (seal.py: the seal always matches what it commits). On
-    failure it rolls back unless SQLite already has (it does on a full disk), and raises the original cause,
-    named, never the rollback's own complaint."""
-    try:
-        conn.execute("BEGIN IMMEDIATE")
-        yield
-        write_seal(conn)
-        conn.execute("COMMIT")
-    except BaseException as exc:
-        if conn.in_transaction:
-            with suppress(sqlite3.Error):  # if this fails too, SQLite undoes it at the next open
-                conn.execute("ROLLBACK")
-        if isinstance(exc, sqlite3.Error):
-            raise _write_error(exc, path) from exc
-        raise
-
-
-def _primary_code(exc: BaseException) -> int | None:
-    code = getattr(exc, "sqlite_errorcode", None)
-    return None if code is None else code & 0xFF
-
-
-def _write_error(exc: BaseException, path: Path) -> RunFileError:
-    """What a failed write ran into and where, in words a user can act on."""
-    folder = path.parent
-    code = _primary_code(exc)
-    err = exc.errno if isinstance(exc, OSError) else None
-    if code == _SQLITE_FULL or err in (errno.ENOSPC, errno.EDQUOT) or (code == _SQLITE_IOERR and _nearly_full(folder)):
-        return RunFileError(
-            f"disk full: cannot write {path} ({_free_space(folder)} free in {folder}); what was stored before "
-            "is intact: free some space and start the run again to resume"
-        )
-    if code == _SQLITE_READONLY or err in (errno.EROFS, errno.EACCES, errno.EPERM):
-        reason = os.strerror(err) if err is not None else str(exc)
-        return RunFileError(
-            f"{folder} is not writable ({reason}): a run writes its folder; make it writable or choose another"
-        )
-    if code in (_SQLITE_BUSY, _SQLITE_LOCKED):
-        return RunFileError(
-            f"cannot write {path}: another connection kept a write transaction open for {BUSY_TIMEOUT_S:g} s "
-            "(a sqlite3 shell or script writing to it?); a run file has one writer"
-        )
-    return RunFileError(f"cannot write {path}: {exc}")
-
-
-def _nearly_full(folder: Path) -> bool:
-    """SQLite reports some out-of-space failures as I/O errors; a near-empty file system says which."""
-    try:
-        return shutil.disk_usage(folder).free < (1 << 20)
-    except OSError:
-        return False
-
-
-def _free_space(folder: Path) -> str:
-    try:
-        free = shutil.disk_usage(folder).free
-    except OSError:
-        return "unknown space"
-    for unit in ("bytes", "KiB", "MiB", "GiB"):
-        if free < 1024 or unit == "GiB":
-            return f"{free:.0f} {unit}" if unit == "bytes" else f"{free:.1f} {unit}"
-        free /= 1024
-    return f"{free:.1f} GiB"
-
-
-def _make_folder(folder: Path) -> None:
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise _write_error(exc, folder) from exc
-        raise RunFileError(f"cannot create the run folder {folder} ({exc.strerror}); choose another") from exc
-
-
-def _sync_folder(folder: Path) -> None:
-    """Make a rename durable: fsync the folder's entry list (where the OS allows it)."""
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        with suppress(OSError):
-            os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _holds_nothing(path: Path) -> bool:
-    """Absent, or empty with no write-ahead log: no run was ever stored there."""
-    try:
-        if path.stat().st_size > 0:
-            return False
-    except FileNotFoundError:
-        return True
-    wal = path.with_name(path.name + "-wal")
-    return not wal.exists() or wal.stat().st_size == 0
-
-
-def _remove_leftovers(path: Path) -> None:
-    """Temporary files of creators that died, and an empty run file (only the writer calls this)."""
-    for leftover in path.parent.glob(f".{glob.escape(path.name)}.*.new*"):
-        leftover.unlink(missing_ok=True)
-    if path.exists() and _holds_nothing(path):
-        path.unlink()
-
-
-class WriterLock:
-    """An exclusive flock on RUN.lock beside the run file: one writer per run file. The OS
-    releases it when its holder exits or dies, so a crash never leaves the folder locked; a
-    clean release removes the file, so a folder at rest holds only the run's own files."""
-
-    def __init__(self, fd: int, path: Path) -> None:
-        self._fd = fd
-        self._path = path
-        self._owner = os.getpid()
-
-    @classmethod
-    def acquire(cls, run_path: Path) -> WriterLock:
-        lock_path = run_path.with_suffix(".lock")
-        while True:
-            try:
-                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
-            except OSError as exc:
-                raise _write_error(exc, lock_path) from exc
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError as exc:
-                holder = _lock_holder(fd)
-                os.close(fd)
-                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
-                    raise RunFileError(
-                        f"{run_path.parent} is in use by {holder}; a run folder has one writer"
-                    ) from None
-                raise RunFileError(f"cannot lock {lock_path} ({os.strerror(exc.errno or 0)})") from exc
-            try:
-                current = os.stat(lock_path)
-                mine = os.fstat(fd)
-                if (current.st_dev, current.st_ino) == (mine.st_dev, mine.st_ino):
-                    break
-            except FileNotFoundError:
-                pass
-            os.close(fd)  # the previous writer removed this file as we locked it: lock the current one
-        try:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n{_command_line()}\n".encode(), 0)
-        except OSError as exc:
-            cls(fd, lock_path).release()
-            raise _write_error(exc, lock_path) from exc
-        return cls(fd, lock_path)
-
-    def release(self) -> None:
-        if self._fd >= 0 and os.getpid() == self._owner:  # never from a forked child: the parent writes on
-            with suppress(OSError):  # removed while still held: a newcomer never locks a stale file
-                self._path.unlink()
-            os.close(self._fd)
-            self._fd = -1
-
-    def __del__(self) -> None:  # a store dropped without close() must not keep the folder
-        self.release()
-
-
-def _lock_holder(fd: int) -> str:
-    """'pid N (command line)' of the writer, from the lock file it wrote (or /proc)."""
-    try:
-        pid_text, _, command = os.pread(fd, 4096, 0).decode(errors="replace").partition("\n")
-    except OSError:
-        return "another process"
-    if not pid_text.strip().isdigit():
-        return "another process"
-    pid = int(pid_text)
-    command = command.strip()
-    if not command:
-        with suppress(OSError):
-            command = shlex.join(Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")[:-1])
-    return f"pid {pid} ({command})" if command else f"pid {pid}"
-
-
-def _command_line() -> str:
-    """How this process was started, as a user would type it (npp-learn --run-dir runs/a)."""
-    argv = sys.argv
-    if argv and argv[0] not in ("", "-c") and not argv[0].endswith(".py"):
-        words = [Path(argv[0]).name, *argv[1:]]  # a console script
-    else:
-        words = [Path(sys.orig_argv[0]).name, *sys.orig_argv[1:]]
-    line = " ".join(shlex.join(words).split())  # one line, whatever a -c script holds
-    return line if len(line) <= 200 else line[:197] + "..."
 
 
 def new_run_id() -> str:

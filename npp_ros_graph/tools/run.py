@@ -35,7 +35,8 @@ from npp_interfaces.msg import Certificate, GapReport
 from npp_ros.cli.args import run_request
 from npp_ros.run.records import RunFileError
 from npp_ros.run.setup import run_file_notice
-from npp_ros.run.store import RUN_FILE, WriterLock
+from npp_ros.run.store import RUN_FILE
+from npp_ros.run.writer_lock import WriterLock
 from npp_ros.tasks.registry import get_task
 from npp_ros_graph.client import STOP_GRACE_S, GraphClient, child_setup, default_run_dir
 from npp_ros_graph.graph.description import node_argv, request_parameters
@@ -220,7 +221,7 @@ def reason_line(log: Path) -> str:
 def folder_in_use(run_dir: Path) -> str | None:
     """Why this run folder cannot take a writer now (another one holds it), or None.
 
-    The run file's own writer lock (npp_ros.run.store) is taken and released at once: the check names
+    The run file's own writer lock (npp_ros.run.writer_lock) is taken and released at once: the check names
     the holder exactly as the supervisor would, but before any node starts.
     """
     try:

@@ -37,7 +37,8 @@ from npp_interfaces.msg import Trajectory as TrajectoryMsg
 from reference import ROLLOUT_FREE, decisions, uninterrupted_run
 
 from npp_ros.policy.dataset import Dataset
-from npp_ros.run.store import RunStore, trajectory_digest
+from npp_ros.run.store import RunStore
+from npp_ros.run.trajectory_checksum import trajectory_digest
 from npp_ros_graph.graph.description import ROLES
 from npp_ros_graph.transport.topics import CERTIFICATE, DATASET_TOPIC, GAP, LATCHED_READER_QOS, REPORT_QOS
 
