@@ -2,7 +2,7 @@
 
 import sys
 
-from npp_ros_graph.nodes.deploy import main
+from npp_ros_graph.nodes.deploy.node import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -38,7 +38,7 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from npp_ros.bench.report import write_report
-from npp_ros.run.evaluation import held_out_initial_states
+from npp_ros.run.held_out import LEARN_HELD_OUT_STREAM, held_out_states
 from npp_ros.run.read import read_run
 from npp_ros.tasks.uncertainty import Robot
 from npp_ros_graph.bench.ros_loop import interrupt_on_signals, reserved_domain, spawn, stop, wait_for
@@ -147,7 +147,7 @@ class Bench:
     def start_deploy(self, run_dir: Path) -> float:
         """npp-deploy configured against the first robot's description; the seconds configure took."""
         values = {"run_dir": str(run_dir), "monitor_window": float(self.args.window), "on_model_mismatch": "warn"}
-        self.deploy = spawn(["npp_ros_graph.nodes.deploy", "--ros-args", *parameter_args(values)], self.env,
+        self.deploy = spawn(["npp_ros_graph.nodes.deploy.node", "--ros-args", *parameter_args(values)], self.env,
                             self.args.logs / "npp-deploy.log")  # fmt: skip
         self.wait(lambda: self.node.change.service_is_ready(), START_TIMEOUT_S, "npp-deploy's lifecycle services")
         started = time.monotonic()
@@ -257,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     robots: list[tuple[str, Robot, bool]] = [(name, robot, True) for name, robot in OUTSIDE.items()]
     robots += [(f"drawn {k}", run.robots.draw(seed, 10_000 + k), False) for k in range(args.inside)]
     robots = [r for r in robots if args.only is None or r[0] in args.only]
-    starts = held_out_initial_states(run.task, seed, len(robots))
+    starts = held_out_states(run.task, seed, len(robots), LEARN_HELD_OUT_STREAM)
     command = "scripts/monitor_on_robot.py " + " ".join(sys.argv[1:] if argv is None else argv)
     out: dict[str, Any] = {"command": command, "task": run.task.name, "set": run.robots.describe(),
                            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "seconds": args.seconds,

@@ -48,7 +48,7 @@ from sensor_msgs.msg import JointState
 
 from npp_ros.bench.report import write_report
 from npp_ros.deployment.joints import describe_point, stored_state
-from npp_ros.run.evaluation import held_out_initial_states
+from npp_ros.run.held_out import LEARN_HELD_OUT_STREAM, held_out_states
 from npp_ros.run.read import read_run
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.task_file.loader import target_origin
@@ -150,7 +150,7 @@ class Trial:
         deploy = {"run_dir": str(run_dir), "safe_effort": "gravity"}
         self.procs["npp-robot"] = spawn(["npp_ros_graph.nodes.robot", "--ros-args", *parameter_args(robot)], self.env,
                                         logs / "npp-robot.log")  # fmt: skip
-        deploy_argv = ["npp_ros_graph.nodes.deploy", "--ros-args", *parameter_args(deploy)]
+        deploy_argv = ["npp_ros_graph.nodes.deploy.node", "--ros-args", *parameter_args(deploy)]
         self.procs["npp-deploy"] = spawn(deploy_argv, self.env, logs / "npp-deploy.log")
         self.wait(lambda: self.node.reset.service_is_ready(), START_TIMEOUT_S, "npp-robot's reset service")
         self.wait(lambda: self.node.change.service_is_ready(), START_TIMEOUT_S, "npp-deploy's lifecycle services")
@@ -482,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
                            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
                            "load_average_start": load()}  # fmt: skip
     judge = Judge(args.run)
-    starts = held_out_initial_states(judge.task, judge.seed, args.reaches)
+    starts = held_out_states(judge.task, judge.seed, args.reaches, LEARN_HELD_OUT_STREAM)
     references = [rollout(judge.plant, judge.policy.controller(), s0, judge.horizon) for s0 in starts]
     assert judge.success is not None
     print(f"in process: {sum(bool(judge.success.met(r.states)) for r in references)} of {len(starts)} reached "

@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
-from npp_ros.deployment.state import MODEL_MISMATCH, STOPPED_OUTSIDE, DeploymentState, Level
+import pytest
+
+from npp_ros.deployment.state import DeploymentState, Level, StopReason
 
 
 def active() -> DeploymentState:
@@ -73,18 +75,20 @@ def test_answers_refusals_and_the_watchdog_are_counted_and_named() -> None:
 def test_a_stop_by_the_node_itself_is_a_warning_while_inactive() -> None:
     state = active()
     state.outside_coverage("state [9.0] is far")
-    state.stop_requested(STOPPED_OUTSIDE)
+    state.stop_requested(StopReason.OUTSIDE_COVERAGE)
     why = state.deactivating()
-    assert why == STOPPED_OUTSIDE and state.deactivating() == "deactivated"  # taken once
+    assert why is StopReason.OUTSIDE_COVERAGE and state.deactivating() is StopReason.DEACTIVATED  # taken once
     assert state.stop_commanding() and not state.stop_commanding()
     state.stopped(why, "safe command [0.0] sent")
     state.became("inactive")
     status = state.status({})
-    assert status.level == Level.WARN and status.doing.startswith(f"inactive: not commanding ({STOPPED_OUTSIDE} at ")
+    assert status.level == Level.WARN and status.doing.startswith(
+        "inactive: not commanding (stopped outside the certificate's coverage (stop_outside_coverage) at "
+    )
     assert state.counters.outside_coverage == 1
     assert state.values()["last event"] == "outside the certificate's coverage: state [9.0] is far"
     state.activated()  # a new activation forgets why it stopped, not what it counted
-    assert state.stopped_for == "" and state.counters.outside_coverage == 1
+    assert state.stopped_for is None and state.counters.outside_coverage == 1
 
 
 def test_a_model_mismatch_warns_while_commanding_and_an_operator_stop_does_not() -> None:
@@ -93,12 +97,13 @@ def test_a_model_mismatch_warns_while_commanding_and_an_operator_stop_does_not()
     mismatch = state.status({}, model_mismatch="3 of the last 5 transitions exceed", now=5.0)
     assert (mismatch.level, mismatch.error) == (Level.WARN, "3 of the last 5 transitions exceed")
     assert state.status({}, overridden=True, now=5.0).level == Level.WARN  # the gate overridden: WARN while active
-    state.stop_requested("stop requested")
+    state.stop_requested(StopReason.STOP_REQUESTED)
     state.stop_commanding()
     state.stopped(state.deactivating(), "safe command [0.0] sent")
     state.became("inactive")
     assert state.status({}).level == Level.OK
-    state.stopped(MODEL_MISMATCH, "safe command [0.0] sent")
+    assert state.status({}).doing.startswith("inactive: not commanding (stop requested at ")
+    state.stopped(StopReason.MODEL_MISMATCH, "safe command [0.0] sent")
     assert state.status({}).level == Level.WARN
 
 
@@ -111,7 +116,7 @@ def test_a_model_mismatch_stays_a_warning_until_the_operator_clears_it() -> None
     assert not state.mismatch_found("a later finding")  # the first is kept
     latched = state.status({}, model_mismatch=state.model_mismatch, now=5.0)
     assert (latched.level, latched.error) == (Level.WARN, "gear x0.6: 12 of the last 20 transitions exceed")
-    state.stopped(MODEL_MISMATCH, "safe command [0.0] sent")
+    state.stopped(StopReason.MODEL_MISMATCH, "safe command [0.0] sent")
     state.became("inactive")
     state.activated()  # activated again: still the robot that was found outside
     assert state.status({}, model_mismatch=state.model_mismatch, now=6.0).level == Level.WARN
@@ -122,6 +127,49 @@ def test_a_model_mismatch_stays_a_warning_until_the_operator_clears_it() -> None
     state.mismatch_found("found again")
     state.cleaned_up()
     assert state.model_mismatch == ""
+
+
+def inactive_after(why: StopReason) -> DeploymentState:
+    state = active()
+    state.stop_requested(why)
+    state.stop_commanding()
+    state.stopped(state.deactivating(), "safe command [0.0] sent")
+    state.became("inactive")
+    return state
+
+
+def test_the_level_of_a_stop_follows_from_its_reasons_kind_not_its_words() -> None:
+    """Inactive after a stop: WARN exactly for a reason the node stopped for by itself (a finding of its own), OK for
+    one the operator or the process asked for. The words are only what /diagnostics shows: a reason given in words
+    alone, even a by-itself reason's own, is refused where it comes in, so no text decides a level."""
+    by_itself = {StopReason.OUTSIDE_COVERAGE, StopReason.MODEL_CHANGED, StopReason.MODEL_MISMATCH}
+    assert {why for why in StopReason if why.by_itself} == by_itself
+    for why in StopReason:
+        status = inactive_after(why).status({})
+        assert status.level == (Level.WARN if why in by_itself else Level.OK), why
+        assert status.doing.startswith(f"inactive: not commanding ({why.words} at "), status.doing
+    state = active()
+    with pytest.raises(TypeError, match="a stop's reason is a StopReason"):
+        state.stop_requested(StopReason.MODEL_MISMATCH.words)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="a stop's reason is a StopReason"):
+        state.stopped(StopReason.MODEL_MISMATCH.words, "safe command [0.0] sent")  # type: ignore[arg-type]
+    assert state.commanding and state.stopped_for is None and state.stopping_for is None
+
+
+def test_the_words_of_each_stop_are_the_ones_diagnostics_has_always_shown() -> None:
+    """Operators and npp-deploy-ctl read these: they stay as they were when the reasons were free text."""
+    assert {why.name: why.words for why in StopReason} == {
+        "DEACTIVATED": "deactivated",
+        "STOP_REQUESTED": "stop requested",
+        "OUTSIDE_COVERAGE": "stopped outside the certificate's coverage (stop_outside_coverage)",
+        "MODEL_CHANGED": "the robot's model changed",
+        "MODEL_MISMATCH": "the robot's transitions left the certified set of robots (on_model_mismatch stop)",
+        "SHUTDOWN": "shutting down",
+        "ERROR": "error",
+        "SIGINT": "SIGINT",
+        "SIGTERM": "SIGTERM",
+        "EXITING": "exiting",
+    }
 
 
 def test_the_levels_are_diagnostic_msgs_own() -> None:

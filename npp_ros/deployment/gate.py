@@ -1,6 +1,6 @@
 """The gate: whether a run folder may command a robot, and the policy its certificate names.
 
-No ROS here: npp-deploy (``npp_ros_graph/nodes/deploy.py``) calls :func:`load_deployment` at configure.
+No ROS here: npp-deploy (``npp_ros_graph/nodes/deploy/node.py``) calls :func:`load_deployment` at configure.
 It refuses:
 
 - a folder without a readable run file, or one whose data fail their SHA-256 checks (altered or

@@ -1,9 +1,10 @@
 """What npp-deploy is doing and has done, as one typed record: its lifecycle state, the last event, its counters,
 why it stopped, and the timing of its answers and of the robot's states.
 
-npp-deploy (npp_ros_graph/nodes/deploy.py) holds one :class:`DeploymentState` and changes it only through its
+npp-deploy (npp_ros_graph/nodes/deploy/node.py) holds one :class:`DeploymentState` and changes it only through its
 methods, each one thing that happened (a state refused, a command sent, the watchdog's expiry, a stop), so
-that what /diagnostics shows follows from what happened and is tested here without ROS.
+that what /diagnostics shows follows from what happened and is tested here without ROS. A stop comes with its
+:class:`StopReason`, whose kind (not its words) decides the level while the node is inactive.
 :meth:`DeploymentState.status` is the node's status in words and its level, which /diagnostics publishes
 (npp_ros_graph/runtime/diagnostics.py); the values keep the names operators and npp-deploy-ctl read.
 """
@@ -15,7 +16,7 @@ import time
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from enum import IntEnum
+from enum import Enum, IntEnum
 from typing import Literal
 
 from npp_ros.deployment.timing import percentiles
@@ -24,11 +25,34 @@ Lifecycle = Literal["unconfigured", "inactive", "active", "finalized"]
 
 LATENCY_WINDOW = 1000  # the latency and state-period percentiles are over this many latest ones
 RECENT_S = 1.0  # a refusal this recent makes an active node's status WARN
-# Why the node stopped by itself: shown (WARN) while it is inactive, until the next configure or activate.
-STOPPED_OUTSIDE = "stopped outside the certificate's coverage (stop_outside_coverage)"
-MODEL_CHANGED = "the robot's model changed"
-MODEL_MISMATCH = "the robot's transitions left the certified set of robots (on_model_mismatch stop)"
-STOPPED_BY_ITSELF = (STOPPED_OUTSIDE, MODEL_CHANGED, MODEL_MISMATCH)
+
+
+class StopReason(Enum):
+    """Why npp-deploy stopped commanding: its words (what the log and /diagnostics show, with the time and the safe
+    command) and whether the node stopped by itself, on a finding of its own. Such a stop is WARN while the node is
+    inactive, until the next configure or activate; a stop the operator or the process asked for is not."""
+
+    DEACTIVATED = ("deactivated", False)  # the operator's deactivate (a lifecycle transition nobody gave a reason for)
+    STOP_REQUESTED = ("stop requested", False)  # the operator's stop service
+    OUTSIDE_COVERAGE = ("stopped outside the certificate's coverage (stop_outside_coverage)", True)
+    MODEL_CHANGED = ("the robot's model changed", True)
+    MODEL_MISMATCH = ("the robot's transitions left the certified set of robots (on_model_mismatch stop)", True)
+    SHUTDOWN = ("shutting down", False)  # the lifecycle's shutdown
+    ERROR = ("error", False)  # the lifecycle's error processing
+    SIGINT = ("SIGINT", False)  # the process stops on a signal (Ctrl-C), or
+    SIGTERM = ("SIGTERM", False)
+    EXITING = ("exiting", False)  # for any other reason, the node torn down while commanding
+
+    def __init__(self, words: str, by_itself: bool) -> None:
+        self.words = words
+        self.by_itself = by_itself
+
+
+def _reason(why: StopReason) -> StopReason:
+    """``why``, checked: a reason in free text would decide no level."""
+    if not isinstance(why, StopReason):
+        raise TypeError(f"a stop's reason is a StopReason, not {type(why).__name__} {why!r}")
+    return why
 
 
 class Level(IntEnum):
@@ -104,12 +128,12 @@ class DeploymentState:
     fingerprint_source: str = ""
     stale: str = ""  # while the watchdog has expired: what it found
     stopped_because: str = ""  # why the node last stopped commanding, and when: shown while inactive
-    stopped_for: str = ""  # the same, the reason alone
+    stopped_for: StopReason | None = None  # the same, the reason alone (None: not stopped since configure or activate)
     # What the model monitor found when the robot's transitions first left the certified set: WARN until the operator
     # clears it (or cleans up), however the robot moves after. The robot is the same robot; a quiet spell says
     # nothing of it.
     model_mismatch: str = ""
-    stopping_for: str = ""  # the reason a deactivate now in progress was asked for
+    stopping_for: StopReason | None = None  # the reason a deactivate now in progress was asked for
     # A task whose state holds a target: the topic it comes from ("" for any other task), the target the policy
     # acts on in words ("" until one is given), and the last target refused (WARN until one is taken again).
     target_topic: str = ""
@@ -145,7 +169,8 @@ class DeploymentState:
 
     def configured(self, fingerprint: str, source: str) -> None:
         self.fingerprint, self.fingerprint_source = fingerprint, source
-        self.refusal = self.stopped_because = self.stopped_for = ""
+        self.refusal = self.stopped_because = ""
+        self.stopped_for = None
 
     def released(self) -> None:
         """The run let go (cleanup, shutdown, error): its target with it."""
@@ -170,7 +195,8 @@ class DeploymentState:
         return self.target_refusal
 
     def cleaned_up(self) -> None:
-        self.refusal = self.stopped_because = self.stopped_for = self.model_mismatch = ""
+        self.refusal = self.stopped_because = self.model_mismatch = ""
+        self.stopped_for = None
 
     def mismatch_found(self, problem: str) -> bool:
         """The model monitor finds the robot outside the certified set: latched (True when newly found)."""
@@ -195,16 +221,17 @@ class DeploymentState:
         self.arrived_since_activation = 0
         self.since_fresh = SinceFresh()
         self.refused_at = -math.inf
-        self.stale = self.stopped_because = self.stopped_for = ""
+        self.stale = self.stopped_because = ""
+        self.stopped_for = None
         self.commanding = True
 
-    def stop_requested(self, why: str) -> None:
+    def stop_requested(self, why: StopReason) -> None:
         """A deactivate is about to be asked for, for ``why`` (shown once it is done)."""
-        self.stopping_for = why
+        self.stopping_for = _reason(why)
 
-    def deactivating(self) -> str:
-        """The reason of the deactivate now in progress ("deactivated" when nobody gave one), taken."""
-        why, self.stopping_for = self.stopping_for or "deactivated", ""
+    def deactivating(self) -> StopReason:
+        """The reason of the deactivate now in progress (DEACTIVATED when nobody gave one), taken."""
+        why, self.stopping_for = self.stopping_for or StopReason.DEACTIVATED, None
         return why
 
     def stop_commanding(self) -> bool:
@@ -212,9 +239,10 @@ class DeploymentState:
         was, self.commanding = self.commanding, False
         return was
 
-    def stopped(self, why: str, sent: str) -> None:
+    def stopped(self, why: StopReason, sent: str) -> None:
         """Commanding stopped for ``why``, after ``sent`` (the safe command, in words)."""
-        self.stopped_because, self.stopped_for = f"{why} at {wall_time()}: {sent}", why
+        self.stopped_for = _reason(why)
+        self.stopped_because = f"{why.words} at {wall_time()}: {sent}"
 
     def arrived(self, now: float) -> None:
         """A joint state taken at monotonic ``now``: the state period is measured between these, while commanding."""
@@ -330,7 +358,8 @@ class DeploymentState:
             return Status(doing, values, Level.WARN, model_mismatch)
         if self.target_refusal:
             return Status(doing, values, Level.WARN, self.target_refusal)
-        return Status(doing, values, Level.WARN if self.stopped_for in STOPPED_BY_ITSELF else Level.OK)
+        by_itself = self.stopped_for is not None and self.stopped_for.by_itself
+        return Status(doing, values, Level.WARN if by_itself else Level.OK)
 
     def _commanding_status(
         self, values: Mapping[str, object], overridden: bool, expired: bool, mismatch: str, now: float | None

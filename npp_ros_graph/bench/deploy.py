@@ -339,7 +339,8 @@ NODE_COUNTERS = ("answered", "refused states", "overtaken states", "clamped entr
 
 def measure_case(case: Case, args: argparse.Namespace, env: dict[str, str]) -> dict[str, Any]:
     log(f"{case.label}: {case.points:,d} points, deployed {case.deployed}")
-    proc = spawn(["npp_ros_graph.nodes.deploy", *ros_args(case.params)], env, args.logs / f"deploy-{case.slug}.log")
+    deploy_log = args.logs / f"deploy-{case.slug}.log"
+    proc = spawn(["npp_ros_graph.nodes.deploy.node", *ros_args(case.params)], env, deploy_log)
     executor = SingleThreadedExecutor()
     robot = Robot(case.task, case.seed)
     executor.add_node(robot)

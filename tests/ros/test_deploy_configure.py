@@ -12,7 +12,7 @@ from deploy_runs import FINGERPRINT, make_run, with_robots
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 
-import npp_ros_graph.nodes.deploy as deploy_node
+import npp_ros_graph.nodes.deploy.node as deploy_node
 from npp_ros.cli.sign import main as npp_sign
 from npp_ros.deployment.gate import GateRefusal
 from npp_ros.deployment.signing import fingerprint, load_public_key

@@ -442,7 +442,7 @@ def test_configure_at_once_after_the_start_waits_for_the_robots_description(runs
 
 
 def test_every_deploy_command_has_help() -> None:
-    for module in ("npp_ros_graph.nodes.deploy", "npp_ros_graph.tools.deploy_ctl", "npp_ros_graph.nodes.robot"):
+    for module in ("npp_ros_graph.nodes.deploy.node", "npp_ros_graph.tools.deploy_ctl", "npp_ros_graph.nodes.robot"):
         shown = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=120)
         assert shown.returncode == 0 and ("usage" in shown.stdout.lower() or "subscribes" in shown.stdout), module
 
@@ -532,7 +532,7 @@ def test_a_robot_outside_the_certified_set_is_found_by_the_monitor_and_stops_it_
 
 
 def test_npp_trial_outside_names_a_robot_by_its_parameters() -> None:
-    from npp_ros_graph.bench.trial import outside_robot
+    from npp_ros_graph.bench.trial_outside import outside_robot
 
     plant = get_task(TASK).make_plant(SEED)
     assert outside_robot("gear=3", plant) == Robot((("gear", "motor_0", 3.0),))
