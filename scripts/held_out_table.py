@@ -16,7 +16,7 @@ import json
 from pathlib import Path
 
 from npp_ros.deployment.gate import Acceptance, load_deployment
-from npp_ros.run.evaluation import check_success, held_out_initial_states
+from npp_ros.run.held_out import LEARN_HELD_OUT_STREAM, check_success, held_out_states
 
 
 def row(run_dir: Path, held_out: int) -> dict[str, object]:
@@ -29,7 +29,7 @@ def row(run_dir: Path, held_out: int) -> dict[str, object]:
     count = int(evaluation.get("rollouts", held_out))
     success = None
     if count:
-        states = held_out_initial_states(deployment.task, int(meta.seed), count)
+        states = held_out_states(deployment.task, int(meta.seed), count, LEARN_HELD_OUT_STREAM)
         check = check_success(deployment.policy, deployment.task, deployment.plant, states, int(meta.horizon),
                               p=0.9, delta=0.05)  # fmt: skip
         success = check.succeeded

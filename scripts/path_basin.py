@@ -20,7 +20,7 @@ tracking cost diag(Q), R I, no actuator limits in the Riccati pass; the action i
 gains they used. Where the expert's gains are 0 on clamped actions, these are not: if the path still does not
 carry the policy with them, no linear tracking law about that path will.
 
-Fresh s0 come from npp-learn's held-out stream of the run's seed (npp_ros.run.evaluation.held_out_initial_states).
+Fresh s0 come from npp-learn's held-out stream of the run's seed (npp_ros.run.held_out.held_out_states).
 Prints markdown; ``--out FILE`` also writes it with the rows as FILE.json. The exact model only.
 """
 
@@ -36,7 +36,7 @@ import numpy as np
 
 from npp_ros.policy.dataset import Dataset, Trajectory
 from npp_ros.policy.feedback import ControlSpace
-from npp_ros.run.evaluation import held_out_initial_states
+from npp_ros.run.held_out import LEARN_HELD_OUT_STREAM, held_out_states
 from npp_ros.run.read import read_run
 from npp_ros.run.setup import policy_for, task_control_space
 from npp_ros.tasks.registry import task_label
@@ -112,7 +112,7 @@ def basin(
     data, epsilon = run.dataset, float(run.spec.epsilon)
     offsets = np.asarray(data.trajectory_offsets)
     s0 = data.states[offsets[:-1]]  # every stored trajectory's first state
-    fresh = held_out_initial_states(task, seed, max(directions, starts))
+    fresh = held_out_states(task, seed, max(directions, starts), LEARN_HELD_OUT_STREAM)
     rows = []
     for k in range(min(trajectories, data.num_trajectories)):
         path = data.trajectory(k)

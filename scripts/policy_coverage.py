@@ -20,7 +20,7 @@ import json
 import time
 from pathlib import Path
 
-from npp_ros.run.evaluation import check_success, held_out_initial_states
+from npp_ros.run.held_out import LEARN_HELD_OUT_STREAM, check_success, held_out_states
 from npp_ros.run.loop import make_policy
 from npp_ros.run.read import read_run
 from npp_ros.run.setup import task_control_space
@@ -46,7 +46,7 @@ def measure(
     seed = int(run.metadata.seed)
     horizon = int(run.metadata.horizon)
     plant = task.make_plant(seed)
-    states = held_out_initial_states(task, seed, starts)
+    states = held_out_states(task, seed, starts, LEARN_HELD_OUT_STREAM)
     own = float(run.spec.lipschitz.value)
     grid = [own * f if f < NEAREST_L else NEAREST_L for f in factors]
     control = task_control_space(str(run.metadata.task), seed)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros import read_run
-from npp_ros.run.evaluation import held_out_initial_states, held_out_robots
+from npp_ros.run.held_out import LEARN_HELD_OUT_STREAM, held_out_robots, held_out_states
 from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.rollout import rollout
 from npp_ros.tasks.uncertainty import Robot
@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"{args.run_dir}: needs a task with a success criterion and a run on a set of robots")
     horizon = int(run.metadata.horizon)
     plant, policy = task.make_plant(seed), run.policy
-    states = held_out_initial_states(task, seed, args.draws)
+    states = held_out_states(task, seed, args.draws, LEARN_HELD_OUT_STREAM)
     robots = held_out_robots(str(run.metadata.uncertainty), seed, args.draws)
     assert robots is not None
     counts = {"failed": 0, "succeeds without the delay": 0, "succeeds on the nominal model": 0}

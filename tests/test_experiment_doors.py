@@ -15,12 +15,18 @@ import pytest
 from npp_ros.cli import experiment, learn
 from npp_ros.cli.args import run_request
 from npp_ros.experiment.arms import Arm, ExperimentSettings, arm_request, default_arms, make_expert
-from npp_ros.experiment.evaluation import compares_with_expert, held_out_asks_expert, held_out_states
+from npp_ros.experiment.evaluation import compares_with_expert, held_out_asks_expert
 from npp_ros.experiment.expert_requests import ExpertReturns
 from npp_ros.experiment.report import held_out_verdict
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset
-from npp_ros.run.evaluation import HeldOutCheck, check_policy, held_out_robots
+from npp_ros.run.held_out import (
+    EXPERIMENT_HELD_OUT_STREAM,
+    HeldOutCheck,
+    check_policy,
+    held_out_robots,
+    held_out_states,
+)
 from npp_ros.run.request import resolve_run
 from npp_ros.run.setup import uncertainty_record
 from npp_ros.tasks.registry import get_task
@@ -107,7 +113,7 @@ def test_the_held_out_answers_asked_ahead_on_robots_are_the_ones_npp_learns_chec
     arm = Arm("pendulum_swingup", "ilqr", "5", "oracle", "sequential", uncertainty=0.5, expert_model=model)
     settings = ExperimentSettings(max_episodes={arm.task: 5}, horizon=150, time_budget=120.0, max_iterations=3)
     task, expert = get_task(arm.task), make_expert(arm, 0, settings)
-    states = held_out_states(arm.task, 0, 3)
+    states = held_out_states(arm.task, 0, 3, EXPERIMENT_HELD_OUT_STREAM)
     robots = held_out_robots(uncertainty_record(arm.task, 0, arm.uncertainty, model), 0, len(states))
     assert robots is not None and len(set(robots)) == 3  # a fresh robot per s0
     asked = ExpertReturns(arm, 0, settings, states, expert, chunk=2, robots=robots).result()

@@ -16,8 +16,8 @@ from typing import Any
 
 import pytest
 
-from npp_ros.cli.learn import answers_identity
 from npp_ros.cli.learn import main as learn
+from npp_ros.run.held_out import answers_identity
 from npp_ros.run.loop import NPPLoop, RunConfig
 from npp_ros.run.records import EXPERT_SETTINGS, RunFileError, UnrecordedSettings
 from npp_ros.run.request import RunRequest, resolve_run

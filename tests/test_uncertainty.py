@@ -319,7 +319,7 @@ def test_a_task_files_named_elements_and_bad_keys(tmp_path: Path) -> None:
 
 def test_a_held_out_check_of_a_claim_over_robots_draws_both_and_rolls_each_out_on_its_robot() -> None:
     from npp_ros.policy.dataset import Dataset
-    from npp_ros.run.evaluation import HELD_OUT_EPISODES, check_policy, held_out_robots
+    from npp_ros.run.held_out import HELD_OUT_EPISODES, check_policy, held_out_robots
     from npp_ros.run.setup import policy_for
 
     config = build_config(CARTPOLE, 0, LipschitzConstant(50.0, "user"), 130.0, horizon=40, uncertainty=1.0)
@@ -368,7 +368,7 @@ def test_the_success_claim_certifies_a_policy_that_holds_the_pendulum_with_one_e
     assert "the pole within 8 degrees of upright" in statement and "claims nothing about" in statement
     assert result.certificate.proven
     assert not any("L bounds" in item for item in result.certificate.assumptions)
-    from npp_ros.run.evaluation import check_success, held_out_robots
+    from npp_ros.run.held_out import check_success, held_out_robots
 
     states = np.array([task.initial_state(9, k) for k in range(10)])
     robots = held_out_robots(config.uncertainty, 0, 10)

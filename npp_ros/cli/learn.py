@@ -19,15 +19,17 @@ from pathlib import Path
 from npp_ros.certificate.certifier import L_FREE
 from npp_ros.cli.args import ListTasks, add_run_arguments, nonnegative_int, run_request
 from npp_ros.policy.lipschitz import LipschitzWarning
-from npp_ros.run.evaluation import (
+from npp_ros.run.held_out import (
     KEPT_ANSWERS,
+    LEARN_HELD_OUT_STREAM,
     KeptAnswers,
+    answers_identity,
     check_policy,
     check_success,
-    held_out_initial_states,
     held_out_robots,
+    held_out_states,
 )
-from npp_ros.run.loop import NPPLoop, RunConfig, RunResult
+from npp_ros.run.loop import NPPLoop, RunResult
 from npp_ros.run.progress import Counter, StatusLine, claim_header, unreachable_text
 from npp_ros.run.records import RunFileError, UnrecordedSettings, write_episode_log
 from npp_ros.run.request import FIELD_NAMES, resolve_run
@@ -88,12 +90,6 @@ def run_to_end(loop: NPPLoop, max_episodes: int, stop_when_unreachable: bool) ->
     return result, "certified" if result.certificate else "max-episodes"
 
 
-def answers_identity(config: RunConfig) -> str:
-    """What the expert's held-out answers of a run depend on: the run's own identity (RunConfig.identity, the
-    settings its file records), so kept answers are used again only for the run that asked for them."""
-    return json.dumps(config.identity(), sort_keys=True)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     task = get_task(args.task)
@@ -102,6 +98,9 @@ def main(argv: list[str] | None = None) -> int:
         # one expert, alone in this process: its derivatives may take every core
         run = resolve_run(run_request(args), run_file=run_dir / RUN_FILE, threads=default_threads())
         request, config, expert, epsilon, lipschitz = run.request, run.config, run.expert, run.epsilon, run.lipschitz
+        kept = KeptAnswers(run_dir / KEPT_ANSWERS, answers_identity(config))
+        if args.evaluate > 0:
+            kept.check()  # a file of other answers is refused now (StoredReturnsError), before the run makes its file
         status = StatusLine(
             epsilon, args.condition, max_episodes=args.max_episodes, prefix="npp-learn: ", certify=config.spec.certify
         )
@@ -145,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     evaluation = None
     succeeded = None
     if args.evaluate > 0 and len(loop.dataset):
-        states = held_out_initial_states(task, args.seed, args.evaluate)
+        states = held_out_states(task, args.seed, args.evaluate, LEARN_HELD_OUT_STREAM)
         certificate = result.certificate
         policy = loop.policy if certificate is None else loop.policy_over(certificate.policy_trajectories)
         if config.spec.certify == "success":
@@ -161,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
                 progress=Counter("held-out: policy rollouts"), chunk=EVALUATION_CHUNK,
                 expert_progress=Counter("held-out: the expert's returns"),
                 robots=held_out_robots(config.uncertainty, args.seed, args.evaluate), expert_model=config.expert_model,
-                kept=KeptAnswers(run_dir / KEPT_ANSWERS, answers_identity(config)),
+                kept=kept,
             )  # fmt: skip
         except KeyboardInterrupt:
             kept_at = run_dir / KEPT_ANSWERS

@@ -10,11 +10,13 @@ evaluated at checkpoints on a fixed set of N initial states s0 ~ rho: the policy
 data expert's and the optimal controller's returns from the same s0, and V_lb(s0). Everything is
 rebuilt from the files, so a resumed or repeated run gives the same numbers. Every certificate is
 also checked on HELD_OUT fresh s0 (a stream of its own): the fraction whose gap, for the value the
-certificate speaks of, is within epsilon, and a one-sided binomial test of its claim.
+certificate speaks of, is within epsilon, and a one-sided binomial test of its claim. That check, its draws and
+the expert's kept answers are npp-learn's too (:mod:`npp_ros.run.held_out`); what is here is npp-experiment's own.
 
 Modules, one concern each: ``arms`` (what is run), ``runs`` (running and resuming one arm and
-seed), ``evaluation`` (rollouts from fresh s0, the held-out check of a certificate) and
-``report`` (the results table). Figures are in :mod:`npp_ros.experiment.plots`.
+seed), ``evaluation`` (the checkpoint evaluations, and the held-out check of an arm's certificate),
+``expert_requests`` (the expert's returns asked in chunks over Dask) and ``report`` (the results table). Figures
+are in :mod:`npp_ros.experiment.plots`.
 """
 
 from npp_ros.experiment.arms import (

@@ -8,26 +8,28 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import product
 
-import numpy as np
-
 from npp_ros.certificate.certifier import CERTIFY_MODES, DEFAULT_RULES, STOPPING_RULES
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.feedback import PAPER_POLICY, check_policy_kind
+from npp_ros.run import defaults
+from npp_ros.run.held_out import held_out_states
 from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, check_expert_model
 from npp_ros.run.policy_lipschitz import check_policy_lipschitz
 from npp_ros.run.request import RunRequest
 from npp_ros.run.setup import check_uncertainty
 from npp_ros.tasks.registry import Expert, ExpertOptions, OptimizerTask, get_task
 from npp_ros.tasks.sources import short_name
+from npp_ros.tasks.task import DEFAULT_HORIZON
 
 EXPERTS = ("optimal", "detuned", "ilqr")  # every task's expert kinds (Task.experts)
 LIPSCHITZ_SETTINGS = ("paper", "analytic", "data")  # named L settings (npp_ros.certificate.choices)
 DEFAULT_CHECKPOINTS = (10, 25, 50, 100, 250, 500, 1000)
 DETUNED_CONTROL_WEIGHT = 0.1
-EVALUATION_STREAM = 1 << 30  # rng stream for evaluation s0; the run's own s0 use [seed, episode]
+# rng stream for the checkpoint evaluations' s0; the run's own s0 use [seed, episode], and the certificate's held-out
+# s0 npp_ros.run.held_out.EXPERIMENT_HELD_OUT_STREAM, the next stream (declared there beside npp-learn's)
+EVALUATION_STREAM = 1 << 30
 EVALUATION_CHUNK = 25  # rollouts stepped in lockstep (batched policy queries)
 HELD_OUT = 1000  # fresh s0 on which every certificate is checked
-HELD_OUT_STREAM = EVALUATION_STREAM + 1
 
 
 @dataclass(frozen=True)
@@ -40,9 +42,9 @@ class Arm:
     certify: str = "surrogate"  # the paper's checked quantity ...
     rule: str = "paper"  # ... and its stopping rule, unless the arm says otherwise
     policy: str = PAPER_POLICY  # how the policy acts at its chosen point (npp_ros.policy.feedback)
-    explore: float = 0.0  # > 0: a failed check also asks where the policy went (npp_ros.run.explore)
-    policy_lipschitz: str = "claim"  # the policy's L: the claim's, or chosen from the run's data (select)
-    uncertainty: float = 0.0  # > 0: each episode on a robot drawn from the task's set, widened by this (0: exact)
+    explore: float = defaults.EXPLORE  # > 0: a failed check also asks where the policy went (npp_ros.run.explore)
+    policy_lipschitz: str = defaults.POLICY_LIPSCHITZ  # the claim's L, or one chosen from the run's data (select)
+    uncertainty: float = defaults.UNCERTAINTY  # > 0: each episode on a robot of the task's set widened by this
     expert_model: str = DEFAULT_EXPERT_MODEL  # on a set: what the expert plans on (npp_ros.run.nominal_plan)
 
     def __post_init__(self) -> None:
@@ -104,15 +106,15 @@ class ExperimentSettings:
     max_episodes: dict[str, int]
     evaluations: int = 100  # N
     checkpoints: tuple[int, ...] = DEFAULT_CHECKPOINTS
-    horizon: int = 1000  # npp-experiment's default: the tasks' own (a task file's key horizon)
-    p: float = 0.9
-    delta: float = 0.1
+    horizon: int = DEFAULT_HORIZON  # npp-experiment's default: the tasks' own (a task file's key horizon)
+    p: float = defaults.P
+    delta: float = defaults.DELTA
     epsilon: dict[str, float] | None = None
     control_weight: float = DETUNED_CONTROL_WEIGHT
     time_budget: float | None = None  # seconds per expert request (optimizer experts); None = the task's
     stop: str | None = None  # what ends an optimizer expert's request ("iterations" or "time"); None = the task's
     held_out: int = HELD_OUT  # fresh s0 on which each certificate is checked
-    condition: str = "i"  # Theorem 4.1's condition every run certifies
+    condition: str = defaults.CONDITION  # Theorem 4.1's condition every run certifies
     gamma: float = 1.0  # the discount of every run's values
     values: str | None = None  # what an optimizer expert stores as Q_t (window, return-to-go); None = the task's
     max_iterations: int | None = None  # an optimizer expert's iterations per request; None = the task's
@@ -217,7 +219,6 @@ def make_expert(arm: Arm, seed: int, settings: ExperimentSettings) -> Expert:
 
 
 def evaluation_states(task: str, seed: int, count: int) -> FloatArray:
-    """The fixed N initial states every checkpoint of a seed is evaluated on (common random numbers)."""
-    rng = np.random.default_rng([seed, EVALUATION_STREAM])
-    spec = get_task(task)
-    return np.array([spec.sample_initial_state(rng) for _ in range(count)])
+    """The fixed N initial states every checkpoint of a seed is evaluated on (common random numbers), drawn as
+    held-out s0 are, on a stream of their own."""
+    return held_out_states(task, seed, count, EVALUATION_STREAM)

@@ -1,8 +1,10 @@
 """Rollouts from fresh s0: checkpoint evaluations and the held-out check of a certificate.
 
 A run on a set of robots drew a robot per episode, and its claim is over (s0, robot): its evaluations and its
-held-out check then draw a fresh robot for each fresh s0 (npp_ros.run.evaluation.held_out_robots, npp-learn's
-draw), the policy and the expert both on it.
+held-out check then draw a fresh robot for each fresh s0 (npp_ros.run.held_out.held_out_robots, npp-learn's
+draw), the policy and the expert both on it. The held-out check itself, its s0 draw and the expert's kept answers are
+npp_ros.run.held_out's, npp-learn's too; what is here is npp-experiment's own: its arms, its checkpoint evaluations
+and the files of its run folders.
 """
 
 from __future__ import annotations
@@ -18,22 +20,18 @@ from pathlib import Path
 import numpy as np
 
 from npp_ros.certificate.certifier import Certificate
-from npp_ros.experiment.arms import (
-    EVALUATION_CHUNK,
-    HELD_OUT_STREAM,
-    Arm,
-    ExperimentSettings,
-    evaluation_states,
-)
+from npp_ros.experiment.arms import EVALUATION_CHUNK, Arm, ExperimentSettings, evaluation_states
 from npp_ros.experiment.expert_requests import ExpertReturns
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import Dataset, FloatArray
-from npp_ros.run.evaluation import (
-    VIOLATION_TOLERANCE,
+from npp_ros.run.evaluation import VIOLATION_TOLERANCE, policy_rollouts
+from npp_ros.run.held_out import (
+    EXPERIMENT_HELD_OUT_STREAM,
     HeldOutCheck,
+    KeptAnswers,
     check_policy,
     check_success,
-    policy_rollouts,
+    held_out_states,
 )
 from npp_ros.run.policy_lipschitz import certified_lipschitz
 from npp_ros.run.setup import policy_for
@@ -123,10 +121,10 @@ class Evaluator:
         settings: ExperimentSettings,
         expert: Expert,
         progress: Callable[[int, int], None] | None = None,
-        store: Path | None = None,
+        kept: KeptAnswers | None = None,
         robots: Sequence[Robot] | None = None,
     ) -> None:
-        """``store``: a file that keeps the expert's returns from the evaluation s0 for a resumed run. ``robots``
+        """``kept``: the run's kept expert returns from the evaluation s0, for a resumed run. ``robots``
         (a run on a set of robots): evaluation s0 k is rolled out on robot k, and the expert answers on it."""
         self.settings = settings
         self.expert = expert
@@ -134,7 +132,7 @@ class Evaluator:
         task = self.task = get_task(arm.task)
         self.plant = task.make_plant(seed)
         self.states = evaluation_states(arm.task, seed, settings.evaluations)
-        self.expert_returns = ExpertReturns(arm, seed, settings, self.states, expert, store, robots=robots).result(
+        self.expert_returns = ExpertReturns(arm, seed, settings, self.states, expert, kept, robots=robots).result(
             progress
         )
         if not task.optimal_expert or robots is not None:  # no optimum is known on a drawn robot
@@ -200,14 +198,14 @@ def check_certificate(
 
     The gap is to the exact optimal H-step return where the claim is about V* and the expert is
     optimal; otherwise (oracle mode, the detuned expert, an optimizer expert, a set of robots) to the expert's own
-    H-step return from the same s0. ``expert_returns``: the expert's returns from the held-out s0
-    where already asked for (:func:`held_out_states`, in parallel; ``expert_budget_stops`` of them cut
+    H-step return from the same s0. ``expert_returns``: the expert's returns from the held-out s0 (npp-experiment's
+    stream, EXPERIMENT_HELD_OUT_STREAM) where already asked for (in parallel; ``expert_budget_stops`` of them cut
     by its time budget); else asked here one at a time. ``robots``: held-out s0 k is checked on robot k (a run on a
     set of robots), the expert planning as the arm's did. A success claim is checked as npp-learn checks it: the
     share of rollouts that met the task's criterion (``within``; no gap, no V_lb), asking no expert.
     """
     task = get_task(arm.task)
-    states = held_out_states(arm.task, seed, count)
+    states = held_out_states(arm.task, seed, count, EXPERIMENT_HELD_OUT_STREAM)
     spec = certificate.spec
     policy = policy_for(
         dataset.prefix(certificate.policy_trajectories), spec, arm.task, seed, certified_lipschitz(certificate)
@@ -232,13 +230,6 @@ def check_certificate(
         expert_returns=expert_returns, expert_budget_stops=expert_budget_stops,
         robots=robots, expert_model=arm.expert_model,
     )  # fmt: skip
-
-
-def held_out_states(task: str, seed: int, count: int) -> FloatArray:
-    """The fresh s0 on which a certificate of ``seed`` is checked: a stream of their own, the first ``count``."""
-    spec = get_task(task)
-    rng = np.random.default_rng([seed, HELD_OUT_STREAM])
-    return np.array([spec.sample_initial_state(rng) for _ in range(count)])
 
 
 def compares_with_expert(arm: Arm, certify: str) -> bool:

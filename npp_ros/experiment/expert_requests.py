@@ -14,8 +14,9 @@ on what it answered before), so the returns are the one-at-a-time returns wherev
 stops by convergence or its iteration cap; an answer the time budget cut depends on the machine's
 speed either way, and is counted.
 
-With a ``store`` file, every finished chunk is appended to it as one JSON line (its s0 and
-returns), so a resumed command asks only for the s0 still missing.
+With ``kept`` (npp_ros.run.held_out.KeptAnswers, the one format both commands keep the expert's returns in, named
+by the run's identity), every finished chunk appends its s0's lines in one write, so a resumed command asks only for
+the s0 still missing.
 
 On a set of robots (a run with uncertainty > 0) s0 k is answered on robot k, as the run's own answers were: the
 expert plans on that robot, or its nominal plan runs on it (npp_ros.run.nominal_plan).
@@ -23,32 +24,25 @@ expert plans on that robot, or its nominal plan runs on it (npp_ros.run.nominal_
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 from distributed import Future, get_client, get_worker, wait
 
-from npp_ros.experiment.arms import Arm, ExperimentSettings, expert_options, make_expert
+from npp_ros.experiment.arms import Arm, ExperimentSettings, make_expert
 from npp_ros.policy.dataset import FloatArray
-from npp_ros.run.evaluation import budget_stops
-from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL, nominal_plan_returns
-from npp_ros.tasks.registry import SPEED_ONLY_OPTIONS, Expert, Plant, Task, get_task
+from npp_ros.run.held_out import KeptAnswers, expert_answers
+from npp_ros.run.nominal_plan import DEFAULT_EXPERT_MODEL
+from npp_ros.tasks.registry import Expert, Plant, Task, get_task
 from npp_ros.tasks.uncertainty import Robot
 
 CHUNK = 10  # s0 per chunk: seconds to a minute of expert work on the swing-up tasks
-HELD_OUT_FILE = "heldout-expert.jsonl"  # a run folder's expert returns from its held-out s0
+HELD_OUT_FILE = "heldout-expert.jsonl"  # a run folder's expert returns from its held-out s0 (KeptAnswers)
 EVALUATION_FILE = "evaluation-expert.jsonl"  # ... and from its checkpoint evaluation s0
 NOW, LATER = 1, -1  # Dask priorities of chunks around the runs' 0: a started run waits for them, or not yet
-
-
-class StoredReturnsError(ValueError):
-    """A store file made for another run (task, seed, expert or horizon): refused, left untouched."""
 
 
 @dataclass(frozen=True)
@@ -57,8 +51,12 @@ class ChunkAnswer:
 
     first: int
     returns: list[float]
-    budget_stops: int  # answers the time budget cut before convergence or the iteration cap
+    stopped: list[bool]  # per s0: the time budget cut its answer before convergence or the iteration cap
     worker: str  # the Dask worker that answered ("" in process)
+
+    @property
+    def budget_stops(self) -> int:
+        return sum(self.stopped)
 
 
 def in_dask_task() -> bool:
@@ -84,12 +82,8 @@ def answer(
 ) -> ChunkAnswer:
     """``expert``'s H-step returns from ``states`` (the task's own way: requests, or its controller rolled out); with
     ``robots``, from s0 k on robot k, planned there or (``expert_model`` nominal) planned on the nominal model."""
-    before = budget_stops(expert)
-    if robots is not None and expert_model == "nominal":
-        returns = nominal_plan_returns(expert, plant, states, horizon, robots, progress)
-    else:
-        returns = task.expert_returns(expert, plant, states, horizon, progress, robots)
-    return ChunkAnswer(first, [float(r) for r in returns], budget_stops(expert) - before, worker)
+    returns, stopped = expert_answers(task, expert, plant, states, horizon, robots, expert_model, progress)
+    return ChunkAnswer(first, [float(r) for r in returns], stopped, worker)
 
 
 def answer_on_worker(
@@ -117,7 +111,9 @@ class ExpertReturns:
     elsewhere; ``result()`` waits for them, or answers them here with ``expert``; ``close()`` keeps
     what finished and drops the rest. ``priority``: the chunks' Dask priority against the runs (0):
     LATER for returns asked for ahead (runs waiting for a worker go first), NOW for returns a
-    started run waits for. ``robots``: s0 k is answered on robot k (a run on a set of robots).
+    started run waits for. ``robots``: s0 k is answered on robot k (a run on a set of robots). ``kept``: the run's
+    kept answers (its identity's) the returns are taken from where they match, and appended to chunk by chunk; a file
+    of other answers is refused (StoredReturnsError) and left untouched.
     """
 
     def __init__(
@@ -127,7 +123,7 @@ class ExpertReturns:
         settings: ExperimentSettings,
         states: FloatArray,
         expert: Expert,
-        store: Path | None = None,
+        kept: KeptAnswers | None = None,
         chunk: int = CHUNK,
         priority: int = NOW,
         robots: Sequence[Robot] | None = None,
@@ -136,8 +132,8 @@ class ExpertReturns:
             raise ValueError(f"a chunk holds at least one s0, got {chunk}")
         if robots is not None and len(robots) != len(states):
             raise ValueError(f"one robot per s0: {len(robots)} robots for {len(states)} s0")
-        self.arm, self.seed, self.settings, self.expert, self.store, self.chunk, self.priority = (
-            arm, seed, settings, expert, store, chunk, priority
+        self.arm, self.seed, self.settings, self.expert, self.kept, self.chunk, self.priority = (
+            arm, seed, settings, expert, kept, chunk, priority
         )  # fmt: skip
         self.robots = None if robots is None else list(robots)
         self.states = np.asarray(states, dtype=np.float64)
@@ -146,75 +142,24 @@ class ExpertReturns:
         self.budget_stops = 0
         self.workers: set[str] = set()  # the Dask workers that answered chunks in this process's lifetime
         self._futures: dict[tuple[int, int], Future] = {}  # (first, end) of each chunk the cluster was asked for
-        if store is not None:
-            self._load(store)
-
-    # ------------------------------------------------------------------ the store
-    def _identity(self) -> dict[str, Any]:
-        identity = {
-            "task": self.arm.task, "seed": int(self.seed), "horizon": int(self.settings.horizon),
-            "expert": expert_options(self.arm, self.settings).answer_identity(),
-        }  # fmt: skip
-        if self.robots is not None:  # robot k is the k-th held-out draw of the arm's set: named by the set's factor
-            identity |= {"uncertainty": self.arm.uncertainty, "expert_model": self.arm.expert_model}
-        return identity
+        if kept is not None:  # the answers an earlier command kept for these s0
+            for k, (value, stop) in kept.read(self.states).items():
+                self.returns[k], self.answered[k] = value, True
+                self.budget_stops += int(stop)
 
     def _robots(self, lo: int, hi: int) -> list[Robot] | None:
         return None if self.robots is None else self.robots[lo:hi]
 
-    def _load(self, path: Path) -> None:
-        """Takes the stored returns whose s0 are these s0; a torn last line (a crash mid-write) is asked again."""
-        if not path.exists() or path.stat().st_size == 0:  # an empty file: a crash before its first write
-            return
-        lines = path.read_text().splitlines()
-        try:
-            header = json.loads(lines[0]) if lines else None
-        except json.JSONDecodeError:
-            header = None
-        if isinstance(header, dict) and isinstance(header.get("expert"), dict):  # earlier versions wrote them
-            header["expert"] = {k: v for k, v in header["expert"].items() if k not in SPEED_ONLY_OPTIONS}
-        if header != self._identity():
-            found = "an unreadable first line" if header is None else f"expert returns of another run ({header})"
-            raise StoredReturnsError(
-                f"{path} holds {found}, not this run's ({self._identity()}), and was left untouched"
-            )
-        for line in lines[1:]:
-            try:  # a line that is not a whole chunk (torn by a crash) is skipped: its s0 are asked again
-                entry = json.loads(line)
-                first, stops = int(entry["first"]), int(entry.get("budget_stops", 0))
-                states, returns = np.asarray(entry["states"], float), np.asarray(entry["returns"], float)
-            except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
-                continue
-            end = first + len(returns)
-            if first < 0 or returns.ndim != 1 or states.shape != (len(returns), *self.states.shape[1:]):
-                continue
-            if end <= len(self.states) and np.array_equal(states, self.states[first:end]):
-                self.returns[first:end], self.answered[first:end] = returns, True
-                self.budget_stops += stops
-
     def _keep(self, found: ChunkAnswer) -> None:
-        """Takes one chunk's returns, and appends them to the store in one write."""
+        """Takes one chunk's returns, and appends its s0's lines to the kept answers in one write."""
         hi = found.first + len(found.returns)
         self.returns[found.first : hi] = found.returns
         self.answered[found.first : hi] = True
         self.budget_stops += found.budget_stops
         if found.worker:
             self.workers.add(found.worker)
-        if self.store is None:
-            return
-        size = self.store.stat().st_size if self.store.exists() else 0
-        lines = [] if size else [json.dumps(self._identity())]
-        if size:
-            with self.store.open("rb") as fh:
-                fh.seek(size - 1)
-                if fh.read(1) != b"\n":  # a line torn by a crash stays apart from the next
-                    lines.append("")
-        entry = {"first": found.first, "states": self.states[found.first : hi].tolist(), "returns": found.returns,
-                 "budget_stops": found.budget_stops}  # fmt: skip
-        lines.append(json.dumps(entry))
-        with self.store.open("a") as fh:
-            fh.write("\n".join(lines) + "\n")
-            fh.flush()
+        if self.kept is not None:
+            self.kept.append(found.first, self.states[found.first : hi], found.returns, found.stopped)
 
     # ------------------------------------------------------------------ asking
     def missing_chunks(self) -> list[tuple[int, int]]:

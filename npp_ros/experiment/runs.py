@@ -18,13 +18,18 @@ from npp_ros.experiment.evaluation import (
     append_evaluations,
     check_certificate,
     held_out_asks_expert,
-    held_out_states,
     read_evaluations,
     read_held_out,
 )
 from npp_ros.experiment.expert_requests import EVALUATION_FILE, HELD_OUT_FILE, LATER, ExpertReturns
 from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.run.evaluation import held_out_robots
+from npp_ros.run.held_out import (
+    EXPERIMENT_HELD_OUT_STREAM,
+    KeptAnswers,
+    answers_identity,
+    held_out_robots,
+    held_out_states,
+)
 from npp_ros.run.loop import NPPLoop, Observer
 from npp_ros.run.progress import status_text
 from npp_ros.run.records import EpisodeRow
@@ -86,16 +91,19 @@ def run_arm_seed(
     loop = build_loop(config, expert, store_path=run_dir / RUN_FILE, observers=[progress])
     # A run on a set of robots claims over (s0, robot): each fresh s0 is checked on a fresh robot, drawn as npp-learn
     # draws its held-out robots (None on the exact model); the evaluations draw the first of the same robots, each
-    # paired with an evaluation s0 (a stream of its own), so each set of pairs is fresh.
+    # paired with an evaluation s0 (a stream of its own), so each set of pairs is fresh. The expert's returns from
+    # both are kept in the run folder under the run's own identity, as npp-learn keeps its held-out ones.
     held_out_on = held_out_robots(config.uncertainty, seed, settings.held_out)
+    identity = answers_identity(config)
     held_out_returns: ExpertReturns | None = None
     try:
         may_certify = loop.certificate is not None or loop.next_episode < budget  # else no held-out check follows
         if may_certify and not (run_dir / "heldout.json").exists() and held_out_asks_expert(arm, config.spec.certify):
             # they do not depend on the certificate: on a Dask cluster, idle workers answer them while the run runs
-            states = held_out_states(arm.task, seed, settings.held_out)
+            states = held_out_states(arm.task, seed, settings.held_out, EXPERIMENT_HELD_OUT_STREAM)
+            kept = KeptAnswers(run_dir / HELD_OUT_FILE, identity)
             held_out_returns = ExpertReturns(
-                arm, seed, settings, states, expert, run_dir / HELD_OUT_FILE, priority=LATER, robots=held_out_on
+                arm, seed, settings, states, expert, kept, priority=LATER, robots=held_out_on
             ).start()
         evaluations_path = run_dir / "evaluations.csv"
         done = {row.checkpoint for row in read_evaluations(evaluations_path)}
@@ -114,7 +122,7 @@ def run_arm_seed(
             if evaluator is None:
                 asked = lambda k, n: report(f"{key}: the expert from evaluation s0 {k}/{n}")  # noqa: E731
                 evaluator = Evaluator(
-                    arm, seed, settings, expert, asked, store=run_dir / EVALUATION_FILE,
+                    arm, seed, settings, expert, asked, kept=KeptAnswers(run_dir / EVALUATION_FILE, identity),
                     robots=held_out_robots(config.uncertainty, seed, settings.evaluations),
                 )  # fmt: skip
             label = f"{key}: evaluating at episode {reached}"
