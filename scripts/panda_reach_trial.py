@@ -35,6 +35,8 @@ def learn(args: argparse.Namespace, seed: int, evaluate: int, log: Path) -> None
         command += ["--policy-lipschitz", args.policy_lipschitz]
     if args.policy is not None:
         command += ["--policy", args.policy]
+    if args.max_episodes is not None:
+        command += ["--max-episodes", str(args.max_episodes)]
     with log.open("a") as out:
         subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, check=False)
 
@@ -99,6 +101,7 @@ def main() -> None:
     parser.add_argument(
         "--policy-lipschitz", default=None, choices=("claim", "select"), help="the policy's L (default: npp-learn's)"
     )
+    parser.add_argument("--max-episodes", type=int, default=None, help="stop uncertified after this many episodes")
     parser.add_argument("--prefix", default="", help="the run folders' names: PREFIX-sSEED (default: the claim)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     args = parser.parse_args()
