@@ -3,11 +3,12 @@
 A script starts a graph (``GraphClient.start``: npp-run with the same options, so the same node
 processes, logs, refusals and clean stops) or joins one already running (``GraphClient(domain_id=...)``),
 asks its expert for a trajectory, follows the run's gaps, episodes, health and certificate as iterators,
-callbacks or non-blocking looks (``latest``, ``done``), and stops it. What it returns is npp_ros's own:
-the certificate is npp_ros.certificate.certifier.Certificate, a gap report a GapRecord and an episode an
-EpisodeOutcome (npp_ros.run.records), each converted from its message in npp_ros_graph/transport/convert.py.
-The callbacks get the messages themselves, as they were sent: the tools print and record those, as they
-do a bag's. ``start`` returns once the graph's sim describes its plant (latched, sealed under the run's key).
+callbacks or non-blocking looks (``latest``, ``done``), and stops it. What it gives is npp_ros's own, to its
+iterators and its callbacks alike: the certificate is npp_ros.certificate.certifier.Certificate, a gap report
+a GapRecord, an episode an EpisodeOutcome and the plant a PlantRecord (npp_ros.run.records), each converted
+from its message once, as it arrives, in npp_ros_graph/transport/convert.py (the module that converts a
+bag's messages too). ``start`` returns once the graph's sim describes its plant (latched, sealed under the
+run's key).
 
 Why it is shaped so: the client's node spins in a thread of its own (the synchros2 model the nodes
 follow, npp_ros_graph/runtime/node.py), so every call here is synchronous with a timeout and safe from
@@ -46,20 +47,20 @@ from rclpy.signals import SignalHandlerOptions
 
 from npp_ros.certificate.certifier import Certificate
 from npp_ros.policy.dataset import Trajectory
-from npp_ros.run.records import EpisodeOutcome, GapRecord
+from npp_ros.run.records import EpisodeOutcome, GapRecord, PlantRecord
 from npp_ros.run.request import RunRequest
-from npp_ros.tasks.registry import get_task
 from npp_ros.tasks.sources import short_name
 from npp_ros_graph.graph.description import run_options
 from npp_ros_graph.graph.npp_run_options import option_names
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, DIAGNOSTICS_QOS, Health, health_of
 from npp_ros_graph.runtime.node import publishers_of, release
-from npp_ros_graph.runtime.reports import RunReports
+from npp_ros_graph.runtime.reports import RunReports, report_origin, unverified_mark
 from npp_ros_graph.transport.convert import (
-    certificate_from_msg,
+    certificate_of_run,
     episode_from_msg,
     float64_array,
     gap_from_msg,
+    plant_from_msg,
     trajectory_from_response,
 )
 from npp_ros_graph.transport.expert_api import BUSY, EXPERT_SERVICE, NOT_READY, PLANT_QOS, PLANT_TOPIC, SERVICE_QOS
@@ -172,10 +173,12 @@ class GraphClient:
         )  # fmt: skip
         self.node = rclpy.create_node(name, namespace=namespace or None, context=self.context)
         self._cond = threading.Condition()
-        self._kept: deque[Message] = deque(maxlen=KEPT_REPORTS)
+        self._kept: deque[Report] = deque(maxlen=KEPT_REPORTS)
+        self._named: dict[int, str] = {}  # the run each kept report names, by the report's id (see ``mark``)
         self._received = 0  # reports received so far; the kept ones are the last len(_kept) of them
-        self._certificate: CertificateMsg | None = None
-        self._plant: PlantDescription | None = None
+        self._certificate: Certificate | None = None
+        self._unplanted: CertificateMsg | None = None  # a certificate that came before the plant that names its task
+        self._plant: PlantRecord | None = None
         self._health: dict[str, Health] = {}
         self._callbacks: dict[type, list[Callable[[Any], None]]] = {}
         self._notices: list[Callable[[str], None]] = []
@@ -333,29 +336,30 @@ class GraphClient:
             pass
 
     # ------------------------------------------------------------------------- callbacks
-    # A callback is added on the client's thread, which delivers every message: the messages received before
-    # it was added (the kept reports, the plant) are handed to it first, so that it misses and repeats none.
-    def on_gap(self, callback: Callable[[GapReport], None]) -> None:
-        """Call ``callback`` with each of this run's gap report messages (one per episode), on the client's thread;
-        ``gaps()`` and ``latest()`` give them as GapRecords."""
-        self._add(GapReport, callback)
+    # A callback is added on the client's thread, which delivers every record: those received before it was
+    # added (the kept reports, the plant) are handed to it first, so that it misses and repeats none.
+    def on_gap(self, callback: Callable[[GapRecord], None]) -> None:
+        """Call ``callback`` with each of this run's gap reports (one per episode) as a GapRecord, on the client's
+        thread: the records ``gaps()`` gives."""
+        self._add(GapRecord, callback)
 
-    def on_episode(self, callback: Callable[[EpisodeResult], None]) -> None:
-        """Call ``callback`` with each of this run's episode results, on the client's thread."""
-        self._add(EpisodeResult, callback)
+    def on_episode(self, callback: Callable[[EpisodeOutcome], None]) -> None:
+        """Call ``callback`` with each of this run's episode outcomes (EpisodeOutcome), on the client's thread."""
+        self._add(EpisodeOutcome, callback)
 
-    def on_certificate(self, callback: Callable[[CertificateMsg], None]) -> None:
-        """Call ``callback`` with the run's certificate message once it is issued, on the client's thread
-        (``certificate()`` gives it as npp_ros's Certificate)."""
-        self._add(CertificateMsg, callback)
+    def on_certificate(self, callback: Callable[[Certificate], None]) -> None:
+        """Call ``callback`` with the run's certificate once it is issued, as npp_ros's Certificate (the one
+        ``certificate()`` returns), on the client's thread."""
+        self._add(Certificate, callback)
 
     def on_health(self, callback: Callable[[DiagnosticArray], None]) -> None:
         """Call ``callback`` with each /diagnostics message from now on (``health`` holds each node's latest)."""
         self._add(DiagnosticArray, callback)
 
-    def on_plant(self, callback: Callable[[PlantDescription], None]) -> None:
-        """Call ``callback`` with the sim's plant description (this run's key's, when the client has a key)."""
-        self._add(PlantDescription, callback)
+    def on_plant(self, callback: Callable[[PlantRecord], None]) -> None:
+        """Call ``callback`` with the plant the sim describes, as the PlantRecord ``plant()`` returns (this run's
+        key's, when the client has a key)."""
+        self._add(PlantRecord, callback)
 
     def on_notice(self, callback: Callable[[str], None]) -> None:
         """Call ``callback`` with a line for each other run whose reports are left out (see runtime/reports.py)."""
@@ -363,32 +367,45 @@ class GraphClient:
 
     def _add(self, kind: type, callback: Callable[[Any], None]) -> None:
         def add() -> None:
-            earlier = [self._plant] if kind is PlantDescription and self._plant is not None else []
-            earlier += [msg for msg in self._kept if isinstance(msg, kind)]
-            for msg in earlier:
-                self._deliver(callback, msg)
+            earlier = [self._plant] if kind is PlantRecord and self._plant is not None else []
+            earlier += [report for report in self._kept if isinstance(report, kind)]
+            for item in earlier:
+                self._deliver(callback, item)
             self._callbacks.setdefault(kind, []).append(callback)
 
         self._executor.create_task(add)
 
-    def _call(self, msg: Any) -> None:
-        for callback in list(self._callbacks.get(type(msg), ())):
-            self._deliver(callback, msg)
+    def _call(self, item: Any) -> None:
+        for callback in list(self._callbacks.get(type(item), ())):
+            self._deliver(callback, item)
 
-    def _deliver(self, callback: Callable[[Any], None], msg: Any) -> None:
+    def _deliver(self, callback: Callable[[Any], None], item: Any) -> None:
         try:
-            callback(msg)
+            callback(item)
         except Exception as exc:  # a caller's bug must not stop the client's thread
-            self.node.get_logger().error(f"a {type(msg).__name__} callback failed: {type(exc).__name__}: {exc}")
+            self.node.get_logger().error(f"a {type(item).__name__} callback failed: {type(exc).__name__}: {exc}")
 
     def _on_report(self, msg: Message) -> None:
+        """A report of the run (RunReports): converted once, here, into the record every caller gets."""
+        if isinstance(msg, CertificateMsg) and self._plant is None:
+            self._unplanted = msg  # its task is the one the plant names: converted once the sim describes it
+            return
+        try:
+            report = self._record(msg)
+        except ValueError as exc:  # no report of an npp_ros supervisor: every reader would refuse it
+            self.node.get_logger().error(f"a {type(msg).__name__} left out: {exc}")
+            return
+        origin = report_origin(msg)
         with self._cond:
-            self._kept.append(msg)
+            if len(self._kept) == self._kept.maxlen:
+                self._named.pop(id(self._kept[0]), None)
+            self._kept.append(report)
+            self._named[id(report)] = origin[1] if origin else ""
             self._received += 1
-            if isinstance(msg, CertificateMsg):
-                self._certificate = msg
+            if isinstance(report, Certificate):
+                self._certificate = report
             self._cond.notify_all()
-        self._call(msg)
+        self._call(report)
 
     def _on_notice(self, line: str) -> None:
         for callback in list(self._notices):
@@ -400,10 +417,14 @@ class GraphClient:
                 self.seal.check(msg, "a plant description")
             except SealError:
                 return  # another run's plant, under another key
+        plant = plant_from_msg(msg)
         with self._cond:
-            self._plant = msg
+            self._plant = plant
             self._cond.notify_all()
-        self._call(msg)
+        self._call(plant)
+        if self._unplanted is not None:
+            certificate, self._unplanted = self._unplanted, None
+            self._on_report(certificate)
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         with self._cond:
@@ -443,23 +464,30 @@ class GraphClient:
         """Whether reports are checked as this run's (the client has the run's key)."""
         return self.reports_of_run.verified
 
-    def mark(self, msg: Message) -> str:
-        """What a viewer adds to a report: "" when verified, else that it is not and the run it names."""
-        return self.reports_of_run.mark(msg)
+    def mark(self, report: Report) -> str:
+        """What a viewer adds to a report this client gave: "" when verified, else that it is not and the run it
+        names (``named_run``)."""
+        return "" if self.verified else unverified_mark(self.named_run(report))
+
+    def named_run(self, report: Report) -> str:
+        """The identity of the run a report this client gave names in its header ("": none, or a report it no
+        longer keeps). Given the run's key, the client gives this run's reports only."""
+        with self._cond:
+            return self._named.get(id(report), "")
 
     def health(self) -> dict[str, Health]:
         """Each node's latest health from /diagnostics, by its full name (/npp_sim...)."""
         with self._cond:
             return dict(self._health)
 
-    def plant(self, timeout: float = 30.0) -> PlantDescription:
-        """The sim's plant description (task, seed, horizon, dimensions), once it is here."""
+    def plant(self, timeout: float = 30.0) -> PlantRecord:
+        """The plant the sim describes (task, seed, horizon, dimensions...), once it is here."""
         return self._wait(lambda: self._plant, timeout, "the sim's plant description")
 
     def certificate(self, timeout: float = 600.0) -> Certificate:
         """The run's certificate, once issued, as npp_ros's Certificate; GraphError if the graph started here stops
         without one."""
-        return self._core(self._wait(lambda: self._certificate, timeout, "the certificate"))
+        return self._wait(lambda: self._certificate, timeout, "the certificate")
 
     def done(self) -> bool:
         """Without waiting: whether the run is over here (certified, or the graph started here has stopped)."""
@@ -470,19 +498,15 @@ class GraphClient:
         """Without waiting: the newest report of the run (a GapRecord, an EpisodeOutcome or the Certificate), or
         None before the first."""
         with self._cond:
-            newest = self._kept[-1] if self._kept else None
-        return None if newest is None else self._core(newest)
+            return self._kept[-1] if self._kept else None
 
-    def _core(self, msg: Message) -> Report:
+    def _record(self, msg: Message) -> Report:
         """A report as npp_ros reads it (transport/convert.py); the certificate for the plant the sim describes."""
         if isinstance(msg, GapReport):
             return gap_from_msg(msg)
         if isinstance(msg, EpisodeResult):
             return episode_from_msg(msg)
-        plant = self._plant
-        task = plant.task if plant is not None else ""
-        diameter = get_task(task).initial_state_diameter if task and msg.condition == "ii" else None
-        return certificate_from_msg(msg, task, diameter)
+        return certificate_of_run(msg, self._plant)
 
     def reports(self, timeout: float = 120.0) -> Iterator[Report]:
         """This run's reports in arrival order as npp_ros reads them (GapRecords, EpisodeOutcomes, the Certificate
@@ -500,9 +524,9 @@ class GraphClient:
                 new = list(self._kept)[max(seen - first, 0) :]
                 seen = self._received
                 over = not new and not self.running
-            for msg in new:
-                yield self._core(msg)
-                if isinstance(msg, CertificateMsg):
+            for report in new:
+                yield report
+                if isinstance(report, Certificate):
                     return
             if over:
                 return
@@ -516,7 +540,7 @@ class GraphClient:
         return self._only(EpisodeOutcome, timeout)
 
     def _only(self, kind: type[R], timeout: float) -> Iterator[R]:
-        return (msg for msg in self.reports(timeout) if isinstance(msg, kind))
+        return (report for report in self.reports(timeout) if isinstance(report, kind))
 
     def _wait(self, get: Callable[[], Any], timeout: float, what: str) -> Any:
         with self._cond:

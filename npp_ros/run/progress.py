@@ -9,7 +9,7 @@ from typing import TextIO
 
 from npp_ros.certificate.certifier import L_FREE, Certificate, CertificationSpec, CertificationStatus
 from npp_ros.run.loop import Observer
-from npp_ros.run.records import EpisodeRow
+from npp_ros.run.records import EpisodeRow, GapRecord
 
 
 def claim_header(spec: CertificationSpec, policy_lipschitz: str = "claim") -> str:
@@ -35,23 +35,33 @@ def checked_text(checked_gap: float, epsilon: float, certify: str, label: str = 
     return f"{label} {'inf' if math.isinf(checked_gap) else f'{checked_gap:.2f}':>8} / eps {epsilon:g}"
 
 
-def status_text(row: EpisodeRow, epsilon: float, status: CertificationStatus, condition: str, certify: str = "") -> str:
-    """One line: the checked gap against epsilon, and the current test's streak against what it needs."""
-    mark = "ORACLE" if row.oracle_called else "quiet "
-    streak = (
-        f"test {status.test} streak {status.quiet_episodes}/{status.required}"
-        if condition == "i"
-        else f"test {status.test} window {status.window} needs {status.required or '-'}"
-    )
-    if status.stage == "screen":
+def progress_text(gap: GapRecord, status: CertificationStatus | None = None) -> str:
+    """One episode's progress line, as npp-learn and npp-run print it: the checked gap against epsilon, whether the
+    oracle was asked, the dataset size, the oracle calls, and the current test's streak against what it needs.
+    Episodes are counted from 1, as the certificate counts them (the run file's index is from 0).
+
+    Given the loop's ``status`` (npp-learn's), the streak is its own words for condition (ii) (the window against
+    its need) and the mixture rule (its screen, or its verification's checks and failures); a gap report carries
+    the streak and the need alone, which under condition (i)'s sequential and paper rules are the same words.
+    """
+    mark = "ORACLE" if gap.oracle_called else "quiet "
+    streak = f"test {gap.test} streak {gap.quiet_episodes}/{gap.required}"
+    if status is not None and status.stage == "screen":
         streak = f"screen {status.quiet_episodes}/{status.required}"
-    elif status.stage == "verification":
+    elif status is not None and status.stage == "verification":
         failed = f"{status.failures} failed"
         streak = f"verification {status.test}: {status.window} checks, {failed}, needs {status.required}"
+    elif status is not None and gap.condition != "i":
+        streak = f"test {status.test} window {status.window} needs {status.required or '-'}"
     return (
-        f"episode {row.episode + 1:5d} | {checked_text(row.checked_gap, epsilon, certify)} {mark} | "
-        f"|D| {row.dataset_size:8d} | oracle calls {row.oracle_calls:4d} | {streak}"
+        f"episode {gap.episode + 1:5d} | {checked_text(gap.checked_gap, gap.epsilon, gap.certify)} {mark} | "
+        f"|D| {gap.dataset_size:8d} | oracle calls {gap.oracle_calls:4d} | {streak}"
     )
+
+
+def status_text(row: EpisodeRow, epsilon: float, status: CertificationStatus, condition: str, certify: str = "") -> str:
+    """The progress line of a row the loop just decided, with where the certification stands (``status``)."""
+    return progress_text(GapRecord.of(row, epsilon=epsilon, condition=condition, certify=certify), status)
 
 
 def unreachable_text(status: CertificationStatus, episodes: int, max_episodes: int) -> str | None:

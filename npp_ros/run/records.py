@@ -167,8 +167,10 @@ class EpisodeRow:
 
 @dataclass(frozen=True)
 class GapRecord:
-    """One episode's decision as a running graph reports it (/npp/gap): the part of its EpisodeRow a viewer gets,
-    with the spec it was checked against (epsilon, condition, checked quantity)."""
+    """One episode's decision as a viewer of the run reads it: the part of its EpisodeRow a running graph reports
+    (/npp/gap), with the spec it was checked against (epsilon, condition, checked quantity). npp-learn's and
+    npp-run's progress lines are both made from one (npp_ros.run.progress.progress_text), and npp-dashboard shows
+    one whether it came from the graph, a bag or a run file's row (``of``)."""
 
     episode: int
     initial_state: tuple[float, ...]
@@ -187,6 +189,16 @@ class GapRecord:
     condition: str
     certify: str
 
+    @classmethod
+    def of(cls, row: EpisodeRow, *, epsilon: float, condition: str, certify: str) -> GapRecord:
+        """The record of a stored (or just decided) episode row, checked against that spec."""
+        return cls(
+            episode=row.episode, initial_state=tuple(row.initial_state), v_lb=row.v_lb, v_ub=row.v_ub, gap=row.gap,
+            checked_gap=row.checked_gap, epsilon=epsilon, oracle_called=row.oracle_called,
+            dataset_size=row.dataset_size, oracle_calls=row.oracle_calls, quiet_episodes=row.quiet_episodes,
+            required=row.required, test=row.test, test_delta=row.test_delta, condition=condition, certify=certify,
+        )  # fmt: skip
+
 
 @dataclass(frozen=True)
 class EpisodeOutcome:
@@ -200,6 +212,26 @@ class EpisodeOutcome:
     expert_value: float | None
     v_lb: float
     robot: str = ""
+
+
+@dataclass(frozen=True)
+class PlantRecord:
+    """The plant a running graph's sim describes (/npp/sim/plant): its task, seed and episode length, its step, the
+    sizes of a state and an action, its joints, the fingerprint of its model, its angle entries and the range of
+    its actuators."""
+
+    task: str
+    seed: int
+    horizon: int
+    timestep: float
+    state_dim: int
+    action_dim: int
+    joint_names: tuple[str, ...]
+    actuated_joint_names: tuple[str, ...]
+    model_sha256: str
+    angle_entries: tuple[int, ...]
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
 
 
 @dataclass(frozen=True)

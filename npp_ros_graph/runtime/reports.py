@@ -11,7 +11,7 @@ covers: no recording can answer it. The viewer shows the reports of that run onl
 arrive before the answer, and names once each other run whose reports it leaves out.
 
 A viewer without the key cannot verify anything: it shows every report, and says so of each
-(``RunReports.mark``): any run on the domain, or a replay, may have sent it.
+(``unverified_mark``): any run on the domain, or a replay, may have sent it.
 """
 
 from __future__ import annotations
@@ -48,12 +48,18 @@ def report_origin(msg: Any) -> tuple[str, str] | None:
     return (fingerprint, run) if fingerprint and run else None
 
 
+def unverified_mark(run: str) -> str:
+    """What a viewer without the run's key adds to a report it shows: that it is not verified, and the run it names
+    (``run``: its identity, "" for a report that names none)."""
+    return UNVERIFIED + (f"; it names run {run[:12]}" if run else "")
+
+
 class RunReports:
     """The reports of the run the live supervisor runs, handed to ``show`` in arrival order; ``say`` gets a
     line for each other run whose reports are left out.
 
     ``take`` is called from the node's subscription callbacks, and everything here runs on its executor's
-    thread (the supervisor's answer too). Without a private key, every report is shown (see ``mark``).
+    thread (the supervisor's answer too). Without a private key, every report is shown (see ``unverified_mark``).
     """
 
     def __init__(
@@ -91,13 +97,6 @@ class RunReports:
         self._fingerprints.add(fingerprint)
         self._held.append((run, msg))
         self._ask()
-
-    def mark(self, msg: Any) -> str:
-        """What a viewer adds to a report it shows: "" when verified, else that it is not, and the run it names."""
-        if self.verified:
-            return ""
-        origin = report_origin(msg)
-        return UNVERIFIED + (f"; it names run {origin[1][:12]}" if origin else "")
 
     def waiting(self) -> str:
         """Why reports are not shown yet, for a viewer's "nothing received" notice ("" when none wait)."""

@@ -27,13 +27,14 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib.resources import files
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
+
+from npp_ros.certificate.certifier import Certificate
+from npp_ros.run.records import GapRecord, PlantRecord
 
 # Where the page's files are, and which names are served (nothing else is).
 STATIC = files("npp_ros_graph.tools") / "static"
@@ -58,20 +59,20 @@ def number(value: float) -> float | str | None:
     return value
 
 
-def episode_entry(msg: Any) -> dict[str, Any]:
-    """One GapReport (a ROS message, a bag's decoded one, or a run file's row read as one) as the page plots it."""
+def episode_entry(gap: GapRecord) -> dict[str, Any]:
+    """One episode's GapRecord (the graph's report, a bag's, or a run file's row read as one) as the page plots it."""
     return {
-        "episode": int(msg.episode),
-        "checked_gap": number(msg.checked_gap),
-        "gap": number(msg.gap),
-        "epsilon": number(msg.epsilon),
-        "oracle_called": bool(msg.oracle_called),
-        "dataset_size": int(msg.dataset_size),
-        "oracle_calls": int(msg.oracle_calls),
-        "quiet": int(msg.quiet_episodes),
-        "required": int(msg.quiet_required),
-        "test": int(msg.test),
-        "certify": str(msg.certify),
+        "episode": gap.episode,
+        "checked_gap": number(gap.checked_gap),
+        "gap": number(gap.gap),
+        "epsilon": number(gap.epsilon),
+        "oracle_called": gap.oracle_called,
+        "dataset_size": gap.dataset_size,
+        "oracle_calls": gap.oracle_calls,
+        "quiet": gap.quiet_episodes,
+        "required": gap.required,
+        "test": gap.test,
+        "certify": gap.certify,
     }
 
 
@@ -81,20 +82,23 @@ CERTIFICATE_FIELDS = (
 )  # fmt: skip
 
 
-def certificate_entry(source: Any) -> dict[str, Any]:
-    """A Certificate message, or the run file's certificate (a dict), in the page's terms."""
-    get = source.get if isinstance(source, dict) else lambda name, default=None: getattr(source, name, default)
+def certificate_entry(certificate: Certificate) -> dict[str, Any]:
+    """The run's Certificate (the graph's, a bag's or the run file's) in the page's terms: its record's fields."""
+    record = certificate.record()
     entry: dict[str, Any] = {}
     for name in CERTIFICATE_FIELDS:
-        value = get(name, None)
-        if value is None and name == "assumptions":
-            value = []
+        value = record[name]
         if isinstance(value, float):
             value = number(value)
         elif not isinstance(value, (str, int, bool, type(None))):
             value = [str(v) for v in value]
         entry[name] = value
     return entry
+
+
+def plant_entry(task: Any, seed: Any, horizon: Any) -> dict[str, Any]:
+    """The run's plant in the page's terms: a PlantRecord's, or what the run file's metadata records of it."""
+    return {"task": task, "seed": seed, "horizon": horizon}
 
 
 class Hub:
@@ -145,38 +149,41 @@ class Hub:
 
 # ----------------------------------------------------------------------------- sources
 def load_run(folder: Path, hub: Hub) -> None:
-    """A run folder's run.sqlite: every stored episode, and the certificate if one was issued."""
+    """A run folder (or its run.sqlite), read by the core's reader: every stored episode, each row as the GapRecord
+    the supervisor reported for it, and the certificate if one was issued."""
+    from npp_ros.run.read import read_run
     from npp_ros.run.records import RunFileError
-    from npp_ros.run.store import RUN_FILE, RunStore
+    from npp_ros.tasks.task import UnknownTaskError
 
-    path = folder / RUN_FILE if folder.is_dir() else folder
     try:
-        with RunStore.open(path) as store:
-            meta, rows, certificate = store.metadata, store.episodes(), store.certificate()
-    except (RunFileError, OSError) as exc:
-        raise SystemExit(f"npp-dashboard: cannot open the run {path}: {exc}") from None
-    hub.set("plant", {"task": meta.task, "seed": meta.seed, "horizon": meta.horizon})
-    for row in rows:  # a stored row read as the GapReport the supervisor published for it: one entry builder
-        report = SimpleNamespace(**asdict(row), quiet_required=row.required, epsilon=meta.epsilon, certify=meta.certify)
-        hub.add_episode(episode_entry(report))
-    if certificate is not None:
-        hub.set("certificate", certificate_entry(certificate))
+        run = read_run(folder)
+    except (RunFileError, UnknownTaskError, OSError) as exc:
+        raise SystemExit(f"npp-dashboard: cannot open the run {folder}: {exc}") from None
+    meta, spec = run.metadata, run.spec
+    hub.set("plant", plant_entry(meta.task, meta.seed, meta.horizon))
+    for row in run.episodes:
+        gap = GapRecord.of(row, epsilon=spec.epsilon, condition=spec.condition, certify=spec.certify)
+        hub.add_episode(episode_entry(gap))
+    if run.certificate is not None:
+        hub.set("certificate", certificate_entry(run.certificate))
 
 
 def load_bag(folder: Path, hub: Hub) -> None:
-    """A bag recorded by npp-record: its GapReports, plant description and certificate."""
+    """A bag recorded by npp-record: its gap reports, plant description and certificate, read as the records a live
+    client gives."""
     from npp_ros_graph.tools.bag import BagError, read_messages
+    from npp_ros_graph.transport.convert import recorded_records
     from npp_ros_graph.transport.topics import CERTIFICATE, GAP, PLANT
 
     try:
-        for message in read_messages(folder, [GAP, CERTIFICATE, PLANT]):
-            if message.topic.endswith("/" + GAP):
-                hub.add_episode(episode_entry(message.msg))
-            elif message.topic.endswith("/" + CERTIFICATE):
-                hub.set("certificate", certificate_entry(message.msg))
+        messages = ((message.msgtype, message.msg) for message in read_messages(folder, [GAP, CERTIFICATE, PLANT]))
+        for record in recorded_records(messages):
+            if isinstance(record, GapRecord):
+                hub.add_episode(episode_entry(record))
+            elif isinstance(record, Certificate):
+                hub.set("certificate", certificate_entry(record))
             else:
-                msg = message.msg
-                hub.set("plant", {"task": msg.task, "seed": int(msg.seed), "horizon": int(msg.horizon)})
+                hub.set("plant", plant_entry(record.task, record.seed, record.horizon))
     except BagError as exc:
         raise SystemExit(f"npp-dashboard: {exc}") from None
 
@@ -184,13 +191,12 @@ def load_bag(folder: Path, hub: Hub) -> None:
 def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> None:
     """Follow the run through a GraphClient and watch the graph's nodes until Ctrl-C."""
     from diagnostic_msgs.msg import DiagnosticArray
-    from npp_interfaces.msg import Certificate, PlantDescription
 
     from npp_ros_graph.client import GraphClient
     from npp_ros_graph.runtime.diagnostics import LEVEL_NAMES, health_of
 
     class Dashboard:
-        """Feeds the hub: this run's GapReports (those the supervisor kept from before it joined too), the
+        """Feeds the hub: this run's gap reports (those the supervisor kept from before it joined too), the
         latched plant and certificate, the graph's node names and every node's health from /diagnostics."""
 
         def __init__(self) -> None:
@@ -202,19 +208,20 @@ def follow_live(hub: Hub, ros_args: list[str], serve: Callable[[], None]) -> Non
                 hub.set("source", f"{hub.state['source']}; reports not verified: no run key (NPP_RUN_KEY), so any "
                         "run on the domain, or a replayed bag, may have sent them")  # fmt: skip
             self.health: dict[str, dict[str, str]] = {}
-            self.client.on_gap(lambda msg: hub.add_episode(episode_entry(msg)))
+            self.client.on_gap(lambda gap: hub.add_episode(episode_entry(gap)))
             self.client.on_certificate(self.on_certificate)
             self.client.on_plant(self.on_plant)
             self.client.on_health(self.on_diagnostics)
             self.client.every(1.0, self.look_at_nodes)
             self.look_at_nodes()
 
-        def on_certificate(self, msg: Certificate) -> None:
+        def on_certificate(self, certificate: Certificate) -> None:
             """The run's certificate (any run's, marked so, while unverified)."""
-            hub.set("certificate", certificate_entry(msg) | {"verified": self.client.mark(msg) or "yes"})
+            verified = self.client.mark(certificate) or "yes"
+            hub.set("certificate", certificate_entry(certificate) | {"verified": verified})
 
-        def on_plant(self, msg: PlantDescription) -> None:
-            hub.set("plant", {"task": msg.task, "seed": int(msg.seed), "horizon": int(msg.horizon)})
+        def on_plant(self, plant: PlantRecord) -> None:
+            hub.set("plant", plant_entry(plant.task, plant.seed, plant.horizon))
 
         def on_diagnostics(self, msg: DiagnosticArray) -> None:
             """The newest status of each node, by its node name (a status is named by the node's full name)."""

@@ -13,7 +13,6 @@ first after a few seconds, then periodically."""
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import signal
 import sys
@@ -22,14 +21,16 @@ import time
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
-from npp_interfaces.msg import Certificate, EpisodeResult, GapReport
 
+from npp_ros.certificate.certifier import QUANTITY, Certificate
 from npp_ros.run.progress import checked_text
+from npp_ros.run.records import EpisodeOutcome, GapRecord
 from npp_ros_graph.client import GraphClient
 from npp_ros_graph.runtime.diagnostics import DIAGNOSTICS, health_lines
 from npp_ros_graph.runtime.node import leave_if_teardown_hangs
-from npp_ros_graph.runtime.reports import UNVERIFIED, report_origin
-from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP
+from npp_ros_graph.runtime.reports import UNVERIFIED
+from npp_ros_graph.transport.convert import recorded_records
+from npp_ros_graph.transport.topics import CERTIFICATE, EPISODE, GAP, PLANT
 
 TOPICS = {"gap": GAP, "episode": EPISODE, "health": DIAGNOSTICS.lstrip("/")}  # --topics; the certificate always
 FIRST_NOTICE_S = 5.0  # silence before the first "waiting for" line: discovery on one machine takes < 1 s
@@ -37,39 +38,47 @@ NOTICE_EVERY_S = 30.0  # then once per this much further silence
 TEARDOWN_S = 20.0  # from the exit's start (the certificate, or the loop's end) to leaving without the ROS teardown
 
 
-def gap_line(msg: GapReport) -> str:
+def gap_line(gap: GapRecord) -> str:
     """One episode: the gap its certification mode checked against epsilon, and the current test's streak. Episodes
     are counted from 1, as npp-learn's lines and the certificate's count them (the run file's index is from 0)."""
-    mark = "ORACLE" if msg.oracle_called else "quiet"
-    checked = checked_text(msg.checked_gap, msg.epsilon, msg.certify, msg.certify or "gap")
+    mark = "ORACLE" if gap.oracle_called else "quiet"
+    checked = checked_text(gap.checked_gap, gap.epsilon, gap.certify, gap.certify or "gap")
     return (
-        f"[gap]     episode {msg.episode + 1:5d}  {checked}  {mark:<6} "
-        f"|D| {msg.dataset_size:8d}  oracle calls {msg.oracle_calls:4d}  "
-        f"test {msg.test} streak {msg.quiet_episodes}/{msg.quiet_required}"
+        f"[gap]     episode {gap.episode + 1:5d}  {checked}  {mark:<6} "
+        f"|D| {gap.dataset_size:8d}  oracle calls {gap.oracle_calls:4d}  "
+        f"test {gap.test} streak {gap.quiet_episodes}/{gap.required}"
     )
 
 
-def episode_line(msg: EpisodeResult) -> str:
-    ret = "-" if math.isnan(msg.policy_return) else f"{msg.policy_return:.2f}"
-    expert = f"{msg.expert_value:.2f}" if msg.expert_value_known else "-"
+def episode_line(outcome: EpisodeOutcome) -> str:
+    ret = "-" if outcome.policy_return is None else f"{outcome.policy_return:.2f}"
+    expert = "-" if outcome.expert_value is None else f"{outcome.expert_value:.2f}"
     return (
-        f"[episode] episode {msg.episode + 1:5d}  return {ret:>8}  V*(s0) {expert:>8}  "
-        f"V_lb(s0) {msg.v_lb:.2f}  steps {msg.steps}"
+        f"[episode] episode {outcome.episode + 1:5d}  return {ret:>8}  V*(s0) {expert:>8}  "
+        f"V_lb(s0) {outcome.v_lb:.2f}  steps {outcome.steps}"
     )
 
 
-def certificate_line(msg: Certificate) -> str:
+def certificate_line(certificate: Certificate) -> str:
     """The certificate as a user must read it: what was checked, on which test, resting on what."""
-    proven = "proven" if msg.proven else "NOT proven (it rests on a step that does not hold here)"
+    c, spec, lipschitz = certificate, certificate.spec, certificate.spec.lipschitz
+    proven = "proven" if c.proven else "NOT proven (it rests on a step that does not hold here)"
     indent = "\n              "
     return (
-        f"[certificate] condition ({msg.condition}), epsilon {msg.epsilon:g}, p {msg.p:g}, delta {msg.delta:g}, "
-        f"L {msg.lipschitz:g} ({msg.lipschitz_source}, margin {msg.lipschitz_margin:g}), episodes {msg.episodes}, "
-        f"oracle calls {msg.oracle_calls}, |D| {msg.dataset_size}"
-        f"{indent}certify={msg.certify}: checked {msg.quantity}; test {msg.test}, delta spent {msg.delta_spent:.3g}; "
-        f"{proven}"
-        f"{indent}{msg.statement}" + "".join(f"{indent}assumes: {text}" for text in msg.assumptions)
+        f"[certificate] condition ({spec.condition}), epsilon {spec.epsilon:g}, p {spec.p:g}, delta {spec.delta:g}, "
+        f"L {lipschitz.value:g} ({lipschitz.source}, margin {lipschitz.margin:g}), episodes {c.episodes}, "
+        f"oracle calls {c.oracle_calls}, |D| {c.dataset_size}"
+        f"{indent}certify={spec.certify}: checked {QUANTITY[spec.certify]}; test {c.test}, delta spent "
+        f"{c.delta_spent:.3g}; {proven}"
+        f"{indent}{c.statement}" + "".join(f"{indent}assumes: {text}" for text in c.assumptions)
     )
+
+
+def report_line(report: GapRecord | EpisodeOutcome | Certificate) -> str:
+    """A report's line, as npp-monitor prints it live and from a bag."""
+    if isinstance(report, GapRecord):
+        return gap_line(report)
+    return episode_line(report) if isinstance(report, EpisodeOutcome) else certificate_line(report)
 
 
 class Monitor:
@@ -95,28 +104,27 @@ class Monitor:
             self.client.on_health(self.on_diagnostics)
         self.client.every(1.0, self.notice_if_silent)
 
-    def show(self, msg: GapReport | EpisodeResult | Certificate) -> None:
+    def show(self, report: GapRecord | EpisodeOutcome | Certificate) -> None:
         """A report to print (RunReports: this run's, or any while unverified, then marked so).
 
         Unverified, a line says so whenever the run the reports name changes, and the certificate says it
         too; the report lines themselves stay as `--bag` prints them.
         """
         self.last_message = time.monotonic()
-        mark = self.client.mark(msg)
+        mark = self.client.mark(report)
         if mark:
-            origin = report_origin(msg)
-            run = origin[1][:12] if origin else "none"
+            run = self.client.named_run(report)[:12] or "none"
             if run != self.unverified_run:
                 self.unverified_run = run
                 print(f"[reports] {UNVERIFIED}: the reports below name run {run}; any run on the domain, or a "
                       "replayed bag, may have sent them", flush=True)  # fmt: skip
-        if isinstance(msg, Certificate):
-            print(certificate_line(msg) + (f"\n              {mark}" if mark else ""), flush=True)
+        if isinstance(report, Certificate):
+            print(certificate_line(report) + (f"\n              {mark}" if mark else ""), flush=True)
             self.certified.set()
             if self.exit_on_certificate:  # from here on, the exit is due
                 self.start_leaving()
             return
-        print(gap_line(msg) if isinstance(msg, GapReport) else episode_line(msg), flush=True)
+        print(report_line(report), flush=True)
 
     def on_diagnostics(self, msg: DiagnosticArray) -> None:
         for line in health_lines(msg, self._health_shown):
@@ -177,15 +185,16 @@ def topic_names(text: str) -> set[str]:
 
 
 def print_bag(bag: str, topics: set[str]) -> int:
-    """A recorded run, line for line as it was printed live (the bag's own message definitions decode it)."""
+    """A recorded run, line for line as it was printed live: the bag's messages (decoded by the bag's own message
+    definitions) read as the records a live client gives, its plant description naming the certificate's task."""
     from npp_ros_graph.tools.bag import BagError, read_messages
 
-    lines = {GAP: gap_line, EPISODE: episode_line, CERTIFICATE: certificate_line}
-    shown = [name for name in lines if name == CERTIFICATE or name.rsplit("/", 1)[-1] in topics]
+    shown = [name for name in (GAP, EPISODE) if name.rsplit("/", 1)[-1] in topics] + [CERTIFICATE]
     try:
-        for message in read_messages(Path(bag), shown):
-            name = next(n for n in shown if message.topic.endswith("/" + n))
-            print(lines[name](message.msg), flush=True)
+        messages = ((message.msgtype, message.msg) for message in read_messages(Path(bag), [*shown, PLANT]))
+        for record in recorded_records(messages):
+            if isinstance(record, (GapRecord, EpisodeOutcome, Certificate)):
+                print(report_line(record), flush=True)
     except BagError as exc:
         print(f"npp-monitor: {exc}", file=sys.stderr)
         return 2

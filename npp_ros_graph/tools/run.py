@@ -1,6 +1,6 @@
 """npp-run: starts sim, expert, policy and supervisor as four processes and follows the run.
 
-Shows live progress from the /npp/gap topic, prints the certificate, and stops all four
+Shows live progress from the /npp/gap topic in npp-learn's lines, prints the certificate, and stops all four
 cleanly when the run is certified, when it runs out of episodes, on Ctrl-C, SIGTERM or SIGHUP,
 or when a node dies (saying which, why, and where its log is); a node whose process is stopped
 (SIGSTOP, a debugger) is named within seconds. The nodes die with npp-run even when it is
@@ -30,10 +30,11 @@ from pathlib import Path
 from typing import IO
 
 from diagnostic_msgs.msg import DiagnosticArray
-from npp_interfaces.msg import Certificate, GapReport
 
+from npp_ros.certificate.certifier import Certificate
 from npp_ros.cli.args import run_request
-from npp_ros.run.records import RunFileError
+from npp_ros.run.progress import progress_text
+from npp_ros.run.records import GapRecord, RunFileError
 from npp_ros.run.setup import run_file_notice
 from npp_ros.run.store import RUN_FILE
 from npp_ros.run.writer_lock import WriterLock
@@ -44,7 +45,7 @@ from npp_ros_graph.graph.npp_run_options import parse_args
 from npp_ros_graph.runtime.diagnostics import WARN, health_of
 from npp_ros_graph.runtime.node import TEARDOWN_S, UNNAMED, leave_if_teardown_hangs, node_name
 from npp_ros_graph.tools.dashboard import start_dashboard
-from npp_ros_graph.tools.monitor import certificate_line, gap_line
+from npp_ros_graph.tools.monitor import certificate_line
 from npp_ros_graph.tools.record import start_recorder
 from npp_ros_graph.transport.message_seal import KEY_ENV, RunSeal
 from npp_ros_graph.transport.topics import GAP, PLANT
@@ -63,11 +64,11 @@ TWO_GRAPHS = (
 
 
 class Follower:
-    """npp-run's view of its run, through a GraphClient: a progress line per gap report, the certificate that
-    ends the run, and what a node waits for or failed at."""
+    """npp-run's view of its run, through a GraphClient: a progress line per gap report (npp-learn's, of the
+    same record), the certificate that ends the run, and what a node waits for or failed at."""
 
     def __init__(self) -> None:
-        self.last: GapReport | None = None
+        self.last: GapRecord | None = None
         self.certificate: Certificate | None = None
         self.certified = threading.Event()
         # Only this run's reports: main() has set the run's key, and the run's supervisor names its run. Its past
@@ -75,8 +76,8 @@ class Follower:
         # before discovery matched this reader would be lost to a volatile one (a short run can end in its first
         # seconds, and npp-run would then wait for its last report forever).
         self.client = GraphClient(name="npp_run", past_reports=True)
-        self.client.on_gap(self.on_report)
-        self.client.on_certificate(self.on_report)
+        self.client.on_gap(self.on_gap)
+        self.client.on_certificate(self.on_certificate)
         self.client.on_health(self.on_health)
         self.client.on_notice(lambda line: say(f"\nnpp-run: {line}"))
         self.tty = sys.stderr.isatty()
@@ -97,15 +98,16 @@ class Follower:
             elif self._worried.pop(status.name, None) is not None:
                 say(f"\nnpp-run: {status.name[1:].replace('_', '-', 1)}: going on ({health.doing})")
 
-    def on_report(self, msg: GapReport | Certificate) -> None:
-        """A report of this run (RunReports): the progress line, or the certificate that ends the run."""
-        if isinstance(msg, Certificate):
-            self.certificate = msg
-            self.certified.set()
-            return
-        self.last = msg
+    def on_certificate(self, certificate: Certificate) -> None:
+        """The certificate of this run (RunReports), which ends it."""
+        self.certificate = certificate
+        self.certified.set()
+
+    def on_gap(self, gap: GapRecord) -> None:
+        """A gap report of this run (RunReports): its progress line, as npp-learn prints it."""
+        self.last = gap
         now = time.monotonic()
-        text = gap_line(msg)
+        text = progress_text(gap)
         if self.tty:
             say("\r" + text.ljust(110), end="")
         elif now - self._printed > 2.0:

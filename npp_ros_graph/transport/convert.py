@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import math
 from array import array
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -31,8 +32,8 @@ from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.policy.spec import PolicySpec
 from npp_ros.policy.vectors import finite_vector
 from npp_ros.run.loop import RunConfig
-from npp_ros.run.records import EpisodeOutcome, EpisodeRow, GapRecord
-from npp_ros.tasks.registry import Plant, control_space
+from npp_ros.run.records import EpisodeOutcome, EpisodeRow, GapRecord, PlantRecord
+from npp_ros.tasks.registry import Plant, control_space, get_task
 from npp_ros.tasks.uncertainty import Robot
 
 NS_PER_S = 1_000_000_000
@@ -226,6 +227,17 @@ def policy_spec_from_msg(msg: PolicySpecMsg) -> PolicySpec:
     return PolicySpec(kind, lipschitz, control)
 
 
+def plant_from_msg(msg: PlantDescription) -> PlantRecord:
+    """The plant a sim's description names, as the core record a viewer of the run reads (GraphClient)."""
+    return PlantRecord(
+        task=msg.task, seed=int(msg.seed), horizon=int(msg.horizon), timestep=float(msg.timestep),
+        state_dim=int(msg.state_dim), action_dim=int(msg.action_dim), joint_names=tuple(msg.joint_names),
+        actuated_joint_names=tuple(msg.actuated_joint_names), model_sha256=msg.model_sha256,
+        angle_entries=tuple(int(i) for i in msg.angle_entries), action_low=tuple(float(x) for x in msg.action_low),
+        action_high=tuple(float(x) for x in msg.action_high),
+    )  # fmt: skip
+
+
 def control_space_from(msg: PlantDescription) -> ControlSpace:
     """The plant's control space as its sim describes it (raises ValueError on a description that is no range)."""
     return ControlSpace.of(msg.state_dim, list(msg.angle_entries), list(msg.action_low), list(msg.action_high))
@@ -254,24 +266,26 @@ def robot_from_field(text: str) -> Robot | None:
 
 # ----------------------------------------------------------------------------- episodes
 def gap_report(row: EpisodeRow, config: RunConfig, time: Time) -> GapReport:
-    """One episode's decision as /npp/gap reports it."""
+    """One episode's decision as /npp/gap reports it: its GapRecord (the row against the run's spec), as a message."""
+    spec = config.spec
+    gap = GapRecord.of(row, epsilon=spec.epsilon, condition=spec.condition, certify=spec.certify)
     msg = GapReport(
-        episode=row.episode,
-        initial_state=float64_array(row.initial_state),
-        v_lb=row.v_lb,
-        v_ub=row.v_ub,
-        gap=row.gap,
-        epsilon=config.spec.epsilon,
-        oracle_called=row.oracle_called,
-        dataset_size=row.dataset_size,
-        oracle_calls=row.oracle_calls,
-        quiet_episodes=row.quiet_episodes,
-        quiet_required=row.required,
-        condition=config.spec.condition,
-        certify=config.spec.certify,
-        checked_gap=row.checked_gap,
-        test=row.test,
-        test_delta=row.test_delta,
+        episode=gap.episode,
+        initial_state=float64_array(gap.initial_state),
+        v_lb=gap.v_lb,
+        v_ub=gap.v_ub,
+        gap=gap.gap,
+        epsilon=gap.epsilon,
+        oracle_called=gap.oracle_called,
+        dataset_size=gap.dataset_size,
+        oracle_calls=gap.oracle_calls,
+        quiet_episodes=gap.quiet_episodes,
+        quiet_required=gap.required,
+        condition=gap.condition,
+        certify=gap.certify,
+        checked_gap=gap.checked_gap,
+        test=gap.test,
+        test_delta=gap.test_delta,
     )
     msg.header.stamp = time
     return msg
@@ -376,3 +390,33 @@ def certificate_from_msg(msg: CertificateMsg, task: str, diameter: float | None 
     own = None if math.isnan(msg.policy_lipschitz) else float(msg.policy_lipschitz)
     record.update(task=task, mixture=mixture, assumptions=list(msg.assumptions), policy_lipschitz=own)
     return Certificate.from_record(record, spec)
+
+
+def certificate_of_run(msg: CertificateMsg, plant: PlantRecord | None) -> Certificate:
+    """The certificate a message carries, for the run whose sim describes ``plant`` (its task, and under condition
+    (ii) the diameter of the task's initial states); None: no plant described yet, so no task."""
+    task = plant.task if plant is not None else ""
+    diameter = get_task(task).initial_state_diameter if task and msg.condition == "ii" else None
+    return certificate_from_msg(msg, task, diameter)
+
+
+# ----------------------------------------------------------------------------- recordings
+Record = GapRecord | EpisodeOutcome | Certificate | PlantRecord  # what a viewer of the run reads
+
+
+def recorded_records(messages: Iterable[tuple[str, Any]]) -> Iterator[Record]:
+    """A recording's reports and plant descriptions, as (message type, message) in recorded order (a bag's, each
+    decoded by the definitions the bag carries), as the records GraphClient gives live: each certificate for the
+    plant described last before it. Messages of other types are passed over."""
+    plant: PlantRecord | None = None
+    for msgtype, msg in messages:
+        kind = msgtype.rpartition("/")[2]
+        if kind == "PlantDescription":
+            plant = plant_from_msg(msg)
+            yield plant
+        elif kind == "GapReport":
+            yield gap_from_msg(msg)
+        elif kind == "EpisodeResult":
+            yield episode_from_msg(msg)
+        elif kind == "Certificate":
+            yield certificate_of_run(msg, plant)

@@ -12,10 +12,12 @@ from npp_interfaces.msg import Certificate as CertificateMsg
 from npp_interfaces.srv import ExpertTrajectory, ResetEpisode
 from sensor_msgs.msg import JointState
 
-from npp_ros.certificate.certifier import Certificate, CertificationSpec
+from npp_ros.certificate.certifier import Certificate, CertificationSpec, CertificationStatus
 from npp_ros.policy.dataset import DatasetError, Trajectory
 from npp_ros.policy.lipschitz import LipschitzConstant
-from npp_ros.run.records import EpisodeOutcome, EpisodeRow, GapRecord
+from npp_ros.run.loop import Observer
+from npp_ros.run.progress import progress_text, status_text
+from npp_ros.run.records import EpisodeOutcome, EpisodeRow, GapRecord, PlantRecord
 from npp_ros.run.setup import build_config, build_loop, resolve_lipschitz
 from npp_ros.tasks.builtin.lqr import LQRExpert
 from npp_ros.tasks.uncertainty import Robot
@@ -32,7 +34,9 @@ from npp_ros_graph.transport.convert import (
     gap_from_msg,
     gap_report,
     plant_description,
+    plant_from_msg,
     point_from_msg,
+    recorded_records,
     robot_from_field,
     robot_to_field,
     rollout_result,
@@ -256,7 +260,64 @@ def test_the_dashboard_reads_a_run_file_as_the_gap_reports_it_published(tmp_path
     hub = Hub("run", "file")
     load_run(tmp_path, hub)
     assert len(rows) == 6
-    assert hub.state["episodes"] == [episode_entry(gap_report(row, config, stamp(0))) for row in rows]
+    assert hub.state["episodes"] == [episode_entry(gap_from_msg(gap_report(row, config, stamp(0)))) for row in rows]
+
+
+class Said(Observer):
+    """npp-learn's progress line of each episode, as its StatusLine makes it from the loop's row and status."""
+
+    def __init__(self, spec: CertificationSpec) -> None:
+        self.spec, self.lines, self.rows = spec, [], []
+
+    def on_episode(self, row: EpisodeRow, status: CertificationStatus) -> None:
+        self.rows.append(row)
+        self.lines.append(status_text(row, self.spec.epsilon, status, self.spec.condition, self.spec.certify))
+
+
+def test_npp_runs_progress_line_of_a_gap_report_is_npp_learns_line_of_its_episode() -> None:
+    """One formatter at both doors: the line npp-run prints of the record a gap report reads back as is the line
+    npp-learn prints of the episode, counted from 1."""
+    expert = LQRExpert("lqr_2_1", 0, horizon=20)
+    config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "analytic", expert), 50.0, horizon=20)
+    said = Said(config.spec)
+    build_loop(config, expert, observers=[said]).run(max_episodes=4)
+    lines = [progress_text(gap_from_msg(gap_report(row, config, stamp(0)))) for row in said.rows]
+    assert lines == said.lines and lines[0].startswith("episode     1 | ")
+    assert lines[0].endswith(f"test {said.rows[0].test} streak 0/{said.rows[0].required}")
+
+
+def test_a_plant_description_reads_back_as_the_plant_record() -> None:
+    plant = LQRExpert("lqr_2_1", 3).plant
+    record = plant_from_msg(plant_description(plant, 3, 200))
+    assert isinstance(record, PlantRecord)
+    assert (record.task, record.seed, record.horizon, record.state_dim, record.action_dim) == ("lqr_2_1", 3, 200, 4, 1)
+    assert record.joint_names == tuple(plant.joint_names) and record.model_sha256 == plant.model_sha256()
+    assert record.timestep == plant.dt and len(record.action_low) == len(record.action_high) == 1
+
+
+def test_a_recording_reads_as_the_records_a_live_client_gets() -> None:
+    """A bag's messages (type, message) become the records GraphClient gives: the certificate for the task of the
+    plant described before it; a type that is no report is passed over."""
+    expert = LQRExpert("lqr_2_1", 0, horizon=20)
+    config = build_config("lqr_2_1", 0, resolve_lipschitz("lqr_2_1", "analytic", expert), 50.0, horizon=20)
+    row = build_loop(config, expert).run(max_episodes=1).rows[0]
+    lipschitz = LipschitzConstant(263.3, "lqr-analytic", margin=0.01)
+    cert = Certificate(
+        task="lqr_2_1", spec=CertificationSpec("i", 50.0, 0.9, 0.1, lipschitz), episodes=178, oracle_calls=52,
+        dataset_size=52000, policy_trajectories=40, window=22, required=22, test=3, delta_spent=0.1 / 12,
+        value="the return", statement="claim", proven=True, assumptions=("one",),
+    )  # fmt: skip
+    package = "npp_interfaces/msg/"
+    recorded = [
+        (package + "PlantDescription", plant_description(expert.plant, 0, 20)),
+        (package + "GapReport", gap_report(row, config, stamp(0))),
+        (package + "EpisodeResult", episode_result(row, 20, stamp(0))),
+        ("std_msgs/msg/UInt32", object()),
+        (package + "Certificate", certificate_to_msg(cert, stamp(0))),
+    ]
+    plant, gap, outcome, certificate = recorded_records(recorded)
+    assert plant == plant_from_msg(recorded[0][1]) and gap == gap_from_msg(recorded[1][1])
+    assert outcome == episode_from_msg(recorded[2][1]) and certificate == cert
 
 
 @pytest.mark.parametrize("rule", ["sequential", "paper", "mixture"])
@@ -280,6 +341,7 @@ def test_gap_and_episode_reports_read_back_as_core_records() -> None:
     row = build_loop(config, expert).run(max_episodes=1).rows[0]
     gap = gap_from_msg(gap_report(row, config, stamp(0)))
     assert isinstance(gap, GapRecord)
+    assert gap == GapRecord.of(row, epsilon=50.0, condition="i", certify=config.spec.certify)  # the row's record
     assert (gap.episode, gap.initial_state, gap.gap, gap.oracle_called, gap.epsilon) == (
         row.episode,
         tuple(row.initial_state),

@@ -12,7 +12,7 @@ import pytest
 
 import npp_ros
 from npp_ros.certificate.certifier import Certificate
-from npp_ros.run.records import EpisodeOutcome, GapRecord
+from npp_ros.run.records import EpisodeOutcome, GapRecord, PlantRecord
 from npp_ros_graph import GraphClient, GraphError
 from npp_ros_graph.transport.message_seal import KEY_ENV
 
@@ -54,6 +54,7 @@ def test_the_graph_client_tutorial_runs_as_written(
     # One record, over the graph or from the file; the file's spec (its metadata) does not keep L's margin.
     assert {**certificate.record(), "lipschitz_margin": 0.0} == stored.record()
     assert isinstance(client.latest(), (GapRecord, EpisodeOutcome, Certificate))  # type: ignore[attr-defined]
+    assert isinstance(namespace["plant"], PlantRecord)  # plant() and the callbacks give records, as the iterators do
     assert "npp-run: started" in (tmp_path / "runs" / "client-lqr_2_1" / "logs" / "npp-run.log").read_text()
 
 

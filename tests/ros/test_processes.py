@@ -265,7 +265,7 @@ def test_a_stopped_node_is_named_within_seconds(tmp_path: Path, ros_domain: int)
     run_dir, out = tmp_path / "run", tmp_path / "npp-run.out"
     with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), log=out)) as run:
         supervisor = nodes_up(run_dir, run.pid)["supervisor"]
-        wait_until(lambda: "[gap]" in out.read_text(), START_TIMEOUT_S, "the first gap report")
+        wait_until(lambda: "| oracle calls" in out.read_text(), START_TIMEOUT_S, "the first progress line")
         os.kill(supervisor, signal.SIGSTOP)
         stopped = time.monotonic()
         try:
