@@ -9,7 +9,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from npp_ros.deployment.gate import Deployment
 from npp_ros.policy.dataset import FloatArray
@@ -19,6 +18,8 @@ class Coverage:
     """How far a state lies from the certified policy's data (Euclidean, in the stored state space)."""
 
     def __init__(self, data_states: FloatArray, radius: float) -> None:
+        from scipy.spatial import cKDTree  # on first use, not at npp-deploy's start
+
         self._tree = cKDTree(np.asarray(data_states, dtype=np.float64))
         self.radius = float(radius)
 

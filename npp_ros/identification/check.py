@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from npp_ros.identification.fit import Identification
 from npp_ros.policy.bounds import NonparametricPolicy
@@ -44,6 +43,8 @@ def clopper_pearson_lower(successes: int, trials: int, delta: float) -> float:
                          f"{delta}")  # fmt: skip
     if successes == 0:
         return 0.0
+    from scipy import stats  # on first use, not at every importer's start
+
     return float(stats.beta.ppf(delta, successes, trials - successes + 1))
 
 

@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import optimize, stats
 
 from npp_ros.identification.recording import Recording
 from npp_ros.policy.dataset import FloatArray
@@ -399,6 +398,9 @@ def _fit_delay(
         def jacobian(x: FloatArray, w: FloatArray = w) -> FloatArray:
             return _central_jacobian(errors, x, w)
 
+        # scipy.optimize and .stats load on first use: npp-deploy imports this module, and they take a second to load
+        from scipy import optimize
+
         fit = optimize.least_squares(
             residual, z, jac=jacobian, bounds=(-LOG_BOUND, LOG_BOUND), method="trf", tr_solver="exact",
             x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100,
@@ -443,6 +445,8 @@ def _combinations(
     # that, below where the fit reproduces them more finely; the noise is taken as at least the resolution.
     s2 = max(float(residuals @ residuals) / dof, 1.0)
     covariance = s2 * (basis.T / s[~null] ** 2) @ basis  # (J'J)^+ on what the data sees
+    from scipy import stats
+
     t = float(stats.t.ppf(0.5 + confidence / 2, dof))
     refs = _references(names, kernel)
     rows, labels = [], []
@@ -544,6 +548,8 @@ def _place(
     matrix = np.hstack([kernel, -np.eye(p)])
     lower = np.concatenate([np.full(a_count, -np.inf), low])
     upper = np.concatenate([np.full(a_count, np.inf), high])
+    from scipy import optimize
+
     solved = optimize.lsq_linear(matrix, -z, bounds=(lower, upper), method="bvls")
     z_hat = z + kernel @ solved.x[:a_count]
     outside = [j for j in range(p) if not low[j] - 1e-9 <= z_hat[j] <= high[j] + 1e-9]
@@ -570,6 +576,8 @@ def _place(
     # do the intervals reach the set? a robot y in the box with every combination within its interval
     bounds_lo = np.log([c.low for c in result.combinations])
     bounds_hi = np.log([c.high for c in result.combinations])
+    from scipy import optimize
+
     feasible = optimize.linprog(
         np.zeros(p), A_ub=np.vstack([rows, -rows]), b_ub=np.concatenate([bounds_hi, -bounds_lo]),
         bounds=list(zip(low, high, strict=True)), method="highs",

@@ -16,7 +16,6 @@ driver runs, so an episode rolls the policy out once whatever asks for its state
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
@@ -72,6 +71,8 @@ class RolloutExplorer:
         if len(policy.dataset) == 0 or self.radius == 0:
             return None
         states = self.replay.rollout(initial_state, policy, robot).states
+        from scipy.spatial import cKDTree  # here, not at the top: every node imports this module, few explore
+
         distance, _ = cKDTree(policy.dataset.states).query(states)
         far = np.flatnonzero(distance > self.radius)
         return None if len(far) == 0 else states[far[0]].copy()
