@@ -168,10 +168,8 @@ def test_a_run_on_a_robot_is_played_back_by_the_gate_and_an_edit_sealed_again_is
     certified_on_robot: Path, tmp_path: Path
 ) -> None:
     run = read_run(certified_on_robot)
-    found = rederive(run)
-    assert found.agrees, found.differences
     fingerprint = RobotIdentity.from_record(run.metadata.robot_run).fingerprint
-    deployment = load_deployment(certified_on_robot, Acceptance(model_fingerprint=fingerprint))
+    deployment = load_deployment(certified_on_robot, Acceptance(model_fingerprint=fingerprint))  # re-derives it
     assert deployment.derived.startswith("derived again")
     with pytest.raises(GateRefusal, match="certified on the robot itself"):
         load_deployment(certified_on_robot, Acceptance(model_fingerprint="f" * 64, rederive=False))

@@ -422,9 +422,9 @@ def test_configure_at_once_after_the_start_waits_for_the_robots_description(runs
     """The tutorial's order, again and again: the robot publishes its latched description, npp-deploy starts, and
     configure comes as soon as the node answers. A fresh node may not have discovered the robot yet; configure
     waits for the description (description_timeout) instead of refusing for the lack of it.
-    NPP_CONFIGURE_TRIES sets how many times (5 here; docs/tutorials/robot.md gives a figure for 20)."""
+    NPP_CONFIGURE_TRIES sets how many times (2 here; docs/tutorials/robot.md gives a figure for 20)."""
     good, _ = runs
-    tries = int(os.environ.get("NPP_CONFIGURE_TRIES", "5"))
+    tries = int(os.environ.get("NPP_CONFIGURE_TRIES", "2"))
     launch("npp-robot")
     client = ros_client("configure_at_once")
     waits = []

@@ -81,7 +81,10 @@ def nodes_up(run_dir: Path, parent: int) -> dict[str, int]:
 
 
 # ----------------------------------------------------------------------------- 1. children die with npp-run
-@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGHUP, signal.SIGTERM])
+# SIGHUP takes the same path as SIGTERM (npp-run forwards both): it runs with the long tests.
+@pytest.mark.parametrize(
+    "signum", [signal.SIGKILL, pytest.param(signal.SIGHUP, marks=pytest.mark.long), signal.SIGTERM]
+)
 def test_nodes_die_with_npp_run(tmp_path: Path, ros_domain: int, signum: signal.Signals) -> None:
     run_dir, out = tmp_path / "run", tmp_path / "npp-run.out"
     with domain_id() as domain, stopped_at_exit(npp_run(run_dir, int(domain), log=out)) as run:
