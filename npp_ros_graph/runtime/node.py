@@ -63,7 +63,10 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from npp_ros_graph.transport.parameters import StartupError
+
+class StartupError(RuntimeError):
+    """A node refuses to start; the message says why."""
+
 
 try:  # rclpy >= 7.1 (Jazzy); the fallback is the SingleThreadedExecutor
     from rclpy.experimental import EventsExecutor

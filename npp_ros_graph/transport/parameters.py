@@ -30,6 +30,7 @@ from rclpy.parameter import Parameter
 
 from npp_ros.certificate.choices import parse_lipschitz
 from npp_ros.run.request import COUNT, INDEX, LIPSCHITZ, NUMBER, Setting, request_fields
+from npp_ros_graph.runtime.node import StartupError
 
 Value = bool | int | float | str
 Settings = TypeVar("Settings")
@@ -76,10 +77,6 @@ def request_params(names: Sequence[str] | None = None, *, read_only: bool = True
         params.append(Param(field.name, TASK_CHOICE, setting.text(), choices=choices, read_only=read_only,
                             read=_reader(setting)))  # fmt: skip
     return tuple(params)
-
-
-class StartupError(RuntimeError):
-    """A node refuses to start; the message says why."""
 
 
 @dataclass(frozen=True)
