@@ -28,7 +28,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from npp_ros.policy.dataset import Dataset, DatasetError, FloatArray
 from npp_ros.policy.feedback import FEEDBACK_KINDS, ControlSpace, PolicyKind, check_policy_kind, feedback_actions
-from npp_ros.policy.kdtree import BoundIndex
 from npp_ros.policy.path import follow, trajectory_slack
 from npp_ros.policy.vectors import bounded
 
@@ -148,6 +147,9 @@ class NonparametricPolicy:
             else None
         )
         self.metric: Dataset | MeasuredData = dataset if self.measured is None else self.measured
+        # numba (the index's kernels) loads with the first policy, not with every process that imports this module
+        from npp_ros.policy.kdtree import BoundIndex
+
         self.index = BoundIndex(self.metric, self.lipschitz, compress=compress) if index else None  # type: ignore[arg-type]
         self._slack = np.zeros(0)  # path: r of each stored trajectory (npp_ros.policy.path)
 
