@@ -2,7 +2,8 @@
 policy kind, per distance and per L the policy acts by.
 
 For a run folder, the policy is rebuilt on the run's first k trajectories (k on a doubling schedule up to all of
-them), for each policy kind, each distance (the task's own weights, or ``plain``: every entry 1) and each L of a
+them), for each policy kind, each distance (the task's own weights; ``plain``: every entry 1; ``spread``: each
+entry by the inverse of its spread in the data the policy holds, ControlSpace.weighted_by_spread) and each L of a
 grid (multiples of the run's own L, and 1e10, where V_lb's choice is the nearest point), and rolled out from N
 held-out starts of the run's seed (npp-learn's held-out stream: starts no run drew); the figure is the share that
 met the task's success criterion. No expert is asked anything. The success claim rests on no L, so the L a policy
@@ -35,7 +36,7 @@ def schedule(count: int) -> list[int]:
     return [*sizes, count]
 
 
-DISTANCES = ("task", "plain")
+DISTANCES = ("task", "plain", "spread")
 
 
 def measure(
@@ -50,10 +51,11 @@ def measure(
     own = float(run.spec.lipschitz.value)
     grid = [own * f if f < NEAREST_L else NEAREST_L for f in factors]
     control = task_control_space(str(run.metadata.task), seed)
-    spaces = {"task": control, "plain": dataclasses.replace(control, weights=())}
     rows = []
     for k in schedule(run.dataset.num_trajectories):
         data = run.dataset.prefix(k)
+        spread = control.weighted_by_spread(data.states)  # read off the data the policy holds, no other
+        spaces = {"task": control, "plain": dataclasses.replace(control, weights=()), "spread": spread}
         for kind, distance, lipschitz in itertools.product(kinds, distances, grid):
             spec = dataclasses.replace(
                 run.spec, policy=kind, lipschitz=dataclasses.replace(run.spec.lipschitz, value=lipschitz)
@@ -117,7 +119,8 @@ def main() -> None:
     parser.add_argument("--starts", type=int, default=200, help="held-out starts per evaluation")
     parser.add_argument("--policies", nargs="+", default=list(KINDS), choices=KINDS, help="policy kinds")
     parser.add_argument("--distances", nargs="+", default=list(DISTANCES), choices=DISTANCES,
-                        help="the task's distance weights, and/or plain (every entry 1)")  # fmt: skip
+                        help="the task's distance weights, plain (every entry 1), and/or spread (each entry "
+                        "weighed by the inverse of its spread in the policy's data)")  # fmt: skip
     parser.add_argument("--lipschitz-factors", nargs="+", type=float, default=[*L_FACTORS, NEAREST_L],
                         help="the policy's L as multiples of the run's own (1e10 or more: L = 1e10)")  # fmt: skip
     parser.add_argument("--out", type=Path, required=True, help="output folder")

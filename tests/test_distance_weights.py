@@ -94,3 +94,24 @@ def test_a_task_file_states_its_weights_by_joint(tmp_path: Path, table: str, exp
             get_task(str(path))
         return
     assert task_control_space(str(path), 0).weights == (2.0, 0.5, 1.0, 3.0)
+
+
+def test_weights_by_spread_make_each_moving_entry_count_alike_and_keep_the_scale() -> None:
+    """Each measured entry weighs the inverse of its spread in the data (angle differences wrapped), the weights'
+    geometric mean is 1; an entry that never moves and an invariant one keep weight 1."""
+    rng = np.random.default_rng(3)
+    states = np.column_stack([
+        rng.normal(0.0, 0.1, 500),  # an entry with a spread of 0.1
+        rng.normal(0.0, 2.0, 500),  # and one with 2
+        np.full(500, 0.7),  # one that never moves
+        rng.normal(0.0, 5.0, 500),  # an invariant one: not in the distance
+        np.pi + rng.normal(0.0, 0.2, 500),  # an angle across the +-pi seam, stored wrapped
+    ])  # fmt: skip
+    states[:, 4] = np.pi - np.mod(np.pi - states[:, 4], 2 * np.pi)
+    control = ControlSpace.of(5, [4], [-1.0], [1.0], invariant=[3])
+    weights = np.array(control.weighted_by_spread(states).weights)
+    moving = weights[[0, 1, 4]]
+    assert np.exp(np.mean(np.log(moving))) == pytest.approx(1.0)
+    assert weights[2] == weights[3] == 1.0
+    spread = np.array([0.1, 2.0, 0.2])  # the angle's spread measured across the seam, not 2 pi wide
+    assert moving * spread == pytest.approx(np.full(3, moving[0] * 0.1), rel=0.1)

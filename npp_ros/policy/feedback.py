@@ -114,6 +114,24 @@ class ControlSpace:
             tuple(float(w) for w in weights) if any(float(w) != 1.0 for w in weights) else (),
         )
 
+    def weighted_by_spread(self, states: FloatArray) -> ControlSpace:
+        """This space with distance weights read off stored ``states``: each measured entry's weight the inverse of
+        its spread there (its standard deviation, angles' differences wrapped), so that each entry's typical variation
+        counts alike; scaled so that their geometric mean is 1, which keeps an L's scale. An entry that does not vary
+        in the data keeps weight 1 (its difference there is 0). What a task that states no weights might use."""
+        rows = np.asarray(states, dtype=np.float64).reshape(-1, self.state_dim)
+        center = rows.mean(axis=0)
+        if self.angles:  # an angle's mean on the circle: values on both sides of the +-pi seam are near
+            index = list(self.angles)
+            center[index] = np.arctan2(np.sin(rows[:, index]).mean(axis=0), np.cos(rows[:, index]).mean(axis=0))
+        spread = np.std(self.difference(rows, np.broadcast_to(center, rows.shape).copy()), axis=0)
+        moving = [i for i in self.measured if spread[i] > 1e-12 * max(1.0, float(np.abs(rows[:, i]).max()))]
+        weights = np.ones(self.state_dim)
+        if moving:
+            inverse = 1.0 / spread[moving]
+            weights[moving] = inverse / math.exp(float(np.mean(np.log(inverse))))
+        return ControlSpace.of(self.state_dim, self.angles, self.action_low, self.action_high, self.invariant, weights)
+
     @property
     def metric_weights(self) -> FloatArray | None:
         """The weights of the measured entries, in their order; None when every one is 1."""
