@@ -63,10 +63,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-
-class StartupError(RuntimeError):
-    """A node refuses to start; the message says why."""
-
+from npp_ros_graph.transport.startup import StartupError
 
 try:  # rclpy >= 7.1 (Jazzy); the fallback is the SingleThreadedExecutor
     from rclpy.experimental import EventsExecutor

@@ -30,7 +30,7 @@ from rclpy.parameter import Parameter
 
 from npp_ros.certificate.choices import parse_lipschitz
 from npp_ros.run.request import COUNT, INDEX, LIPSCHITZ, NUMBER, Setting, request_fields
-from npp_ros_graph.runtime.node import StartupError
+from npp_ros_graph.transport.startup import StartupError
 
 Value = bool | int | float | str
 Settings = TypeVar("Settings")
