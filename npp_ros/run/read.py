@@ -29,7 +29,7 @@ from npp_ros.run.records import EpisodeRow, RobotEpisode, RunFileError, RunMetad
 from npp_ros.run.seal import SealCheck, check_file
 from npp_ros.run.setup import policy_for, spec_of
 from npp_ros.run.store import RUN_FILE, RunStore
-from npp_ros.tasks.registry import Task, get_task
+from npp_ros.tasks.registry import Task, get_task, task_label
 from npp_ros.tasks.uncertainty import UncertaintySet
 
 # The metadata a reader relies on, with the type each must have (RunConfig.metadata() writes them).
@@ -89,7 +89,8 @@ class Run:
         of each drawn parameter (npp_ros.run.per_robot.success_map); None for a run on the exact model."""
         if self.robots is None:
             return None
-        source = f"run {self.folder.name} ({self.task.name}, seed {self.metadata.seed}, {len(self.episodes)} episodes)"
+        named = task_label(self.task.name)  # a task file's name, not its path (the identity stays in the run file)
+        source = f"run {self.folder.name} ({named}, seed {self.metadata.seed}, {len(self.episodes)} episodes)"
         bodies = model_bodies(self.task, int(self.metadata.seed))
         return run_success_map(self.robots, self.episodes, source, bodies=bodies)
 

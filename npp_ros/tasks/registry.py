@@ -89,8 +89,13 @@ def get_task(name: str) -> Task:
 
 def task_label(name: str) -> str:
     """The task as outputs name it for people: a task file's ``name`` key (its identity, the path and content
-    hash, stays in run files and messages); any other task's registered name."""
-    label = getattr(getattr(get_task(name), "definition", None), "label", "")
+    hash, stays in run files and messages); any other task's registered name, or the name as given where it no longer
+    loads (a label must not stop an output)."""
+    try:
+        task = get_task(name)
+    except (ValueError, OSError):  # UnknownTaskError, TaskFileError (a file changed or gone): both ValueErrors
+        return name
+    label = getattr(getattr(task, "definition", None), "label", "")
     return label if isinstance(label, str) and label else name
 
 

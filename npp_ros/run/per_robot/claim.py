@@ -48,7 +48,7 @@ from npp_ros.policy.bounds import NonparametricPolicy
 from npp_ros.policy.dataset import FloatArray
 from npp_ros.policy.lipschitz import LipschitzConstant
 from npp_ros.run import defaults
-from npp_ros.tasks.registry import Plant, Task
+from npp_ros.tasks.registry import Plant, Task, task_label
 from npp_ros.tasks.suite_plant import SuitePlant
 from npp_ros.tasks.uncertainty import Robot, RobotEffects, UncertaintySet, as_robot
 
@@ -355,7 +355,8 @@ class RobotClaim:
 
     def text(self) -> str:
         return "\n".join([
-            f"PER-ROBOT CLAIM ({self.task}, run {self.run}): {'certified' if self.certified else 'NOT certified'}",
+            f"PER-ROBOT CLAIM ({task_label(self.task)}, run {self.run}): "  # the task file's name, not its path
+            f"{'certified' if self.certified else 'NOT certified'}",
             f"  set             {self.robots}",
             f"  policy          {self.policy}",
             f"  q, p_r, delta   {self.q:g}, {self.p_r:g}, {self.delta:g}",
