@@ -19,5 +19,6 @@ claim() {  # p_r, m, most robot checks; the files named by p_r (and m where it i
 claim 0.8 50 100
 claim 0.9 50 100
 claim 0.8 100 200
-# The task is named by its file's path as the run stored it: shortened to the repository's own.
+# The JSON records name the task by its identity as the run stored it (its path and hash): the path shortened to
+# the repository's own.
 sed -i "s#$(pwd)/##g" "$out"/*.txt "$out"/*.json
